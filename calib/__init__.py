@@ -1,0 +1,1 @@
+"""Fitting the deformation model to observations, and calibration profiles on disk."""

@@ -1,0 +1,46 @@
+"""Argument parsing, error reporting and exit codes of the ``softgrip`` command."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from softgrip_jax import SoftgripError
+
+# Exit codes: 0 success, 1 unexpected failure (a bug: traceback shown), 2 user error (bad input,
+# message only), 130 interrupted.
+EXIT_USER_ERROR = 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from softgrip_cli import cmd_demo
+
+    parser = argparse.ArgumentParser(
+        prog="softgrip",
+        description="Pre-touch deformation estimation of a soft gripper from one RGB-D frame.",
+    )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks of user errors too")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for module in (cmd_demo,):
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except SoftgripError as err:
+        if args.debug:
+            raise
+        print(f"softgrip {args.command}: error: {err}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,33 @@
+"""softgrip-jax: pre-touch deformation estimation of a soft gripper, as a differentiable JAX core.
+
+Where each equation of the paper lives:
+
+====================  ===============================================================
+eqs. 1-3              :mod:`softgrip_jax._kinematics` (``pcc_joints``, ``forward_kinematics``)
+eqs. 5-8, Figs. 7-8   :mod:`softgrip_jax._contact` (``predict_contact``)
+eq. 9, Fig. 9         :mod:`softgrip_jax._deformation` (``estimate``)
+eq. 10                :mod:`softgrip_jax._metrics` (``joint_errors``)
+====================  ===============================================================
+
+The object is a signed-distance function (:mod:`softgrip_jax._sdf`); fingers at other places,
+rotated or mirrored, see it through a frame (:mod:`softgrip_jax._frames`).
+"""
+
+from softgrip_jax._batch import estimate_batch, estimate_grasp_batch
+from softgrip_jax._contact import CASE_NAMES, Contact, ContactCase, ContactConfig, predict_contact, sweep_shape
+from softgrip_jax._deformation import Estimate, Status, case_shapes, estimate, estimate_in_frame
+from softgrip_jax._errors import SoftgripError
+from softgrip_jax._frames import FingerFrame, FrameSDF
+from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
+from softgrip_jax._kinematics import chain_stations, forward_kinematics, link_angles, pcc_joints, pcc_turning
+from softgrip_jax._metrics import joint_errors
+from softgrip_jax._model import FingerModel, Gripper
+from softgrip_jax._sdf import AbstractSDF, PolygonSDF, SDFGrid
+
+__all__ = [
+    "AbstractSDF", "CASE_NAMES", "Contact", "ContactCase", "ContactConfig", "Estimate", "FingerFrame",
+    "FingerModel", "FrameSDF", "GraspEstimate", "Gripper", "PolygonSDF", "SDFGrid", "SoftgripError",
+    "Status", "case_shapes", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
+    "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",
+    "joint_errors", "link_angles", "pcc_joints", "pcc_turning", "predict_contact", "sweep_shape",
+]

@@ -1,0 +1,261 @@
+"""Contact prediction (paper section IV-B, eqs. 5-8) as a sweep over the object's SDF.
+
+The finger closes from straight (s = 0) to its calibrated shape (s = Theta). At closing progress s
+it is the PCC chain with turning angles 2 s / N (or, with ``sweep="rigid"``, the straight finger
+rotated about its base by s: the paper's "same angle beta for every link"). In both readings s is
+the angle of the base-tip chord. The clearance
+
+    g(s) = min over centreline stations of (sdf(station) - r)
+
+is positive while the finger is free. The first contact s1 is the smallest root of g: bracketed on
+a coarse grid of s values (one vectorised SDF lookup), then refined by an optimistix root finder, so
+that derivatives of s1 come from the implicit function theorem. Then (eqs. 6-8):
+
+* P_g1: the touching point of the finger (nearest the base), L_g1 its arc length, N_g1 = L_g1 N / L;
+* P_o1: P_g1 moved onto the object surface along the SDF's normal;
+* N_g1 within half a link of N: contact at the tip only (case b);
+* otherwise the circle of radius L_g2 = L - L_g1 around P_o1 is intersected with the object
+  boundary; P_o2 is the crossing with the largest y; Theta_o1 and Theta_o1o2 are the angles of
+  P_base->P_o1 and P_o1->P_o2 from the vertical, Theta_remain = Theta - Theta_o1 (eq. 8); the tip
+  reaches P_o2 (case c) if Theta_remain >= Theta_o1o2, else only the other area touches (case d).
+
+All coordinates here are in the finger's frame: base at ``base``, hanging toward +y, curling
+toward +x (see :mod:`softgrip_jax._frames` for other placements).
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
+
+from softgrip_jax._errors import SoftgripError
+from softgrip_jax._kinematics import chain_stations, forward_kinematics, pcc_turning
+from softgrip_jax._model import FingerModel
+from softgrip_jax._safe import direction_angle, safe_divide, unit_direction
+from softgrip_jax._sdf import AbstractSDF
+
+
+class ContactCase(enum.IntEnum):
+    """The four contact cases of the paper's Fig. 6."""
+
+    NONE = 0  #: (a) no contact
+    TIP = 1  #: (b) contact only at the tip
+    TIP_AND_OTHER = 2  #: (c) contact at the tip and another area
+    OTHER = 3  #: (d) contact at an area other than the tip
+
+
+#: Names of the cases, indexed by :class:`ContactCase` value (the JSON and CLI spelling).
+CASE_NAMES: tuple[str, ...] = ("none", "tip", "tip_and_other", "other")
+
+
+class ContactConfig(eqx.Module):
+    """How the contact sweep is discretised (all static: changing one recompiles).
+
+    Attributes:
+        sweep: ``"pcc"`` (default) closes the finger along its PCC shapes; ``"rigid"`` rotates the
+            straight finger about its base (the paper's Fig. 7 read literally).
+        n_sweep: values of s on the coarse bracketing grid over [0, Theta]. A protrusion thinner
+            than the tip's travel between two grid values (about L Theta / (n_sweep - 1)) can be
+            missed.
+        stations_per_link: centreline sample points per link (plus the tip).
+        n_circle: samples of the second-contact circle (Fig. 8).
+        root_atol: tolerance of the first-contact root, on s (rad) and on g (mm).
+        root_max_steps: iteration cap of the root finder.
+        tip_tolerance: N_g1 within this many links of N counts as the tip (case b).
+    """
+
+    sweep: Literal["pcc", "rigid"] = eqx.field(static=True, default="pcc")
+    n_sweep: int = eqx.field(static=True, default=24)
+    stations_per_link: int = eqx.field(static=True, default=2)
+    n_circle: int = eqx.field(static=True, default=96)
+    root_atol: float = eqx.field(static=True, default=1e-4)
+    root_max_steps: int = eqx.field(static=True, default=48)
+    tip_tolerance: float = eqx.field(static=True, default=0.5)
+
+    def __check_init__(self):
+        if self.sweep not in ("pcc", "rigid"):
+            raise SoftgripError(f"ContactConfig.sweep must be 'pcc' or 'rigid', got {self.sweep!r}")
+        for name, low in (("n_sweep", 2), ("stations_per_link", 1), ("n_circle", 8), ("root_max_steps", 1)):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < low:
+                raise SoftgripError(f"ContactConfig.{name} must be an integer >= {low}, got {value!r}")
+
+
+class Contact(eqx.Module):
+    """Predicted contact of one finger (finger-frame coordinates, mm and rad).
+
+    Fields that a case does not define (for example P_o2 without a second contact) hold finite
+    placeholder values; read them through ``case``.
+    """
+
+    case: Int[Array, ""]  #: a :class:`ContactCase` value
+    touches: Bool[Array, ""]  #: any contact in [0, Theta]
+    s1: Float[Array, ""]  #: closing progress (chord angle, rad) at first contact; Theta if none
+    p_g1: Float[Array, "2"]  #: first contact point on the finger centreline (mm)
+    p_o1: Float[Array, "2"]  #: first contact point on the object surface (mm)
+    p_o2: Float[Array, "2"]  #: second contact point on the object surface (mm), if any
+    has_second: Bool[Array, ""]  #: the circle of Fig. 8 crosses the object boundary
+    l_g1: Float[Array, ""]  #: arc length from the base to P_g1 (eq. 6, mm)
+    n_g1: Float[Array, ""]  #: L_g1 / L * N (eq. 7), fractional
+    theta_o1: Float[Array, ""]  #: angle of P_base -> P_o1 from the vertical (rad)
+    theta_o1o2: Float[Array, ""]  #: angle of P_o1 -> P_o2 from the vertical (rad)
+    theta_remain: Float[Array, ""]  #: Theta - Theta_o1 (eq. 8, rad)
+    initial_overlap: Bool[Array, ""]  #: the object already overlaps the open finger (s = 0)
+    root_converged: Bool[Array, ""]  #: the root finder met its tolerance
+
+
+def sweep_shape(
+    finger: FingerModel, s: Float[Array, ""], sweep: Literal["pcc", "rigid"] = "pcc"
+) -> tuple[Float[Array, ""], Float[Array, " n"]]:
+    """``(psi, turning)`` of the finger at closing progress ``s`` (its base-tip chord angle, rad)."""
+    if sweep == "pcc":
+        return jnp.zeros_like(s), pcc_turning(s, finger.n_links)
+    return s, jnp.zeros((finger.n_links,), dtype=jnp.result_type(s))
+
+
+def _stations(finger, base, s, config):
+    psi, turning = sweep_shape(finger, s, config.sweep)
+    joints = forward_kinematics(base, psi, turning, finger.length)
+    return chain_stations(joints, finger.length, config.stations_per_link)
+
+
+def _clearance(finger, sdf, base, s, config):
+    points, _ = _stations(finger, base, s, config)
+    return jnp.min(sdf.distance(points)) - finger.half_thickness
+
+
+def _refine_along_finger(d: Float[Array, " m"], arc: Float[Array, " m"], k: Int[Array, ""]):
+    """Arc length of the clearance minimum near station k: vertex of the parabola through k-1, k, k+1."""
+    m = d.shape[0]
+    lo, hi = jnp.maximum(k - 1, 0), jnp.minimum(k + 1, m - 1)
+    d_lo, d_k, d_hi = d[lo], d[k], d[hi]
+    curvature = d_lo - 2.0 * d_k + d_hi
+    offset = safe_divide(0.5 * (d_lo - d_hi), curvature)
+    # Interior stations move at most half a station; end stations only inward.
+    offset = jnp.clip(offset, jnp.where(k == 0, 0.0, -0.5), jnp.where(k == m - 1, 0.0, 0.5))
+    offset = jnp.where(curvature > 0, offset, 0.0)
+    spacing = arc[1] - arc[0]
+    return arc[k] + offset * spacing
+
+
+def _point_at_arc_length(joints, length, l):
+    """The centreline point (mm) at arc length ``l`` along a chain of straight links."""
+    n = joints.shape[0] - 1
+    u = jnp.clip(l / length * n, 0.0, n)
+    k = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, n - 1)
+    t = u - k
+    return joints[k] + t * (joints[k + 1] - joints[k])
+
+
+def _second_contact(sdf, p_o1, radius, n_circle):
+    """Crossings of the circle (centre P_o1, ``radius``) with the object boundary (Fig. 8).
+
+    Returns (has_crossing, P_o2, angle of P_o1 -> P_o2): the crossing with the largest y, i.e. the
+    direction nearest the downward vertical.
+    """
+    dtype = p_o1.dtype
+    step = 2.0 * jnp.pi / n_circle
+    phi = (jnp.arange(n_circle, dtype=dtype) - n_circle // 2) * step  # [-pi, pi)
+    d = sdf.distance(p_o1 + radius * unit_direction(phi))
+    d_next = jnp.roll(d, -1)
+    crossing = (d > 0) != (d_next > 0)
+    frac = jnp.clip(safe_divide(d, d - d_next, 0.5), 0.0, 1.0)
+    angle = phi + frac * step
+    angle = jnp.where(angle >= jnp.pi, angle - 2.0 * jnp.pi, angle)
+    ranking = jnp.where(crossing, jnp.cos(angle), -jnp.inf)
+    best = jnp.argmax(ranking)
+    has = jnp.any(crossing)
+    theta_o1o2 = jnp.where(has, angle[best], 0.0)
+    return has, p_o1 + radius * unit_direction(theta_o1o2), theta_o1o2
+
+
+def predict_contact(
+    finger: FingerModel,
+    sdf: AbstractSDF,
+    base: Float[Array, "2"],
+    config: ContactConfig = ContactConfig(),
+) -> Contact:
+    """Predict where the finger hanging from ``base`` first touches the object, and its case.
+
+    Args:
+        finger: the calibrated finger.
+        sdf: the object's signed distance (mm), in the same coordinates as ``base``.
+        base: (2,) finger base in mm. The finger hangs toward +y and curls toward +x.
+        config: sweep discretisation.
+
+    Returns:
+        A :class:`Contact` (mm, rad). Pure, jit-, vmap- and grad-compatible.
+    """
+    dtype = finger.length.dtype
+    base = jnp.asarray(base, dtype)
+    theta = finger.theta_entire
+    n, r, length = finger.n_links, finger.half_thickness, finger.length
+
+    # Coarse bracket: clearance at every grid value of s, in one lookup.
+    s_grid = theta * jnp.linspace(0.0, 1.0, config.n_sweep, dtype=dtype)
+    points = jax.vmap(lambda s: _stations(finger, base, s, config)[0])(s_grid)
+    g_grid = jnp.min(sdf.distance(points), axis=-1) - r
+    hit = g_grid <= 0
+    touches = jnp.any(hit)
+    j = jnp.argmax(hit)
+    initial_overlap = hit[0]
+    need_root = touches & ~initial_overlap
+    lower = s_grid[jnp.maximum(j - 1, 0)]
+    upper = jnp.where(need_root, s_grid[j], lower + 1.0)
+    middle = 0.5 * (lower + upper)
+
+    def fn(s, args):
+        finger_, sdf_, base_, middle_ = args
+        # Where there is no bracket, solve a harmless stand-in with the same orientation
+        # (positive below its root), so that the implicit derivative stays finite.
+        real = _clearance(finger_, sdf_, base_, s, config)
+        return jnp.where(need_root, real, middle_ - s)
+
+    solver = optx.Bisection(rtol=0.0, atol=config.root_atol, flip=True)
+    solution = optx.root_find(
+        fn, solver, middle, args=(finger, sdf, base, middle),
+        options=dict(lower=lower, upper=upper), throw=False, max_steps=config.root_max_steps,
+    )
+    root_converged = (solution.result == optx.RESULTS.successful) | ~need_root
+    s1 = jnp.where(need_root, solution.value, jnp.where(initial_overlap, 0.0, theta))
+
+    # First contact point on the finger (eq. 6-7): the station nearest the base among those
+    # touching at s1, refined between stations.
+    joints = forward_kinematics(base, *sweep_shape(finger, s1, config.sweep), length)
+    stations, arc = chain_stations(joints, length, config.stations_per_link)
+    d = sdf.distance(stations) - r
+    near = d <= jnp.min(d) + 1e-3 * length
+    k = jnp.argmax(near)
+    l_g1 = jnp.clip(_refine_along_finger(d, arc, k), 0.0, length)
+    p_g1 = _point_at_arc_length(joints, length, l_g1)
+    n_g1 = l_g1 / length * n
+
+    # Onto the object surface along the normal.
+    p_o1 = p_g1 - sdf.distance(p_g1) * sdf.normal(p_g1)
+    theta_o1 = direction_angle(p_o1 - base)
+    theta_remain = theta - theta_o1  # eq. 8
+
+    # Second contact (Fig. 8).
+    has_second, p_o2, theta_o1o2 = _second_contact(sdf, p_o1, length - l_g1, config.n_circle)
+
+    at_tip = n_g1 >= n - config.tip_tolerance
+    case = jnp.where(
+        ~touches,
+        ContactCase.NONE,
+        jnp.where(
+            at_tip,
+            ContactCase.TIP,
+            jnp.where(has_second & (theta_remain >= theta_o1o2), ContactCase.TIP_AND_OTHER, ContactCase.OTHER),
+        ),
+    ).astype(jnp.int32)
+    return Contact(
+        case=case, touches=touches, s1=s1, p_g1=p_g1, p_o1=p_o1, p_o2=p_o2, has_second=has_second,
+        l_g1=l_g1, n_g1=n_g1, theta_o1=theta_o1, theta_o1o2=theta_o1o2, theta_remain=theta_remain,
+        initial_overlap=initial_overlap, root_converged=root_converged,
+    )

@@ -1,0 +1,60 @@
+"""Finger frames: where a finger hangs in the image plane, and the scene as that finger sees it.
+
+The core computes one finger that hangs straight down (+y) from its base and curls toward +x.
+A finger at another place, a rotated gripper, or a right finger (which curls toward -x) is the same
+computation on the scene expressed in the finger's own frame; the right finger's frame is mirrored
+about the gripper's centre line (DESIGN section 3). Distances are unchanged by these rigid motions
+and reflections, so a frame-wrapped SDF is again an SDF.
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from softgrip_jax._safe import unit_direction
+from softgrip_jax._sdf import AbstractSDF
+
+
+class FingerFrame(eqx.Module):
+    """A finger's frame in the image plane.
+
+    Attributes:
+        origin: (2,) the finger base in mm (image-plane coordinates).
+        angle: gripper rotation in rad: the finger's "down" is the direction at this angle from the
+            image's downward vertical, positive toward +x.
+        handedness: +1 for a finger curling toward its frame's +x (left finger), -1 for its
+            mirror image (right finger).
+    """
+
+    origin: Float[Array, "2"]
+    angle: Float[Array, ""]
+    handedness: Float[Array, ""]
+
+    def _axes(self):
+        down = unit_direction(self.angle)
+        across = jnp.stack([down[1], -down[0]])  # "down" turned by +90 deg: the closing direction
+        return self.handedness * across, down
+
+    def to_world(self, q: Float[Array, "*batch 2"]) -> Float[Array, "*batch 2"]:
+        """Finger-frame points (mm) to image-plane points (mm)."""
+        ex, ey = self._axes()
+        return self.origin + q[..., :1] * ex + q[..., 1:] * ey
+
+    def to_local(self, p: Float[Array, "*batch 2"]) -> Float[Array, "*batch 2"]:
+        """Image-plane points (mm) to finger-frame points (mm)."""
+        ex, ey = self._axes()
+        d = p - self.origin
+        return jnp.stack([d @ ex, d @ ey], axis=-1)
+
+
+class FrameSDF(AbstractSDF):
+    """An SDF seen from a finger frame: ``distance(q) = sdf.distance(frame.to_world(q))``."""
+
+    sdf: AbstractSDF
+    frame: FingerFrame
+
+    def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
+        return self.sdf.distance(self.frame.to_world(points))
+
+    def contains(self, points: Float[Array, "*batch 2"]) -> Bool[Array, "*batch"]:
+        return self.sdf.contains(self.frame.to_world(points))

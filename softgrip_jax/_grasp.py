@@ -1,0 +1,64 @@
+"""Both fingers of a gripper at a pose (DESIGN section 8).
+
+A pose is ``(x, y, angle)``: the point midway between the two finger bases in image-plane mm and
+the gripper's in-plane rotation in rad (0: fingers hang toward +y). The left finger's base is W/2
+toward the gripper's -x, the right finger's W/2 toward +x; the right finger is the left
+computation on the mirrored scene (its frame has handedness -1), never a second code path.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from softgrip_jax._contact import ContactConfig
+from softgrip_jax._deformation import Estimate, estimate_in_frame
+from softgrip_jax._frames import FingerFrame
+from softgrip_jax._model import Gripper
+from softgrip_jax._safe import unit_direction
+from softgrip_jax._sdf import AbstractSDF
+
+
+class GraspEstimate(eqx.Module):
+    """Estimates of both fingers at one pose; ``valid`` when both are."""
+
+    left: Estimate
+    right: Estimate
+    valid: Bool[Array, ""]
+
+
+def finger_frames(gripper: Gripper, pose: Float[Array, "3"]) -> tuple[FingerFrame, FingerFrame]:
+    """The (left, right) finger frames of ``gripper`` at ``pose`` = (x mm, y mm, angle rad)."""
+    dtype = gripper.base_separation.dtype
+    pose = jnp.asarray(pose, dtype)
+    center, angle = pose[:2], pose[2]
+    down = unit_direction(angle)
+    across = jnp.stack([down[1], -down[0]])
+    half = 0.5 * gripper.base_separation * across
+    one = jnp.ones((), dtype)
+    return (
+        FingerFrame(origin=center - half, angle=angle, handedness=one),
+        FingerFrame(origin=center + half, angle=angle, handedness=-one),
+    )
+
+
+def estimate_grasp(
+    gripper: Gripper, sdf: AbstractSDF, pose: Float[Array, "3"], config: ContactConfig = ContactConfig()
+) -> GraspEstimate:
+    """Estimate both fingers of ``gripper`` at ``pose`` = (x mm, y mm, angle rad) against ``sdf``.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import FingerModel, Gripper, PolygonSDF, CASE_NAMES
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
+        >>> g = Gripper(left=f, right=f, base_separation=50.0)
+        >>> est = estimate_grasp(g, PolygonSDF.regular((0.0, 35.0), 9.0), jnp.array([0.0, 0.0, 0.0]))
+        >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
+        ['other', 'other']
+    """
+    left_frame, right_frame = finger_frames(gripper, pose)
+    left = estimate_in_frame(gripper.left, sdf, left_frame, config)
+    right = estimate_in_frame(gripper.right, sdf, right_frame, config)
+    return GraspEstimate(left=left, right=right, valid=left.valid & right.valid)

@@ -1,0 +1,71 @@
+"""Forward kinematics of an N-link chain (DESIGN section 4) and the PCC shape (eqs. 1-3).
+
+Every shape in this package is a pair ``(psi, turning)``: ``psi`` rotates the whole finger about
+its base, ``turning[k]`` is the turning angle at joint k. Link k points at
+
+    alpha_k = psi + sum_{j<k} turning_j + turning_k / 2
+
+and P_{k+1} = P_k + (L/N) (sin alpha_k, cos alpha_k). Piecewise constant curvature with entire
+bending angle Theta is psi = 0, turning = 2 Theta / N, which gives alpha_k = Theta (2k+1)/N (eq. 3)
+and joints on the arc whose chords to the base make the angles Theta k / N (eq. 2).
+"""
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from softgrip_jax._model import FingerModel
+from softgrip_jax._safe import unit_direction
+
+
+def link_angles(psi: Float[Array, ""], turning: Float[Array, " n"]) -> Float[Array, " n"]:
+    """Angle alpha_k of every link from the downward vertical (rad); eq. 3 for a PCC shape."""
+    return psi + jnp.cumsum(turning) - 0.5 * turning
+
+
+def forward_kinematics(
+    base: Float[Array, "2"],
+    psi: Float[Array, ""],
+    turning: Float[Array, " n"],
+    length: Float[Array, ""],
+) -> Float[Array, "n+1 2"]:
+    """Joints P_0 (= base) ... P_N in mm of a chain of N = len(turning) links of length L/N."""
+    n = turning.shape[0]
+    steps = (length / n) * unit_direction(link_angles(psi, turning))
+    zero = jnp.zeros((1, 2), steps.dtype)
+    return base + jnp.concatenate([zero, jnp.cumsum(steps, axis=0)], axis=0)
+
+
+def pcc_turning(theta: Float[Array, ""], n_links: int) -> Float[Array, " n"]:
+    """Turning angles 2 Theta / N of the piecewise-constant-curvature shape (eqs. 2-3)."""
+    return jnp.full((n_links,), 2.0 * theta / n_links)
+
+
+def pcc_joints(finger: FingerModel, base: Float[Array, "2"]) -> Float[Array, "joints 2"]:
+    """The N+1 joints in mm of the closed, untouched finger (eqs. 1-3) hanging from ``base``.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> f = FingerModel(length=50.0, theta_entire=0.0, half_thickness=4.0, n_links=2)
+        >>> pcc_joints(f, jnp.zeros(2)).tolist()
+        [[0.0, 0.0], [0.0, 25.0], [0.0, 50.0]]
+    """
+    base = jnp.asarray(base, dtype=finger.length.dtype)
+    return forward_kinematics(base, jnp.zeros_like(finger.theta_entire),
+                              pcc_turning(finger.theta_entire, finger.n_links), finger.length)
+
+
+def chain_stations(
+    joints: Float[Array, "joints 2"], length: Float[Array, ""], per_link: int
+) -> tuple[Float[Array, "m 2"], Float[Array, " m"]]:
+    """Points sampled along the chain's centreline and their arc lengths from the base.
+
+    Returns ``per_link`` equally spaced points on each link (starting at its first joint) plus
+    the tip: ``m = N * per_link + 1`` points, in order from base to tip, and their arc lengths (mm).
+    """
+    n = joints.shape[0] - 1
+    t = jnp.arange(per_link, dtype=joints.dtype) / per_link
+    start, step = joints[:-1], joints[1:] - joints[:-1]
+    inner = start[:, None, :] + t[None, :, None] * step[:, None, :]
+    points = jnp.concatenate([inner.reshape(n * per_link, 2), joints[-1:]], axis=0)
+    arc = jnp.arange(n * per_link + 1, dtype=joints.dtype) * (length / (n * per_link))
+    return points, arc

@@ -1,0 +1,163 @@
+"""Signed distance to the object (DESIGN section 5): negative inside, in mm.
+
+Two implementations behind one interface, :class:`AbstractSDF`:
+
+* :class:`SDFGrid` samples a distance grid (made from a mask by a distance transform in ``vision``)
+  bilinearly; outside the grid it reads as ``far``, never as contact.
+* :class:`PolygonSDF` is the exact distance to a closed polygon, differentiable in its vertices.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.ndimage import map_coordinates
+from jaxtyping import Array, Bool, Float
+
+from softgrip_jax._errors import SoftgripError
+from softgrip_jax._safe import safe_divide, safe_norm
+
+#: Distance (mm) reported outside an :class:`SDFGrid`: farther than any finger can reach.
+FAR_MM = 1.0e4
+
+
+class AbstractSDF(eqx.Module):
+    """A signed-distance function of the image plane (mm; negative inside the object)."""
+
+    @abc.abstractmethod
+    def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
+        """Signed distance in mm at ``points`` (mm)."""
+
+    def contains(self, points: Float[Array, "*batch 2"]) -> Bool[Array, "*batch"]:
+        """Whether ``points`` lie where the SDF has data (everywhere, unless overridden)."""
+        return jnp.ones(jnp.shape(points)[:-1], dtype=bool)
+
+    def normal(self, point: Float[Array, "2"]) -> Float[Array, "2"]:
+        """Unit gradient of the distance at one point (outward normal); zero where it vanishes."""
+        grad = jax.grad(self.distance)(point)
+        return safe_divide(grad, safe_norm(grad)[..., None])
+
+
+class SDFGrid(AbstractSDF):
+    """Signed distances sampled on a regular grid, looked up bilinearly.
+
+    Attributes:
+        values: (H, W) signed distances in mm; row i, column j is the point
+            ``origin + (j * spacing[0], i * spacing[1])``.
+        origin: (2,) position in mm of the centre of element (0, 0).
+        spacing: (2,) grid step in mm along x (columns) and y (rows), > 0.
+        far: distance in mm returned outside the grid (static).
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> circle = PolygonSDF.regular(center=(0.0, 0.0), radius=10.0, n_vertices=64)
+        >>> grid = SDFGrid.sample(circle, origin=(-20.0, -20.0), spacing=(0.5, 0.5), shape=(81, 81))
+        >>> round(float(grid.distance(jnp.array([15.0, 0.0]))), 1)
+        5.0
+    """
+
+    values: Float[Array, "h w"]
+    origin: Float[Array, "2"]
+    spacing: Float[Array, "2"]
+    far: float = eqx.field(static=True, default=FAR_MM)
+
+    def __check_init__(self):
+        if jnp.ndim(self.values) != 2 or min(jnp.shape(self.values)) < 2:
+            raise SoftgripError(f"SDFGrid.values must be a 2-D grid of at least 2x2, got shape {jnp.shape(self.values)}")
+        if jnp.shape(self.origin) != (2,) or jnp.shape(self.spacing) != (2,):
+            raise SoftgripError("SDFGrid.origin and SDFGrid.spacing must each have shape (2,)")
+        if not isinstance(self.spacing, jax.core.Tracer) and not bool(np.all(np.asarray(self.spacing) > 0)):
+            raise SoftgripError(f"SDFGrid.spacing must be > 0 mm, got {np.asarray(self.spacing).tolist()}")
+
+    @classmethod
+    def sample(
+        cls,
+        sdf: AbstractSDF | Callable[[Array], Array],
+        origin: tuple[float, float] | Array,
+        spacing: tuple[float, float] | Array,
+        shape: tuple[int, int],
+    ) -> SDFGrid:
+        """Sample another SDF (or any distance function of points) on a grid of ``shape`` (H, W)."""
+        fn = sdf.distance if isinstance(sdf, AbstractSDF) else sdf
+        origin = jnp.asarray(origin, dtype=jnp.result_type(float))
+        spacing = jnp.asarray(spacing, dtype=jnp.result_type(float))
+        rows, cols = jnp.meshgrid(jnp.arange(shape[0]), jnp.arange(shape[1]), indexing="ij")
+        points = origin + jnp.stack([cols, rows], axis=-1) * spacing
+        return cls(values=fn(points), origin=origin, spacing=spacing)
+
+    def _grid_coordinates(self, points):
+        col = (points[..., 0] - self.origin[0]) / self.spacing[0]
+        row = (points[..., 1] - self.origin[1]) / self.spacing[1]
+        return row, col
+
+    def contains(self, points: Float[Array, "*batch 2"]) -> Bool[Array, "*batch"]:
+        row, col = self._grid_coordinates(points)
+        h, w = self.values.shape
+        return (row >= 0) & (row <= h - 1) & (col >= 0) & (col <= w - 1)
+
+    def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
+        row, col = self._grid_coordinates(points)
+        h, w = self.values.shape
+        inside = (row >= 0) & (row <= h - 1) & (col >= 0) & (col <= w - 1)
+        # Clamped coordinates keep the discarded branch finite (and its gradient zero).
+        row = jnp.clip(jnp.where(inside, row, 0.0), 0, h - 1)
+        col = jnp.clip(jnp.where(inside, col, 0.0), 0, w - 1)
+        value = map_coordinates(self.values, [row, col], order=1, mode="nearest")
+        return jnp.where(inside, value, jnp.asarray(self.far, value.dtype))
+
+
+class PolygonSDF(AbstractSDF):
+    """Exact signed distance to a closed polygon; differentiable in the points and the vertices.
+
+    Attributes:
+        vertices: (V, 2) polygon corners in mm, V >= 3, in order (either orientation); the edge from
+            the last vertex back to the first closes it.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> square = PolygonSDF(jnp.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]))
+        >>> square.distance(jnp.array([[5.0, 5.0], [13.0, 14.0]])).tolist()
+        [-5.0, 5.0]
+    """
+
+    vertices: Float[Array, "v 2"]
+
+    def __check_init__(self):
+        shape = jnp.shape(self.vertices)
+        if len(shape) != 2 or shape[1] != 2 or shape[0] < 3:
+            raise SoftgripError(f"PolygonSDF.vertices must have shape (V, 2) with V >= 3, got {shape}")
+        if not isinstance(self.vertices, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(self.vertices))):
+            raise SoftgripError("PolygonSDF.vertices must be finite")
+
+    @classmethod
+    def regular(cls, center, radius: float, n_vertices: int = 128, angle: float = 0.0) -> PolygonSDF:
+        """A regular polygon (a circle for large ``n_vertices``) of circumradius ``radius`` mm."""
+        t = angle + 2 * jnp.pi * jnp.arange(n_vertices) / n_vertices
+        center = jnp.asarray(center, dtype=jnp.result_type(float))
+        return cls(center + radius * jnp.stack([jnp.cos(t), jnp.sin(t)], axis=-1))
+
+    def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
+        a = self.vertices
+        b = jnp.roll(a, -1, axis=0)
+        ab = b - a
+        p = points[..., None, :]
+        ap = p - a
+        t = jnp.clip(safe_divide(jnp.sum(ap * ab, -1), jnp.sum(ab * ab, -1)), 0.0, 1.0)
+        d2 = jnp.sum((ap - t[..., None] * ab) ** 2, axis=-1)
+        dist = _safe_sqrt(jnp.min(d2, axis=-1))
+        # Even-odd rule: count edges crossed by a ray from the point toward +x.
+        py, px = p[..., 1], p[..., 0]
+        straddles = (a[:, 1] > py) != (b[:, 1] > py)
+        x_cross = a[:, 0] + safe_divide((py - a[:, 1]) * ab[:, 0], ab[:, 1])
+        inside = jnp.sum(straddles & (px < x_cross), axis=-1) % 2 == 1
+        return jnp.where(inside, -dist, dist)
+
+
+def _safe_sqrt(x: Array) -> Array:
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)

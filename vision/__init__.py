@@ -1,0 +1,1 @@
+"""Pixels to geometry: frames and cameras, segmentation, keypoints, object SDFs, overlays."""
