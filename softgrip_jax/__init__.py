@@ -22,10 +22,10 @@ from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, link_angles, pcc_joints, pcc_turning
 from softgrip_jax._metrics import joint_errors
 from softgrip_jax._model import FingerModel, Gripper
-from softgrip_jax._sdf import AbstractSDF, PolygonSDF, SDFGrid
+from softgrip_jax._sdf import FAR_MM, AbstractSDF, PolygonSDF, SDFGrid
 
 __all__ = [
-    "AbstractSDF", "CASE_NAMES", "Contact", "ContactCase", "ContactConfig", "Estimate", "FingerFrame",
+    "AbstractSDF", "CASE_NAMES", "FAR_MM", "Contact", "ContactCase", "ContactConfig", "Estimate", "FingerFrame",
     "FingerModel", "FrameSDF", "GraspEstimate", "Gripper", "PolygonSDF", "SDFGrid", "SoftgripError",
     "Status", "case_shapes", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
     "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",

@@ -6,7 +6,7 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import ArrayLike, Float
 
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._deformation import Estimate, estimate
@@ -31,7 +31,7 @@ def _estimate_grasp_batch(gripper, sdf, poses, config, chunk_size):
 def estimate_batch(
     finger: FingerModel,
     sdf: AbstractSDF,
-    bases: Float[Array, "b 2"],
+    bases: Float[ArrayLike, "b 2"],
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = DEFAULT_CHUNK,
@@ -48,7 +48,7 @@ def estimate_batch(
 def estimate_grasp_batch(
     gripper: Gripper,
     sdf: AbstractSDF,
-    poses: Float[Array, "b 3"],
+    poses: Float[ArrayLike, "b 3"],
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = DEFAULT_CHUNK,

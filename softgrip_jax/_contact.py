@@ -32,7 +32,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, pcc_turning
@@ -125,23 +125,41 @@ def _stations(finger, base, s, config):
     return chain_stations(joints, finger.length, config.stations_per_link)
 
 
+def _parabola_vertices(
+    d: Float[Array, "*batch m"], spacing: Float[Array, ""]
+) -> tuple[Float[Array, "*batch m"], Float[Array, "*batch m"]]:
+    """Minimum of the parabola through each station's distance and its neighbours'.
+
+    Stations sample the centreline a few per link (``spacing`` mm apart); the true minimum distance
+    usually lies between two of them. Returns (value, offset in station spacings, within
+    [-1/2, 1/2]) per station; end stations and non-convex triples keep their own value. A distance
+    is 1-Lipschitz, so no value is allowed below ``d - spacing / 2``: this keeps a discontinuity
+    (an SDF grid's border) from posing as a deep minimum.
+    """
+    d_prev = jnp.concatenate([d[..., :1], d[..., :-1]], axis=-1)
+    d_next = jnp.concatenate([d[..., 1:], d[..., -1:]], axis=-1)
+    slope = 0.5 * (d_next - d_prev)
+    curvature = d_prev - 2.0 * d + d_next
+    convex = curvature > 0
+    offset = jnp.clip(-slope / jnp.where(convex, curvature, 1.0), -0.5, 0.5)
+    offset = jnp.where(convex, offset, 0.0)
+    offset = offset.at[..., 0].set(0.0).at[..., -1].set(0.0)
+    value = d + slope * offset + 0.5 * curvature * offset**2
+    return jnp.maximum(value, d - 0.5 * spacing), offset
+
+
+def _chain_clearance(distances: Float[Array, "*batch m"], spacing, r: Float[Array, ""]) -> Float[Array, "*batch"]:
+    """g: the smallest centreline clearance (mm), refined between stations ``spacing`` mm apart."""
+    return jnp.min(_parabola_vertices(distances, spacing)[0], axis=-1) - r
+
+
+def _station_spacing(finger, config):
+    return finger.length / (finger.n_links * config.stations_per_link)
+
+
 def _clearance(finger, sdf, base, s, config):
     points, _ = _stations(finger, base, s, config)
-    return jnp.min(sdf.distance(points)) - finger.half_thickness
-
-
-def _refine_along_finger(d: Float[Array, " m"], arc: Float[Array, " m"], k: Int[Array, ""]):
-    """Arc length of the clearance minimum near station k: vertex of the parabola through k-1, k, k+1."""
-    m = d.shape[0]
-    lo, hi = jnp.maximum(k - 1, 0), jnp.minimum(k + 1, m - 1)
-    d_lo, d_k, d_hi = d[lo], d[k], d[hi]
-    curvature = d_lo - 2.0 * d_k + d_hi
-    offset = safe_divide(0.5 * (d_lo - d_hi), curvature)
-    # Interior stations move at most half a station; end stations only inward.
-    offset = jnp.clip(offset, jnp.where(k == 0, 0.0, -0.5), jnp.where(k == m - 1, 0.0, 0.5))
-    offset = jnp.where(curvature > 0, offset, 0.0)
-    spacing = arc[1] - arc[0]
-    return arc[k] + offset * spacing
+    return _chain_clearance(sdf.distance(points), _station_spacing(finger, config), finger.half_thickness)
 
 
 def _point_at_arc_length(joints, length, l):
@@ -178,7 +196,7 @@ def _second_contact(sdf, p_o1, radius, n_circle):
 def predict_contact(
     finger: FingerModel,
     sdf: AbstractSDF,
-    base: Float[Array, "2"],
+    base: Float[ArrayLike, "2"],
     config: ContactConfig = ContactConfig(),
 ) -> Contact:
     """Predict where the finger hanging from ``base`` first touches the object, and its case.
@@ -200,7 +218,7 @@ def predict_contact(
     # Coarse bracket: clearance at every grid value of s, in one lookup.
     s_grid = theta * jnp.linspace(0.0, 1.0, config.n_sweep, dtype=dtype)
     points = jax.vmap(lambda s: _stations(finger, base, s, config)[0])(s_grid)
-    g_grid = jnp.min(sdf.distance(points), axis=-1) - r
+    g_grid = _chain_clearance(sdf.distance(points), _station_spacing(finger, config), r)
     hit = g_grid <= 0
     touches = jnp.any(hit)
     j = jnp.argmax(hit)
@@ -229,10 +247,17 @@ def predict_contact(
     # touching at s1, refined between stations.
     joints = forward_kinematics(base, *sweep_shape(finger, s1, config.sweep), length)
     stations, arc = chain_stations(joints, length, config.stations_per_link)
-    d = sdf.distance(stations) - r
-    near = d <= jnp.min(d) + 1e-3 * length
-    k = jnp.argmax(near)
-    l_g1 = jnp.clip(_refine_along_finger(d, arc, k), 0.0, length)
+    d = sdf.distance(stations)
+    vertex, offset = _parabola_vertices(d, _station_spacing(finger, config))
+    # Touching regions are local minima of the distance along the finger; of those that touch
+    # (to within 1e-3 L), take the one nearest the base, as the paper takes the overlapping pixel
+    # nearest P_base.
+    d_prev = jnp.concatenate([jnp.full((1,), jnp.inf, d.dtype), d[:-1]])
+    d_next = jnp.concatenate([d[1:], jnp.full((1,), jnp.inf, d.dtype)])
+    local_min = (d <= d_prev) & (d < d_next)
+    near = local_min & (vertex <= jnp.min(vertex) + 1e-3 * length)
+    k = jnp.where(jnp.any(near), jnp.argmax(near), jnp.argmin(vertex))
+    l_g1 = jnp.clip(arc[k] + offset[k] * (arc[1] - arc[0]), 0.0, length)
     p_g1 = _point_at_arc_length(joints, length, l_g1)
     n_g1 = l_g1 / length * n
 

@@ -22,7 +22,7 @@ import enum
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from softgrip_jax._contact import Contact, ContactConfig, ContactCase, predict_contact
 from softgrip_jax._frames import FingerFrame, FrameSDF
@@ -128,7 +128,7 @@ def estimate_in_frame(
 
 
 def estimate(
-    finger: FingerModel, sdf: AbstractSDF, base: Float[Array, "2"], config: ContactConfig = ContactConfig()
+    finger: FingerModel, sdf: AbstractSDF, base: Float[ArrayLike, "2"], config: ContactConfig = ContactConfig()
 ) -> Estimate:
     """Estimate the deformation of a finger hanging from ``base`` (mm) and curling toward +x.
 

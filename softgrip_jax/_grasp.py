@@ -11,7 +11,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._deformation import Estimate, estimate_in_frame
@@ -29,7 +29,7 @@ class GraspEstimate(eqx.Module):
     valid: Bool[Array, ""]
 
 
-def finger_frames(gripper: Gripper, pose: Float[Array, "3"]) -> tuple[FingerFrame, FingerFrame]:
+def finger_frames(gripper: Gripper, pose: Float[ArrayLike, "3"]) -> tuple[FingerFrame, FingerFrame]:
     """The (left, right) finger frames of ``gripper`` at ``pose`` = (x mm, y mm, angle rad)."""
     dtype = gripper.base_separation.dtype
     pose = jnp.asarray(pose, dtype)
@@ -45,7 +45,7 @@ def finger_frames(gripper: Gripper, pose: Float[Array, "3"]) -> tuple[FingerFram
 
 
 def estimate_grasp(
-    gripper: Gripper, sdf: AbstractSDF, pose: Float[Array, "3"], config: ContactConfig = ContactConfig()
+    gripper: Gripper, sdf: AbstractSDF, pose: Float[ArrayLike, "3"], config: ContactConfig = ContactConfig()
 ) -> GraspEstimate:
     """Estimate both fingers of ``gripper`` at ``pose`` = (x mm, y mm, angle rad) against ``sdf``.
 

@@ -11,7 +11,7 @@ and joints on the arc whose chords to the base make the angles Theta k / N (eq. 
 """
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import unit_direction
@@ -40,7 +40,7 @@ def pcc_turning(theta: Float[Array, ""], n_links: int) -> Float[Array, " n"]:
     return jnp.full((n_links,), 2.0 * theta / n_links)
 
 
-def pcc_joints(finger: FingerModel, base: Float[Array, "2"]) -> Float[Array, "joints 2"]:
+def pcc_joints(finger: FingerModel, base: Float[ArrayLike, "2"]) -> Float[Array, "joints 2"]:
     """The N+1 joints in mm of the closed, untouched finger (eqs. 1-3) hanging from ``base``.
 
     Example:

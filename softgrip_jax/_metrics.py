@@ -1,13 +1,13 @@
 """Evaluation against observed shapes (paper section V-A)."""
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from softgrip_jax._safe import safe_norm
 
 
 def joint_errors(
-    estimated: Float[Array, "*batch joints 2"], observed: Float[Array, "*batch joints 2"]
+    estimated: Float[ArrayLike, "*batch joints 2"], observed: Float[ArrayLike, "*batch joints 2"]
 ) -> Float[Array, "*batch joints"]:
     """Eq. 10: distance epsilon_i (mm) between estimated and observed joint i, for every joint.
 

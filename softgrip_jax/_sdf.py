@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.ndimage import map_coordinates
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._safe import safe_divide, safe_norm
@@ -135,7 +135,13 @@ class PolygonSDF(AbstractSDF):
             raise SoftgripError("PolygonSDF.vertices must be finite")
 
     @classmethod
-    def regular(cls, center, radius: float, n_vertices: int = 128, angle: float = 0.0) -> PolygonSDF:
+    def regular(
+        cls,
+        center: tuple[float, float] | Float[ArrayLike, "2"],
+        radius: float | Float[ArrayLike, ""],
+        n_vertices: int = 128,
+        angle: float | Float[ArrayLike, ""] = 0.0,
+    ) -> PolygonSDF:
         """A regular polygon (a circle for large ``n_vertices``) of circumradius ``radius`` mm."""
         t = angle + 2 * jnp.pi * jnp.arange(n_vertices) / n_vertices
         center = jnp.asarray(center, dtype=jnp.result_type(float))

@@ -1,0 +1,92 @@
+"""First contact against geometry derived by hand and against a dense sweep written with numpy."""
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from softgrip_jax import ContactCase, ContactConfig, FingerModel, PolygonSDF, SDFGrid
+from softgrip_jax import predict_contact as _predict_contact
+
+predict_contact = eqx.filter_jit(_predict_contact)
+
+L, R_FINGER = 50.0, 3.0
+
+
+def circle(center, radius):
+    return PolygonSDF.regular(center, radius, n_vertices=720)
+
+
+@pytest.mark.parametrize("center, radius", [((14.0, 30.0), 6.0), ((20.0, 25.0), 10.0)])
+def test_rigid_sweep_first_contact_is_the_tangent_angle(center, radius):
+    """A straight finger rotating about its base touches a circle when its line is tangent.
+
+    Distance from the centre C to the finger's line at angle s is cx cos s - cy sin s
+    = rho cos(s + phi0); it equals R + r at s1 = acos((R + r) / rho) - phi0.
+    """
+    cx, cy = center
+    rho, phi0 = math.hypot(cx, cy), math.atan2(cy, cx)
+    s1 = math.acos((radius + R_FINGER) / rho) - phi0
+    u = np.array([math.sin(s1), math.cos(s1)])
+    foot = (cx * u[0] + cy * u[1]) * u  # closest point of the line to C
+    assert 0 < np.linalg.norm(foot) < L  # the tangent point lies on the finger, not beyond the tip
+    p_o1 = np.array(center) + radius * (foot - center) / np.linalg.norm(foot - center)
+
+    finger = FingerModel(length=L, theta_entire=0.9, half_thickness=R_FINGER, n_links=10)
+    c = predict_contact(finger, circle(center, radius), jnp.zeros(2), ContactConfig(sweep="rigid"))
+    assert bool(c.touches) and not bool(c.initial_overlap)
+    assert float(c.s1) == pytest.approx(s1, abs=1e-3)
+    np.testing.assert_allclose(c.p_g1, foot, atol=0.1)
+    np.testing.assert_allclose(c.p_o1, p_o1, atol=0.1)
+    assert float(c.l_g1) == pytest.approx(np.linalg.norm(foot), abs=0.1)  # eq. 6
+    assert float(c.n_g1) == pytest.approx(np.linalg.norm(foot) / L * 10, abs=0.02)  # eq. 7
+    assert float(c.theta_o1) == pytest.approx(math.atan2(p_o1[0], p_o1[1]), abs=2e-3)
+
+
+def dense_pcc_first_contact(theta, n, center, radius, r, n_s=4001, per_link=200):
+    """Independent brute force: chain joints from eq. 2, links sampled densely, exact circle distance."""
+    i = np.arange(n + 1)
+    t = np.linspace(0, 1, per_link, endpoint=False)
+    for s in np.linspace(0, theta, n_s)[1:]:
+        chord = (L / n) * np.sin(s * i / n) / np.sin(s / n)
+        joints = np.stack([chord * np.sin(s * i / n), chord * np.cos(s * i / n)], -1)
+        pts = (joints[:-1, None] + t[None, :, None] * (joints[1:] - joints[:-1])[:, None]).reshape(-1, 2)
+        pts = np.concatenate([pts, joints[-1:]])
+        gap = np.linalg.norm(pts - center, axis=1) - radius - r
+        if gap.min() <= 0:
+            k = int(np.argmin(gap))
+            return s, pts[k], k / (per_link * n) * L
+    return None
+
+
+@pytest.mark.parametrize("sdf_kind", ["polygon", "grid"])
+@pytest.mark.parametrize("center, radius", [((16.0, 32.0), 7.0), ((9.0, 20.0), 4.0), ((36.0, 42.0), 9.0)])
+def test_pcc_sweep_first_contact_matches_dense_sweep(sdf_kind, center, radius):
+    theta, n = 0.8, 10
+    expected = dense_pcc_first_contact(theta, n, np.array(center), radius, R_FINGER)
+    assert expected is not None
+    s1, p_g1, l_g1 = expected
+    sdf = circle(center, radius)
+    if sdf_kind == "grid":
+        exact = lambda p: jnp.linalg.norm(p - jnp.asarray(center), axis=-1) - radius
+        sdf = SDFGrid.sample(exact, origin=(-20.0, -10.0), spacing=(0.2, 0.2), shape=(400, 400))
+    finger = FingerModel(length=L, theta_entire=theta, half_thickness=R_FINGER, n_links=n)
+    c = predict_contact(finger, sdf, jnp.zeros(2))
+    assert float(c.s1) == pytest.approx(s1, abs=1e-3)
+    np.testing.assert_allclose(c.p_g1, p_g1, atol=0.05)
+    assert float(c.l_g1) == pytest.approx(l_g1, abs=0.05)
+
+
+def test_no_object_in_reach_is_case_a():
+    finger = FingerModel(length=L, theta_entire=0.5, half_thickness=R_FINGER, n_links=10)
+    c = predict_contact(finger, circle((60.0, 25.0), 5.0), jnp.zeros(2))
+    assert not bool(c.touches) and int(c.case) == ContactCase.NONE
+    assert float(c.s1) == pytest.approx(0.5)
+
+
+def test_object_overlapping_the_open_finger_is_flagged():
+    finger = FingerModel(length=L, theta_entire=0.5, half_thickness=R_FINGER, n_links=10)
+    c = predict_contact(finger, circle((2.0, 25.0), 4.0), jnp.zeros(2))
+    assert bool(c.initial_overlap) and float(c.s1) == 0.0
