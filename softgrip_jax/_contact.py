@@ -71,11 +71,11 @@ class ContactConfig(eqx.Module):
     """
 
     sweep: Literal["pcc", "rigid"] = eqx.field(static=True, default="pcc")
-    n_sweep: int = eqx.field(static=True, default=24)
+    n_sweep: int = eqx.field(static=True, default=16)
     stations_per_link: int = eqx.field(static=True, default=2)
-    n_circle: int = eqx.field(static=True, default=96)
+    n_circle: int = eqx.field(static=True, default=64)
     root_atol: float = eqx.field(static=True, default=1e-4)
-    root_max_steps: int = eqx.field(static=True, default=48)
+    root_max_steps: int = eqx.field(static=True, default=16)
     tip_tolerance: float = eqx.field(static=True, default=0.5)
 
     def __check_init__(self):
@@ -142,8 +142,9 @@ def _parabola_vertices(
     curvature = d_prev - 2.0 * d + d_next
     convex = curvature > 0
     offset = jnp.clip(-slope / jnp.where(convex, curvature, 1.0), -0.5, 0.5)
-    offset = jnp.where(convex, offset, 0.0)
-    offset = offset.at[..., 0].set(0.0).at[..., -1].set(0.0)
+    m = d.shape[-1]
+    interior = (jnp.arange(m) > 0) & (jnp.arange(m) < m - 1)
+    offset = jnp.where(convex & interior, offset, 0.0)
     value = d + slope * offset + 0.5 * curvature * offset**2
     return jnp.maximum(value, d - 0.5 * spacing), offset
 
@@ -157,9 +158,39 @@ def _station_spacing(finger, config):
     return finger.length / (finger.n_links * config.stations_per_link)
 
 
-def _clearance(finger, sdf, base, s, config):
-    points, _ = _stations(finger, base, s, config)
-    return _chain_clearance(sdf.distance(points), _station_spacing(finger, config), finger.half_thickness)
+#: Stations around the first-touching one that the root finder watches.
+_ROOT_WINDOW = 5
+
+
+def _window_stations(finger, base, s, config, first):
+    """The ``_ROOT_WINDOW`` stations from index ``first`` at closing progress ``s``, in closed form.
+
+    Joints of the PCC sweep lie on a circle through the base (eq. 2): joint i is at chord angle
+    s i / N and distance (L/N) sin(s i / N) / sin(s / N); of the rigid sweep, at i L / N along
+    the direction s. Only the joints the window needs are computed, so a root-finder iteration
+    costs a handful of lookups instead of the whole chain.
+    """
+    n, per_link = finger.n_links, config.stations_per_link
+    index = first + jnp.arange(_ROOT_WINDOW)
+    link = jnp.minimum(index // per_link, n - 1)
+    frac = ((index - link * per_link) / per_link).astype(s.dtype)
+    ends = jnp.stack([link, link + 1]).astype(s.dtype)  # (2, window) joint indices
+    if config.sweep == "pcc":
+        chord_angle = s * ends / n
+        small = jnp.abs(s) < 1e-4
+        s_safe = jnp.where(small, 1.0, s)
+        ratio = jnp.where(small, ends * (1.0 - (s**2) * (ends**2 - 1.0) / (6.0 * n**2)),
+                          jnp.sin(s_safe * ends / n) / jnp.sin(s_safe / n))
+        joints = base + (finger.length / n) * ratio[..., None] * unit_direction(chord_angle)
+    else:
+        joints = base + (finger.length / n) * ends[..., None] * unit_direction(s)
+    return joints[0] + frac[:, None] * (joints[1] - joints[0])
+
+
+def _window_clearance(finger, sdf, base, s, config, first):
+    """g restricted to a window of stations (mm)."""
+    d = sdf.distance(_window_stations(finger, base, s, config, first))
+    return _chain_clearance(d, _station_spacing(finger, config), finger.half_thickness)
 
 
 def _point_at_arc_length(joints, length, l):
@@ -216,9 +247,11 @@ def predict_contact(
     n, r, length = finger.n_links, finger.half_thickness, finger.length
 
     # Coarse bracket: clearance at every grid value of s, in one lookup.
+    spacing = _station_spacing(finger, config)
     s_grid = theta * jnp.linspace(0.0, 1.0, config.n_sweep, dtype=dtype)
     points = jax.vmap(lambda s: _stations(finger, base, s, config)[0])(s_grid)
-    g_grid = _chain_clearance(sdf.distance(points), _station_spacing(finger, config), r)
+    vertex = _parabola_vertices(sdf.distance(points), spacing)[0] - r  # (n_sweep, stations)
+    g_grid = jnp.min(vertex, axis=-1)
     hit = g_grid <= 0
     touches = jnp.any(hit)
     j = jnp.argmax(hit)
@@ -226,18 +259,28 @@ def predict_contact(
     need_root = touches & ~initial_overlap
     lower = s_grid[jnp.maximum(j - 1, 0)]
     upper = jnp.where(need_root, s_grid[j], lower + 1.0)
-    middle = 0.5 * (lower + upper)
+
+    # Which station touches first inside the bracket: the earliest linear crossing. The root
+    # finder then watches only a window around it, starting from that crossing.
+    v_lo, v_hi = vertex[jnp.maximum(j - 1, 0)], vertex[j]
+    crossing = jnp.where(v_hi <= 0, jnp.clip(safe_divide(v_lo, v_lo - v_hi, 0.0), 0.0, 1.0), jnp.inf)
+    centre = jnp.argmin(crossing)
+    n_stations = vertex.shape[-1]
+    first = jnp.clip(centre - _ROOT_WINDOW // 2, 0, max(n_stations - _ROOT_WINDOW, 0))
+    # (The fraction is made finite before use: an inf in the discarded branch would still turn
+    # the gradient into NaN.)
+    fraction = jnp.where(need_root, jnp.min(jnp.where(jnp.isfinite(crossing), crossing, 1.0)), 0.5)
+    start = lower + fraction * (upper - lower)
 
     def fn(s, args):
-        finger_, sdf_, base_, middle_ = args
-        # Where there is no bracket, solve a harmless stand-in with the same orientation
-        # (positive below its root), so that the implicit derivative stays finite.
-        real = _clearance(finger_, sdf_, base_, s, config)
-        return jnp.where(need_root, real, middle_ - s)
+        finger_, sdf_, base_, start_ = args
+        # Where there is no bracket, solve a harmless stand-in (root at the start, slope -1), so
+        # that the implicit derivative stays finite.
+        real = _window_clearance(finger_, sdf_, base_, s, config, first)
+        return jnp.where(need_root, real, start_ - s)
 
-    solver = optx.Bisection(rtol=0.0, atol=config.root_atol, flip=True)
     solution = optx.root_find(
-        fn, solver, middle, args=(finger, sdf, base, middle),
+        fn, optx.Newton(rtol=0.0, atol=config.root_atol), start, args=(finger, sdf, base, start),
         options=dict(lower=lower, upper=upper), throw=False, max_steps=config.root_max_steps,
     )
     root_converged = (solution.result == optx.RESULTS.successful) | ~need_root

@@ -1,0 +1,87 @@
+"""``softgrip capture``: frame folders from a RealSense camera or a recording."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from vision.realsense import CameraError, capture_from_camera, capture_from_recording
+
+EPILOG = """\
+examples:
+  softgrip capture --out frames                      one frame from the first camera
+  softgrip capture --out frames --count 5 --serial 123456789012
+  softgrip capture --out frames --width 848 --height 480 --fps 15
+  softgrip capture --out frames --bag scene.db3      every frame of a recording
+  softgrip capture --out frames --bag scene.bag --count 3 --json
+
+Each frame is a new folder DIR/frame_0000, frame_0001, ... (the first free names) holding
+color.png (8-bit RGB), depth.png (16-bit, units of depth_scale metres, 0 = no reading,
+aligned to colour) and intrinsics.json (colour intrinsics and depth_scale). Existing folders
+are never overwritten. Needs pyrealsense2: pip install 'softgrip-jax[realsense]'.
+"""
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``capture`` on the ``softgrip`` sub-command parsers."""
+    parser = subparsers.add_parser(
+        "capture",
+        help="capture frames from a RealSense camera or a recording",
+        description="Capture RGB-D frames from an Intel RealSense camera, or extract them from a "
+                    "recording (.db3, or legacy .bag), as frame folders.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
+                        help="folder to write the frame folders into (created if missing)")
+    parser.add_argument("--bag", type=Path, metavar="FILE",
+                        help="read this recording (.db3, or legacy .bag) instead of a camera")
+    parser.add_argument("--serial", help="camera serial number (default: the first camera)")
+    parser.add_argument("--width", type=_positive_int, metavar="PX",
+                        help="camera stream width (default: 640)")
+    parser.add_argument("--height", type=_positive_int, metavar="PX",
+                        help="camera stream height (default: 480)")
+    parser.add_argument("--fps", type=_positive_int, help="camera frame rate (default: 30)")
+    parser.add_argument("--count", type=_positive_int, metavar="N",
+                        help="number of frames (default: 1 from a camera, all of a recording)")
+    parser.add_argument("--json", action="store_true",
+                        help='print {"frames": [folder, ...]} on stdout')
+    parser.set_defaults(func=run)
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    """Capture as ``args`` says, print the folders written; 0 on success."""
+    if args.bag is not None:
+        camera_only = [f"--{name}" for name in ("serial", "width", "height", "fps")
+                       if getattr(args, name) is not None]
+        if camera_only:
+            raise CameraError(f"{', '.join(camera_only)} apply to a camera, not to --bag "
+                              f"{args.bag}: a recording keeps the settings it was made with")
+        paths = capture_from_recording(args.bag, args.out, count=args.count)
+    else:
+        paths = capture_from_camera(
+            args.out,
+            serial=args.serial,
+            width=args.width or 640,
+            height=args.height or 480,
+            fps=args.fps or 30,
+            count=args.count or 1,
+        )
+    if args.json:
+        print(json.dumps({"frames": [str(path) for path in paths]}))
+    else:
+        for path in paths:
+            print(path)
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value

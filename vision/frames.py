@@ -1,0 +1,284 @@
+"""RGB-D frames in memory and on disk (DESIGN section 10).
+
+A frame on disk is a folder of three files::
+
+    color.png        8-bit, 3 channels (stored BGR, as every PNG written by OpenCV)
+    depth.png        16-bit, 1 channel, in units of ``depth_scale`` metres, 0 = no reading
+    intrinsics.json  {"width", "height", "fx", "fy", "ppx", "ppy", "depth_scale"}
+
+The intrinsics are those of the colour camera, with pyrealsense2's names: ``fx``/``fy`` focal
+lengths and ``ppx``/``ppy`` principal point in pixels, ``depth_scale`` in metres per depth unit.
+The depth image is registered to the colour image (pixel (u, v) of both sees the same point).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import uuid
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from softgrip_jax._errors import SoftgripError
+
+COLOR_FILE = "color.png"
+DEPTH_FILE = "depth.png"
+INTRINSICS_FILE = "intrinsics.json"
+
+
+class FrameError(SoftgripError):
+    """A frame (folder, file or array) that cannot be used; the message names it and the fix."""
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of the colour camera and the depth unit.
+
+    ``width``/``height`` in pixels; ``fx``, ``fy``, ``ppx``, ``ppy`` in pixels (x right, y down,
+    origin at the centre of the top-left pixel, as pyrealsense2); ``depth_scale`` in metres per
+    unit of the depth image (RealSense D4xx default: 0.001).
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    ppx: float
+    ppy: float
+    depth_scale: float
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if not _is_int(value) or value <= 0:
+                raise FrameError(f"{name} must be a positive integer (pixels), got {value!r}")
+        for name in ("fx", "fy", "ppx", "ppy", "depth_scale"):
+            value = getattr(self, name)
+            if not _is_number(value) or not math.isfinite(value):
+                raise FrameError(f"{name} must be a finite number, got {value!r}")
+        for name in ("fx", "fy", "depth_scale"):
+            if getattr(self, name) <= 0:
+                raise FrameError(f"{name} must be positive, got {getattr(self, name)!r}")
+        for name in _FIELDS:  # plain Python numbers, so equality and JSON behave
+            convert = int if name in ("width", "height") else float
+            object.__setattr__(self, name, convert(getattr(self, name)))
+
+    def to_dict(self) -> dict[str, int | float]:
+        """The JSON object of ``intrinsics.json``."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Any, source: str = "intrinsics") -> Intrinsics:
+        """Build from a JSON object; errors name ``source`` (usually the file) and the key.
+
+        Keys other than the seven fields are ignored. Integers are accepted for the float fields.
+        """
+        if not isinstance(d, dict):
+            raise FrameError(
+                f"{source}: expected a JSON object with keys {', '.join(_FIELDS)}, "
+                f"got {type(d).__name__}"
+            )
+        missing = [key for key in _FIELDS if key not in d]
+        if missing:
+            raise FrameError(
+                f"{source}: missing key(s) {', '.join(missing)}; "
+                f"intrinsics need {', '.join(_FIELDS)} (pyrealsense2 names)"
+            )
+        for key in ("width", "height"):
+            if not _is_int(d[key]):
+                raise FrameError(f"{source}: {key} must be an integer, got {d[key]!r}")
+        for key in ("fx", "fy", "ppx", "ppy", "depth_scale"):
+            if not _is_number(d[key]):
+                raise FrameError(f"{source}: {key} must be a number, got {d[key]!r}")
+        try:
+            return cls(**{key: d[key] for key in _FIELDS})
+        except FrameError as err:
+            raise FrameError(f"{source}: {err}") from None
+
+
+_FIELDS = ("width", "height", "fx", "fy", "ppx", "ppy", "depth_scale")
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One registered RGB-D frame.
+
+    ``color``: (H, W, 3) uint8, **RGB** channel order. ``depth``: (H, W) uint16 in units of
+    ``intrinsics.depth_scale`` metres, 0 where the camera has no reading; at least one reading
+    is required. ``intrinsics.width`` = W and ``intrinsics.height`` = H.
+    """
+
+    color: np.ndarray
+    depth: np.ndarray
+    intrinsics: Intrinsics
+
+    def __post_init__(self) -> None:
+        _check_frame(self.color, self.depth, self.intrinsics, "color", "depth", "intrinsics")
+
+    @property
+    def depth_mm(self) -> np.ndarray:
+        """(H, W) float32 depth in millimetres, NaN where there is no reading."""
+        depth = self.depth.astype(np.float32) * np.float32(self.intrinsics.depth_scale * 1000.0)
+        depth[self.depth == 0] = np.nan
+        return depth
+
+
+def load_frame(path: str | os.PathLike[str]) -> Frame:
+    """Read a frame folder (``color.png``, ``depth.png``, ``intrinsics.json``)."""
+    folder = Path(path)
+    if not folder.exists():
+        raise FrameError(f"frame folder {folder} does not exist: give a folder written by "
+                         f"'softgrip capture' (or one with {COLOR_FILE}, {DEPTH_FILE}, "
+                         f"{INTRINSICS_FILE})")
+    if not folder.is_dir():
+        raise FrameError(f"{folder} is not a folder: a frame is a folder with {COLOR_FILE}, "
+                         f"{DEPTH_FILE} and {INTRINSICS_FILE}")
+    color_path, depth_path, intr_path = (folder / COLOR_FILE, folder / DEPTH_FILE,
+                                         folder / INTRINSICS_FILE)
+    color = _read_png(color_path)
+    if color.ndim == 3 and color.shape[2] == 3:
+        color = cv2.cvtColor(color, cv2.COLOR_BGR2RGB)
+    depth = _read_png(depth_path)
+    intrinsics = Intrinsics.from_dict(_read_json(intr_path), source=str(intr_path))
+    _check_frame(color, depth, intrinsics, str(color_path), str(depth_path), str(intr_path))
+    return Frame(color=color, depth=depth, intrinsics=intrinsics)
+
+
+def save_frame(frame: Frame, path: str | os.PathLike[str]) -> Path:
+    """Write ``frame`` as the folder ``path`` and return it; never overwrites anything.
+
+    The files are written into a hidden temporary sibling folder that is renamed to ``path`` once
+    complete, so ``path`` either does not exist or holds a whole frame. Missing parent folders are
+    created.
+    """
+    target = Path(path)
+    _refuse_existing(target)
+    color_png = _encode_png(cv2.cvtColor(frame.color, cv2.COLOR_RGB2BGR), target / COLOR_FILE)
+    depth_png = _encode_png(frame.depth, target / DEPTH_FILE)
+    intr_json = (json.dumps(frame.intrinsics.to_dict(), indent=2) + "\n").encode()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.partial"
+    tmp.mkdir()  # not tempfile.mkdtemp: that makes the folder private (0700) instead of umask
+    try:
+        for name, data in ((COLOR_FILE, color_png), (DEPTH_FILE, depth_png),
+                           (INTRINSICS_FILE, intr_json)):
+            _write_file(tmp / name, data)
+        _refuse_existing(target)
+        os.rename(tmp, target)
+    except BaseException as err:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(err, OSError):
+            raise FrameError(f"could not write frame {target}: {err}") from err
+        raise
+    return target
+
+
+def next_frame_dir(root: str | os.PathLike[str], prefix: str = "frame") -> Path:
+    """The first of ``root/<prefix>_0000``, ``root/<prefix>_0001``, ... that does not exist."""
+    root = Path(root)
+    index = 0
+    while (root / f"{prefix}_{index:04d}").exists():
+        index += 1
+    return root / f"{prefix}_{index:04d}"
+
+
+def _check_frame(color: Any, depth: Any, intrinsics: Any,
+                 color_name: str, depth_name: str, intr_name: str) -> None:
+    """Validate a colour/depth/intrinsics triple; messages use the given names (file paths)."""
+    if not isinstance(color, np.ndarray) or color.dtype != np.uint8 or color.ndim != 3 \
+            or color.shape[2] != 3:
+        raise FrameError(f"{color_name} must be an 8-bit colour image with 3 channels (RGB), got "
+                         f"{_describe(color)}: convert it to 8-bit RGB")
+    if isinstance(depth, np.ndarray) and depth.dtype == np.uint8:
+        raise FrameError(f"{depth_name} is 8-bit: depth must be 16-bit (uint16) in units of "
+                         f"depth_scale metres, 0 = no reading; save the camera's raw depth, not a "
+                         f"visualisation")
+    if not isinstance(depth, np.ndarray) or depth.dtype != np.uint16 or depth.ndim != 2:
+        raise FrameError(f"{depth_name} must be a 16-bit single-channel depth image, got "
+                         f"{_describe(depth)}")
+    if color.shape[:2] != depth.shape:
+        raise FrameError(f"{color_name} is {color.shape[1]}x{color.shape[0]} but {depth_name} is "
+                         f"{depth.shape[1]}x{depth.shape[0]} (width x height): depth must be "
+                         f"registered to the colour image, at the same size")
+    if not isinstance(intrinsics, Intrinsics):
+        raise FrameError(f"{intr_name} must be an Intrinsics, got {type(intrinsics).__name__}")
+    if (intrinsics.width, intrinsics.height) != (depth.shape[1], depth.shape[0]):
+        raise FrameError(f"{intr_name} says {intrinsics.width}x{intrinsics.height} but the images "
+                         f"are {depth.shape[1]}x{depth.shape[0]}: use the intrinsics of the "
+                         f"colour stream at this resolution")
+    if not depth.any():
+        raise FrameError(f"{depth_name} has no depth readings (every pixel is 0): check that the "
+                         f"camera sees the scene within its depth range")
+
+
+def _describe(array: Any) -> str:
+    if not isinstance(array, np.ndarray):
+        return type(array).__name__
+    bits = {np.dtype(np.uint8): "8-bit", np.dtype(np.uint16): "16-bit"}.get(array.dtype,
+                                                                           str(array.dtype))
+    channels = 1 if array.ndim == 2 else array.shape[-1] if array.ndim == 3 else None
+    if channels is None:
+        return f"{bits} array of shape {array.shape}"
+    return f"{bits} with {channels} channel(s)"
+
+
+def _read_png(path: Path) -> np.ndarray:
+    data = _read_file(path)
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise FrameError(f"{path} is not a readable PNG image (corrupt or truncated?): "
+                         f"write it again, e.g. with 'softgrip capture'")
+    return image
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(_read_file(path).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise FrameError(f"{path} is not valid JSON ({err}): it must be an object with keys "
+                         f"{', '.join(_FIELDS)}") from None
+
+
+def _read_file(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise FrameError(f"{path} is missing: a frame folder needs {COLOR_FILE}, {DEPTH_FILE} and "
+                         f"{INTRINSICS_FILE}") from None
+    except OSError as err:
+        raise FrameError(f"cannot read {path}: {err.strerror}") from None
+
+
+def _encode_png(image: np.ndarray, name: Path) -> bytes:
+    ok, buffer = cv2.imencode(".png", image)
+    if not ok:
+        raise FrameError(f"OpenCV could not encode {name} as PNG")
+    return buffer.tobytes()
+
+
+def _write_file(path: Path, data: bytes) -> None:
+    with open(path, "xb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _refuse_existing(path: Path) -> None:
+    if os.path.lexists(path):
+        raise FrameError(f"{path} already exists: captures are never overwritten; choose another "
+                         f"folder or remove it first")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) \
+        and not isinstance(value, (bool, np.bool_))
