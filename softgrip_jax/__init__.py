@@ -14,10 +14,10 @@ rotated or mirrored, see it through a frame (:mod:`softgrip_jax._frames`).
 """
 
 from softgrip_jax._batch import estimate_batch, estimate_grasp_batch
-from softgrip_jax._contact import CASE_NAMES, Contact, ContactCase, ContactConfig, predict_contact, sweep_shape
+from softgrip_jax._contact import CASE_NAMES, Contact, ContactCase, ContactConfig, predict_contact, predict_contact_local, sweep_shape
 from softgrip_jax._deformation import Estimate, Status, case_shapes, estimate, estimate_in_frame
 from softgrip_jax._errors import SoftgripError
-from softgrip_jax._frames import FingerFrame, FrameSDF
+from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, link_angles, pcc_joints, pcc_turning
 from softgrip_jax._metrics import joint_errors
@@ -26,8 +26,8 @@ from softgrip_jax._sdf import FAR_MM, AbstractSDF, PolygonSDF, SDFGrid
 
 __all__ = [
     "AbstractSDF", "CASE_NAMES", "FAR_MM", "Contact", "ContactCase", "ContactConfig", "Estimate", "FingerFrame",
-    "FingerModel", "FrameSDF", "GraspEstimate", "Gripper", "PolygonSDF", "SDFGrid", "SoftgripError",
+    "FingerModel", "GraspEstimate", "Gripper", "PolygonSDF", "SDFGrid", "SoftgripError",
     "Status", "case_shapes", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
     "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",
-    "joint_errors", "link_angles", "pcc_joints", "pcc_turning", "predict_contact", "sweep_shape",
+    "joint_errors", "link_angles", "pcc_joints", "pcc_turning", "predict_contact", "predict_contact_local", "sweep_shape",
 ]

@@ -26,6 +26,7 @@ toward +x (see :mod:`softgrip_jax._frames` for other placements).
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from typing import Literal
 
 import equinox as eqx
@@ -37,7 +38,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, pcc_turning
 from softgrip_jax._model import FingerModel
-from softgrip_jax._safe import direction_angle, safe_divide, unit_direction
+from softgrip_jax._safe import direction_angle, safe_divide, safe_norm, unit_direction
 from softgrip_jax._sdf import AbstractSDF
 
 
@@ -187,9 +188,9 @@ def _window_stations(finger, base, s, config, first):
     return joints[0] + frac[:, None] * (joints[1] - joints[0])
 
 
-def _window_clearance(finger, sdf, base, s, config, first):
+def _window_clearance(finger, dist, base, s, config, first):
     """g restricted to a window of stations (mm)."""
-    d = sdf.distance(_window_stations(finger, base, s, config, first))
+    d = dist(_window_stations(finger, base, s, config, first))
     return _chain_clearance(d, _station_spacing(finger, config), finger.half_thickness)
 
 
@@ -202,7 +203,7 @@ def _point_at_arc_length(joints, length, l):
     return joints[k] + t * (joints[k + 1] - joints[k])
 
 
-def _second_contact(sdf, p_o1, radius, n_circle):
+def _second_contact(dist, p_o1, radius, n_circle):
     """Crossings of the circle (centre P_o1, ``radius``) with the object boundary (Fig. 8).
 
     Returns (has_crossing, P_o2, angle of P_o1 -> P_o2): the crossing with the largest y, i.e. the
@@ -211,7 +212,7 @@ def _second_contact(sdf, p_o1, radius, n_circle):
     dtype = p_o1.dtype
     step = 2.0 * jnp.pi / n_circle
     phi = (jnp.arange(n_circle, dtype=dtype) - n_circle // 2) * step  # [-pi, pi)
-    d = sdf.distance(p_o1 + radius * unit_direction(phi))
+    d = dist(p_o1 + radius * unit_direction(phi))
     d_next = jnp.roll(d, -1)
     crossing = (d > 0) != (d_next > 0)
     frac = jnp.clip(safe_divide(d, d - d_next, 0.5), 0.0, 1.0)
@@ -241,8 +242,31 @@ def predict_contact(
     Returns:
         A :class:`Contact` (mm, rad). Pure, jit-, vmap- and grad-compatible.
     """
+    base = jnp.asarray(base, finger.length.dtype)
+    contact = predict_contact_local(finger, lambda q: sdf.distance(q + base), config)
+    return eqx.tree_at(lambda c: (c.p_g1, c.p_o1, c.p_o2), contact,
+                       (contact.p_g1 + base, contact.p_o1 + base, contact.p_o2 + base))
+
+
+def _unit_gradient(dist, point):
+    grad = jax.grad(dist)(point)
+    return safe_divide(grad, safe_norm(grad)[..., None])
+
+
+def predict_contact_local(
+    finger: FingerModel,
+    dist: Callable[[Float[Array, "*batch 2"]], Float[Array, "*batch"]],
+    config: ContactConfig = ContactConfig(),
+) -> Contact:
+    """:func:`predict_contact` in the finger's own frame: base at the origin, ``dist`` the object's
+    signed distance as a function of finger-frame points (mm).
+
+    The scene enters only through ``dist``, so a finger placed by a frame (translated, rotated or
+    mirrored) closes over that frame instead of carrying it inside the SDF: the SDF, usually a large
+    grid, then stays one unbatched operand however many candidates are batched.
+    """
     dtype = finger.length.dtype
-    base = jnp.asarray(base, dtype)
+    base = jnp.zeros(2, dtype)
     theta = finger.theta_entire
     n, r, length = finger.n_links, finger.half_thickness, finger.length
 
@@ -250,7 +274,7 @@ def predict_contact(
     spacing = _station_spacing(finger, config)
     s_grid = theta * jnp.linspace(0.0, 1.0, config.n_sweep, dtype=dtype)
     points = jax.vmap(lambda s: _stations(finger, base, s, config)[0])(s_grid)
-    vertex = _parabola_vertices(sdf.distance(points), spacing)[0] - r  # (n_sweep, stations)
+    vertex = _parabola_vertices(dist(points), spacing)[0] - r  # (n_sweep, stations)
     g_grid = jnp.min(vertex, axis=-1)
     hit = g_grid <= 0
     touches = jnp.any(hit)
@@ -273,14 +297,14 @@ def predict_contact(
     start = lower + fraction * (upper - lower)
 
     def fn(s, args):
-        finger_, sdf_, base_, start_ = args
+        finger_, base_, start_ = args
         # Where there is no bracket, solve a harmless stand-in (root at the start, slope -1), so
         # that the implicit derivative stays finite.
-        real = _window_clearance(finger_, sdf_, base_, s, config, first)
+        real = _window_clearance(finger_, dist, base_, s, config, first)
         return jnp.where(need_root, real, start_ - s)
 
     solution = optx.root_find(
-        fn, optx.Newton(rtol=0.0, atol=config.root_atol), start, args=(finger, sdf, base, start),
+        fn, optx.Newton(rtol=0.0, atol=config.root_atol), start, args=(finger, base, start),
         options=dict(lower=lower, upper=upper), throw=False, max_steps=config.root_max_steps,
     )
     root_converged = (solution.result == optx.RESULTS.successful) | ~need_root
@@ -290,7 +314,7 @@ def predict_contact(
     # touching at s1, refined between stations.
     joints = forward_kinematics(base, *sweep_shape(finger, s1, config.sweep), length)
     stations, arc = chain_stations(joints, length, config.stations_per_link)
-    d = sdf.distance(stations)
+    d = dist(stations)
     vertex, offset = _parabola_vertices(d, _station_spacing(finger, config))
     # Touching regions are local minima of the distance along the finger; of those that touch
     # (to within 1e-3 L), take the one nearest the base, as the paper takes the overlapping pixel
@@ -305,12 +329,12 @@ def predict_contact(
     n_g1 = l_g1 / length * n
 
     # Onto the object surface along the normal.
-    p_o1 = p_g1 - sdf.distance(p_g1) * sdf.normal(p_g1)
+    p_o1 = p_g1 - dist(p_g1) * _unit_gradient(dist, p_g1)
     theta_o1 = direction_angle(p_o1 - base)
     theta_remain = theta - theta_o1  # eq. 8
 
     # Second contact (Fig. 8).
-    has_second, p_o2, theta_o1o2 = _second_contact(sdf, p_o1, length - l_g1, config.n_circle)
+    has_second, p_o2, theta_o1o2 = _second_contact(dist, p_o1, length - l_g1, config.n_circle)
 
     at_tip = n_g1 >= n - config.tip_tolerance
     case = jnp.where(

@@ -24,8 +24,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._contact import Contact, ContactConfig, ContactCase, predict_contact
-from softgrip_jax._frames import FingerFrame, FrameSDF
+from softgrip_jax._contact import Contact, ContactConfig, predict_contact_local
+from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics, pcc_turning
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import safe_divide
@@ -100,9 +100,8 @@ def estimate_in_frame(
         angle=jnp.where(usable, frame.angle, 0.0),
         handedness=frame.handedness,
     )
-    local_sdf = FrameSDF(sdf, safe_frame)
+    contact = predict_contact_local(finger, lambda q: sdf.distance(safe_frame.to_world(q)), config)
     base = jnp.zeros(2, dtype)
-    contact = predict_contact(finger, local_sdf, base, config)
     psi_all, turning_all = case_shapes(finger, contact)
     psi, turning = psi_all[contact.case], turning_all[contact.case]
     joints_local = forward_kinematics(base, psi, turning, finger.length)

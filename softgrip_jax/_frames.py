@@ -1,18 +1,17 @@
-"""Finger frames: where a finger hangs in the image plane, and the scene as that finger sees it.
+"""Finger frames: where a finger hangs in the image plane.
 
 The core computes one finger that hangs straight down (+y) from its base and curls toward +x.
 A finger at another place, a rotated gripper, or a right finger (which curls toward -x) is the same
 computation on the scene expressed in the finger's own frame; the right finger's frame is mirrored
 about the gripper's centre line (DESIGN section 3). Distances are unchanged by these rigid motions
-and reflections, so a frame-wrapped SDF is again an SDF.
+and reflections, so the object's SDF read through ``frame.to_world`` is again a signed distance.
 """
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Float
 
 from softgrip_jax._safe import unit_direction
-from softgrip_jax._sdf import AbstractSDF
 
 
 class FingerFrame(eqx.Module):
@@ -45,16 +44,3 @@ class FingerFrame(eqx.Module):
         ex, ey = self._axes()
         d = p - self.origin
         return jnp.stack([d @ ex, d @ ey], axis=-1)
-
-
-class FrameSDF(AbstractSDF):
-    """An SDF seen from a finger frame: ``distance(q) = sdf.distance(frame.to_world(q))``."""
-
-    sdf: AbstractSDF
-    frame: FingerFrame
-
-    def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
-        return self.sdf.distance(self.frame.to_world(points))
-
-    def contains(self, points: Float[Array, "*batch 2"]) -> Bool[Array, "*batch"]:
-        return self.sdf.contains(self.frame.to_world(points))

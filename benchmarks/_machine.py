@@ -1,0 +1,20 @@
+"""One line describing the machine and software a benchmark ran on."""
+
+import os
+import platform
+
+
+def describe() -> str:
+    import jax
+
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return (f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}, "
+            f"Python {platform.python_version()}, jax {jax.__version__} on {jax.default_backend()}")

@@ -1,0 +1,90 @@
+"""Throughput, latency, compile time and peak memory of the geometric estimate (issue 2).
+
+Run from the repository root:
+
+    .venv/bin/python benchmarks/bench_estimate.py            # full table (a few minutes)
+    .venv/bin/python benchmarks/bench_estimate.py --quick    # tiny configuration (CI smoke test)
+
+Each (N, batch) configuration runs in a fresh subprocess so that its peak resident memory is its
+own. The scene is a 480x640 SDF grid at the D405's scale at 120 mm (0.31 mm/px) with a 30 mm
+circle; candidate bases are spread so that all four contact cases occur.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def run_one(n_links: int, batch: int, chunk: int, repeats: int) -> dict:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from softgrip_jax import FingerModel, SDFGrid, estimate_batch
+
+    spacing = 120.0 / 385.0
+    grid = SDFGrid.sample(lambda p: jnp.linalg.norm(p, axis=-1) - 15.0, origin=(-320 * spacing, -240 * spacing),
+                          spacing=(spacing, spacing), shape=(480, 640))
+    grid = jax.block_until_ready(grid)
+    finger = FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0, n_links=n_links)
+    rng = np.random.default_rng(0)
+    bases = jnp.asarray(rng.uniform([-60.0, -70.0], [20.0, -10.0], (batch, 2)).astype(np.float32))
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=chunk))
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=chunk))
+        times.append(time.perf_counter() - t0)
+    steady = min(times)
+    cases = np.bincount(np.asarray(out.case), minlength=4).tolist()
+    return {
+        "n_links": n_links, "batch": batch, "chunk": min(chunk, batch), "compile_s": first - steady,
+        "steady_s": steady, "per_second": batch / steady, "latency_ms": 1e3 * steady / batch if batch == 1 else None,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "rss_before_mb": rss_before / 1024, "cases": cases,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="tiny configuration for CI")
+    parser.add_argument("--chunk", type=int, default=2048)
+    parser.add_argument("--one", nargs=2, type=int, metavar=("N", "BATCH"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        print(json.dumps(run_one(args.one[0], args.one[1], args.chunk, repeats=1 if args.quick else 3)))
+        return
+
+    from _machine import describe
+
+    links = [2] if args.quick else [2, 10, 20]
+    batches = [1, 100] if args.quick else [1, 1_000, 10_000, 100_000]
+    command = "python benchmarks/bench_estimate.py" + (" --quick" if args.quick else "")
+    print(f"`{command}` on {describe()}; chunk {args.chunk}\n")
+    print("| N | batch | candidate-fingers/s | latency (ms) | compile (s) | peak RSS (MB) | cases none/tip/tip+other/other |")
+    print("|---|---|---|---|---|---|---|")
+    for n in links:
+        for b in batches:
+            cmd = [sys.executable, __file__, "--one", str(n), str(b), "--chunk", str(args.chunk)]
+            if args.quick:
+                cmd.append("--quick")
+            r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
+            latency = f"{r['latency_ms']:.3f}" if r["latency_ms"] is not None else "-"
+            print(f"| {n} | {b:,} | {r['per_second']:,.0f} | {latency} | {r['compile_s']:.1f} | "
+                  f"{r['peak_rss_mb']:.0f} | {'/'.join(map(str, r['cases']))} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
