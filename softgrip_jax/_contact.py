@@ -64,7 +64,9 @@ class ContactConfig(eqx.Module):
         n_sweep: values of s on the coarse bracketing grid over [0, Theta]. A protrusion thinner
             than the tip's travel between two grid values (about L Theta / (n_sweep - 1)) can be
             missed.
-        stations_per_link: centreline sample points per link (plus the tip).
+        n_stations: centreline sample points at least, base to tip: every link gets
+            ceil((n_stations - 1) / N) equally spaced points (plus the tip), so that the sampling
+            is about as fine for any N. Between stations the distance is refined by a parabola.
         n_circle: samples of the second-contact circle (Fig. 8).
         root_atol: tolerance of the first-contact root, on s (rad) and on g (mm).
         root_max_steps: iteration cap of the root finder.
@@ -73,7 +75,7 @@ class ContactConfig(eqx.Module):
 
     sweep: Literal["pcc", "rigid"] = eqx.field(static=True, default="pcc")
     n_sweep: int = eqx.field(static=True, default=16)
-    stations_per_link: int = eqx.field(static=True, default=2)
+    n_stations: int = eqx.field(static=True, default=21)
     n_circle: int = eqx.field(static=True, default=64)
     root_atol: float = eqx.field(static=True, default=1e-4)
     root_max_steps: int = eqx.field(static=True, default=16)
@@ -82,10 +84,14 @@ class ContactConfig(eqx.Module):
     def __check_init__(self):
         if self.sweep not in ("pcc", "rigid"):
             raise SoftgripError(f"ContactConfig.sweep must be 'pcc' or 'rigid', got {self.sweep!r}")
-        for name, low in (("n_sweep", 2), ("stations_per_link", 1), ("n_circle", 8), ("root_max_steps", 1)):
+        for name, low in (("n_sweep", 2), ("n_stations", 2), ("n_circle", 8), ("root_max_steps", 1)):
             value = getattr(self, name)
             if not isinstance(value, int) or value < low:
                 raise SoftgripError(f"ContactConfig.{name} must be an integer >= {low}, got {value!r}")
+
+    def per_link(self, n_links: int) -> int:
+        """Stations on each link for a chain of ``n_links`` links."""
+        return max(1, -(-(self.n_stations - 1) // n_links))
 
 
 class Contact(eqx.Module):
@@ -123,7 +129,7 @@ def sweep_shape(
 def _stations(finger, base, s, config):
     psi, turning = sweep_shape(finger, s, config.sweep)
     joints = forward_kinematics(base, psi, turning, finger.length)
-    return chain_stations(joints, finger.length, config.stations_per_link)
+    return chain_stations(joints, finger.length, config.per_link(finger.n_links))
 
 
 def _parabola_vertices(
@@ -156,7 +162,7 @@ def _chain_clearance(distances: Float[Array, "*batch m"], spacing, r: Float[Arra
 
 
 def _station_spacing(finger, config):
-    return finger.length / (finger.n_links * config.stations_per_link)
+    return finger.length / (finger.n_links * config.per_link(finger.n_links))
 
 
 #: Stations around the first-touching one that the root finder watches.
@@ -171,7 +177,7 @@ def _window_stations(finger, base, s, config, first):
     the direction s. Only the joints the window needs are computed, so a root-finder iteration
     costs a handful of lookups instead of the whole chain.
     """
-    n, per_link = finger.n_links, config.stations_per_link
+    n, per_link = finger.n_links, config.per_link(finger.n_links)
     index = first + jnp.arange(_ROOT_WINDOW)
     link = jnp.minimum(index // per_link, n - 1)
     frac = ((index - link * per_link) / per_link).astype(s.dtype)
@@ -313,7 +319,7 @@ def predict_contact_local(
     # First contact point on the finger (eq. 6-7): the station nearest the base among those
     # touching at s1, refined between stations.
     joints = forward_kinematics(base, *sweep_shape(finger, s1, config.sweep), length)
-    stations, arc = chain_stations(joints, length, config.stations_per_link)
+    stations, arc = chain_stations(joints, length, config.per_link(n))
     d = dist(stations)
     vertex, offset = _parabola_vertices(d, _station_spacing(finger, config))
     # Touching regions are local minima of the distance along the finger; of those that touch

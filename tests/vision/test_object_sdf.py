@@ -1,0 +1,184 @@
+"""Object masks to signed distances (vision.object_sdf): zero level against the true outline on the
+rendered scenes, distances against geometry, objects cut by the image border, bad masks."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from benchmarks.vision_accuracy import (
+    REQUIREMENTS,
+    accuracy_scenes,
+    distance_to_outline,
+    measure,
+    sdf_lookup,
+    zero_level_px,
+)
+from softgrip_jax import FAR_MM
+from vision.frames import Intrinsics
+from vision.geometry import PlaneCamera
+from vision.object_sdf import ObjectMaskError, object_polygon, object_sdf
+from vision.segmentation import segment
+from vision.synthetic.render import LABEL_OBJECT, Scene, d405_intrinsics, mm_to_px, render, render_labels
+from vision.synthetic.scenes import gripper_centrelines
+from vision.synthetic.shapes import shape
+
+INTR = d405_intrinsics()
+PLANE_MM = 120.0
+CAMERA = PlaneCamera(INTR, PLANE_MM)
+WITH_OBJECT = [s for s in accuracy_scenes(20) if s.object_name is not None]
+
+
+def lookup_px(grid, points_px: np.ndarray, camera: PlaneCamera = CAMERA) -> np.ndarray:
+    """The grid's signed distance at pixel positions (P, 2), in px."""
+    return np.asarray(sdf_lookup(grid, jnp.asarray(camera.px_to_mm(points_px)))) / camera.mm_per_px
+
+
+def disc(centre_px: tuple[float, float], radius_px: float, shape_hw=(480, 640)) -> np.ndarray:
+    v, u = np.indices(shape_hw)
+    return np.hypot(u - centre_px[0], v - centre_px[1]) <= radius_px
+
+
+# --- accuracy on the rendered scenes ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("scene", WITH_OBJECT, ids=lambda s: f"scene{s.index}-{s.object_name}")
+def test_zero_level_lies_on_the_true_outline(scene) -> None:
+    errors = measure(scene)
+    assert errors.sdf_zero_level_px <= REQUIREMENTS["sdf_zero_level_px"]
+    assert errors.sdf_outline_px <= 1.0  # and the outline on the zero level, away from sharp apexes
+    assert errors.sdf_apex_px <= 2.0  # at apexes, no pixel centre may fall near the tip
+
+
+def test_distances_are_euclidean_millimetres_negative_inside() -> None:
+    centre, radius = (300.3, 210.6), 40.0
+    grid = object_sdf(disc(centre, radius), CAMERA)
+    assert grid.values.shape == (480, 640)
+    assert np.allclose(np.asarray(grid.spacing), CAMERA.spacing_mm)
+    assert np.allclose(np.asarray(grid.origin), CAMERA.origin_mm)
+    probes = np.array([(centre[0] + 20.0, centre[1]), (centre[0], centre[1] - 39.0), (centre[0] - 30.0, centre[1]),
+                       (centre[0] + 45.0, centre[1]), (centre[0] + 60.0, centre[1] + 80.0)])
+    true = np.hypot(*(probes - centre).T) - radius
+    assert np.allclose(lookup_px(grid, probes), true, atol=0.5)
+    # On the medial axis (here the centre), bilinear interpolation cuts the distance's peak.
+    assert lookup_px(grid, np.array([centre]))[0] == pytest.approx(-radius, abs=1.5)
+    boundary = centre + radius * np.column_stack([np.cos(t := np.linspace(0, 2 * np.pi, 100)), np.sin(t)])
+    assert np.abs(lookup_px(grid, boundary)).max() < 0.75
+
+
+def test_grid_element_is_the_pixel_at_the_same_position() -> None:
+    mask = np.zeros((480, 640), bool)
+    mask[100:140, 200:260] = True
+    grid = object_sdf(mask, CAMERA)
+    values = np.asarray(grid.values)
+    assert values[120, 230] < 0 < values[120, 300]
+    assert np.array_equal(values < 0, mask)
+    assert values[99, 230] == pytest.approx(0.5 * CAMERA.mm_per_px, rel=1e-5)  # half a pixel outside
+    assert values[100, 230] == pytest.approx(-0.5 * CAMERA.mm_per_px, rel=1e-5)
+
+
+def test_non_square_pixels_keep_positions_exact() -> None:
+    tall = Intrinsics(width=640, height=480, fx=385.0, fy=392.0, ppx=321.6, ppy=238.9, depth_scale=1e-4)
+    polygon = shape("pentagon", 40.0, 0.2) + (4.0, 6.0)
+    scene = Scene(gripper_centrelines((0.0, -40.0), 70.0, 52.0), object_polygon=polygon)
+    frame = render(scene, tall)
+    seg = segment(frame)
+    camera = PlaneCamera.from_frame(frame, seg.fingers)
+    grid = object_sdf(seg.object, camera)
+    assert np.allclose(np.asarray(grid.spacing), [PLANE_MM / 385.0, PLANE_MM / 392.0], rtol=1e-3)
+    edges = np.roll(polygon, -1, axis=0) - polygon
+    outline_mm = np.vstack([polygon + t * edges for t in np.linspace(0.0, 1.0, 40, endpoint=False)])
+    assert np.abs(np.asarray(sdf_lookup(grid, jnp.asarray(outline_mm)))).max() < float(np.max(camera.spacing_mm))
+
+
+# --- no object, objects at the border ---------------------------------------------------------
+
+
+def test_no_object_reads_far_everywhere() -> None:
+    grid = object_sdf(np.zeros((480, 640), bool), CAMERA)
+    assert np.allclose(lookup_px(grid, np.array([[0.0, 0.0], [320.0, 240.0]])) * CAMERA.mm_per_px, FAR_MM)
+
+
+def test_object_touching_the_image_border() -> None:
+    # A circle whose centre lies on the left image edge: half of it is outside the image.
+    radius_mm = 15.0
+    centre_mm = CAMERA.px_to_mm([0.0, 300.0])
+    outline = centre_mm + radius_mm * np.column_stack(
+        [np.cos(t := np.linspace(0.0, 2.0 * np.pi, 192, endpoint=False)), np.sin(t)])
+    scene = Scene(gripper_centrelines((10.0, -45.0), 60.0, 52.0), object_polygon=outline)
+    frame = render(scene, INTR)
+    seg = segment(frame)  # segmentation is unaffected
+    labels = render_labels(scene, INTR)
+    assert seg.object[:, 0].any() and (seg.object == (labels == LABEL_OBJECT)).mean() > 0.999
+    camera = PlaneCamera.from_frame(frame, seg.fingers)
+    grid = object_sdf(seg.object, camera)
+    radius_px = radius_mm / camera.mm_per_px
+    # The image border is not the boundary: at the border, the centre is a radius deep inside.
+    assert lookup_px(grid, np.array([[0.0, 300.0]]), camera)[0] == pytest.approx(-radius_px, abs=0.5)
+    # The visible boundary is where it should be...
+    outline_px = mm_to_px(outline, INTR, PLANE_MM)
+    assert distance_to_outline(zero_level_px(np.asarray(grid.values)), outline_px).max() < 1.0
+    # ...and beyond the image the grid reads far: no contact with the unseen half.
+    assert lookup_px(grid, np.array([[-5.0, 300.0]]), camera)[0] * camera.mm_per_px == pytest.approx(FAR_MM)
+    # The polygon closes along the border.
+    vertices = CAMERA.mm_to_px(np.asarray(object_polygon(seg.object, camera).vertices))
+    assert vertices[:, 0].min() == pytest.approx(-0.375, abs=0.01)
+
+
+# --- the contour polygon ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["star_a", "clover", "triangle_b", "crescent"])
+def test_polygon_follows_the_true_outline(name: str) -> None:
+    polygon_mm = shape(name, 30.0, 0.4) + (2.0, 7.0)
+    scene = Scene(gripper_centrelines((0.0, -40.0), 60.0, 52.0), object_polygon=polygon_mm)
+    seg = segment(render(scene, INTR))
+    extracted = object_polygon(seg.object, CAMERA)
+    vertices_px = CAMERA.mm_to_px(np.asarray(extracted.vertices))
+    true_px = mm_to_px(polygon_mm, INTR, PLANE_MM)
+    assert distance_to_outline(vertices_px, true_px).max() < 1.0
+    area = cv2.contourArea(vertices_px.astype(np.float32))
+    assert area == pytest.approx(cv2.contourArea(true_px.astype(np.float32)), rel=0.03)
+
+
+def test_polygon_distance_is_signed_millimetres() -> None:
+    centre, radius = (310.0, 220.0), 30.0
+    polygon = object_polygon(disc(centre, radius), CAMERA)
+    probes = CAMERA.px_to_mm(np.array([centre, (centre[0] + 50.0, centre[1])]))
+    distance = jax.jit(lambda sdf, points: sdf.distance(points))  # one compilation, not one per operation
+    assert np.allclose(np.asarray(distance(polygon, jnp.asarray(probes))) / CAMERA.mm_per_px, [-radius, 20.0],
+                       atol=0.75)
+
+
+def test_polygon_of_a_single_pixel() -> None:
+    mask = np.zeros((480, 640), bool)
+    mask[200, 300] = True
+    vertices_px = CAMERA.mm_to_px(np.asarray(object_polygon(mask, CAMERA).vertices))
+    assert len(vertices_px) >= 3
+    assert np.abs(vertices_px - (300.0, 200.0)).max() <= 0.5
+
+
+# --- bad masks --------------------------------------------------------------------------------
+
+
+def test_mask_covering_the_whole_frame() -> None:
+    with pytest.raises(ObjectMaskError, match="whole frame.*object_min_saturation"):
+        object_sdf(np.ones((480, 640), bool), CAMERA)
+
+
+@pytest.mark.parametrize("mask", [np.zeros(10, bool), np.zeros((1, 5), bool), np.zeros((4, 4, 3), bool)])
+def test_mask_of_the_wrong_shape(mask: np.ndarray) -> None:
+    with pytest.raises(ObjectMaskError, match="2-D"):
+        object_sdf(mask, CAMERA)
+
+
+def test_polygon_needs_an_object() -> None:
+    with pytest.raises(ObjectMaskError, match="empty.*object_sdf handles"):
+        object_polygon(np.zeros((480, 640), bool), CAMERA)
+    with pytest.raises(ObjectMaskError, match="tolerance_px"):
+        object_polygon(disc((300, 200), 10), CAMERA, tolerance_px=math.nan)

@@ -1,0 +1,466 @@
+"""Segmentation of an RGB-D frame into the two fingers and the object (DESIGN section 10).
+
+Every pixel is classified in two stages:
+
+1. **Pixel classification and morphology** (the backend's part, batched for kornia):
+   - *foreground* is every pixel nearer than the background cut-off (``background_depth_mm``,
+     or automatic from the depth histogram: :func:`background_cutoff_mm`). A pixel without a depth reading
+     (depth 0, a "hole") is foreground when a dilation of the foreground (``hole_fill_px``) covers
+     it: holes inside and at the edges of the gripper and object (where stereo cameras lose depth)
+     are filled, and their colour then decides what they are; holes far from the foreground stay
+     background;
+   - *gripper*: foreground that is light and unsaturated (HSV saturation at most
+     ``gripper_max_saturation``, value at least ``gripper_min_value``; white or grey silicone);
+   - *object*: foreground that is saturated (at least ``object_min_saturation``, value at least
+     ``object_min_value``);
+   - each is opened (``gripper_open_px``, ``object_open_px``) to remove specks. Only pixels inside
+     ``roi`` count.
+2. **Components** (OpenCV on the CPU for both backends): the fingers are the two largest gripper
+   components (at least ``min_finger_px`` each), the left one being the one whose centroid is
+   further left; with ``center_column`` set, the gripper mask is cut at that column instead and each
+   finger is the largest component on its side (this separates fingers that touch each other).
+   Object components smaller than ``min_object_px`` are dropped. An empty object mask is not an
+   error: the scene has no object (contact case (a)).
+
+Saturation and value are fractions in [0, 1] for both backends: the OpenCV backend converts the
+colour in float32 (``cv2.cvtColor``, hue in degrees, unused) and the kornia backend with
+``kornia.color.rgb_to_hsv`` (hue in radians, unused), so the same thresholds mean the same thing.
+
+Example:
+    >>> from vision.synthetic.render import Scene, render, d405_intrinsics
+    >>> from vision.synthetic.scenes import gripper_centrelines
+    >>> frame = render(Scene(gripper_centrelines((0.0, -40.0), 50.0, 52.0)), d405_intrinsics())
+    >>> seg = segment(frame)
+    >>> bool(seg.left_finger.any() and seg.right_finger.any()), bool(seg.object.any())
+    (True, False)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal, NoReturn
+
+import cv2
+import numpy as np
+
+from softgrip_jax import SoftgripError
+from vision.frames import Frame
+
+Backend = Literal["opencv", "kornia"]
+
+
+class SegmentationError(SoftgripError):
+    """The frame cannot be segmented as a two-finger gripper; the message says what to adjust."""
+
+
+@dataclass(frozen=True)
+class SegmentationSettings:
+    """Thresholds of :func:`segment` (all settable in the calibration profile).
+
+    Attributes:
+        background_depth_mm: pixels deeper than this (mm) are background; None picks it per frame
+            from the depth histogram (see :func:`background_cutoff_mm`).
+        gripper_max_saturation: largest HSV saturation (0-1) of a gripper pixel.
+        gripper_min_value: smallest HSV value (brightness, 0-1) of a gripper pixel.
+        object_min_saturation: smallest saturation (0-1) of an object pixel; must exceed
+            ``gripper_max_saturation``.
+        object_min_value: smallest value (0-1) of an object pixel (very dark pixels have
+            meaningless saturation).
+        hole_fill_px: side (px, odd, 0 = off) of the elliptic dilation of the foreground that
+            decides which depth holes are filled: hole pixels within about half of it from a
+            foreground reading are foreground (their colour then classifies them).
+        gripper_open_px: side (px, odd, 0 = off) of the elliptic opening of the gripper mask
+            (removes specks and ragged edges).
+        object_open_px: the same for the object mask; off by default because an opening rounds
+            corners sharper than its size, and the object's corners are where contact is decided.
+        min_finger_px: smallest gripper component (px) counted as a finger.
+        min_object_px: object components smaller than this (px) are dropped.
+        center_column: image column (px) between the fingers, or None to take the midpoint of the
+            two largest gripper components' centroids.
+        roi: region of interest ``(x0, y0, x1, y1)`` in px (columns x0..x1-1, rows y0..y1-1), or
+            None for the whole frame. Use it to leave out the gripper's body above the fingers.
+    """
+
+    background_depth_mm: float | None = None
+    gripper_max_saturation: float = 0.25
+    gripper_min_value: float = 0.55
+    object_min_saturation: float = 0.35
+    object_min_value: float = 0.15
+    hole_fill_px: int = 15
+    gripper_open_px: int = 3
+    object_open_px: int = 0
+    min_finger_px: int = 200
+    min_object_px: int = 30
+    center_column: float | None = None
+    roi: tuple[int, int, int, int] | None = None
+
+    def __post_init__(self) -> None:
+        if self.background_depth_mm is not None:
+            _check_real("background_depth_mm", self.background_depth_mm, lower=0.0, strict=True,
+                        unit="mm (or None for automatic)")
+        for name in ("gripper_max_saturation", "gripper_min_value", "object_min_saturation",
+                     "object_min_value"):
+            _check_real(name, getattr(self, name), lower=0.0, upper=1.0, unit="(a fraction 0-1)")
+        if self.gripper_max_saturation >= self.object_min_saturation:
+            raise SegmentationError(
+                f"SegmentationSettings: gripper_max_saturation ({self.gripper_max_saturation}) must be "
+                f"below object_min_saturation ({self.object_min_saturation}), or a pixel could be both")
+        for name in ("hole_fill_px", "gripper_open_px", "object_open_px"):
+            value = getattr(self, name)
+            if not _is_int(value) or value < 0 or (value != 0 and value % 2 == 0):
+                raise SegmentationError(f"SegmentationSettings.{name} must be 0 (off) or an odd number "
+                                        f"of pixels, got {value!r}")
+        for name in ("min_finger_px", "min_object_px"):
+            value = getattr(self, name)
+            if not _is_int(value) or value < 1:
+                raise SegmentationError(f"SegmentationSettings.{name} must be an integer >= 1 (pixels), "
+                                        f"got {value!r}")
+        if self.center_column is not None:
+            _check_real("center_column", self.center_column, lower=0.0, unit="px (or None)")
+        if self.roi is not None:
+            roi = self.roi
+            if (not isinstance(roi, (tuple, list)) or len(roi) != 4 or not all(map(_is_int, roi))
+                    or roi[0] < 0 or roi[1] < 0 or roi[0] >= roi[2] or roi[1] >= roi[3]):
+                raise SegmentationError(f"SegmentationSettings.roi must be (x0, y0, x1, y1) integer "
+                                        f"pixels with 0 <= x0 < x1 and 0 <= y0 < y1, got {roi!r}")
+            object.__setattr__(self, "roi", tuple(int(c) for c in roi))
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict of every field (``roi`` as a list or None)."""
+        d = dataclasses.asdict(self)
+        d["roi"] = None if self.roi is None else list(self.roi)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Any, source: str = "segmentation settings") -> SegmentationSettings:
+        """Build from a JSON object; missing keys take their defaults, unknown keys are refused.
+
+        Errors name ``source`` (e.g. the profile file) and the field.
+        """
+        if not isinstance(d, dict):
+            raise SegmentationError(f"{source}: expected a JSON object of segmentation settings, "
+                                    f"got {type(d).__name__}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise SegmentationError(f"{source}: unknown segmentation setting(s) {', '.join(unknown)}; "
+                                    f"valid ones: {', '.join(sorted(known))}")
+        values = dict(d)
+        if isinstance(values.get("roi"), list):
+            values["roi"] = tuple(values["roi"])
+        try:
+            return cls(**values)
+        except SegmentationError as err:
+            raise SegmentationError(f"{source}: {err}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class Segmentation:
+    """The parts of one frame, each a bool (H, W) mask.
+
+    Attributes:
+        gripper: every gripper pixel (light, unsaturated foreground), fingers included.
+        left_finger, right_finger: the two finger components (disjoint subsets of ``gripper``).
+        object: the object's pixels; all False when there is no object.
+        background_cutoff_mm: the depth cut-off used (mm); inf when no background was found.
+        center_column: the column (px) separating the fingers.
+    """
+
+    gripper: np.ndarray
+    left_finger: np.ndarray
+    right_finger: np.ndarray
+    object: np.ndarray
+    background_cutoff_mm: float
+    center_column: float
+
+    @property
+    def fingers(self) -> np.ndarray:
+        """bool (H, W): both fingers, the pixels on the gripper plane."""
+        return self.left_finger | self.right_finger
+
+
+def segment(frame: Frame, settings: SegmentationSettings | None = None) -> Segmentation:
+    """Segment one frame with the OpenCV backend (see the module docstring).
+
+    Raises:
+        SegmentationError: no gripper, only one finger, no depth in the gripper region, or a
+            region of interest outside the frame; the message names the setting to adjust.
+    """
+    return segment_batch([frame], settings)[0]
+
+
+def segment_batch(
+    frames: Sequence[Frame],
+    settings: SegmentationSettings | None = None,
+    backend: Backend = "opencv",
+    device: str = "cpu",
+) -> list[Segmentation]:
+    """Segment several frames.
+
+    Args:
+        frames: the frames; for ``backend="kornia"`` all of one size.
+        settings: thresholds (defaults if None).
+        backend: ``"opencv"`` (default, frame by frame) or ``"kornia"`` (stage 1 batched on torch
+            tensors on ``device``, meant for a GPU: on a CPU it is 20-40x slower than OpenCV, see
+            benchmarks/vision_accuracy.py).
+        device: torch device of the kornia backend, e.g. ``"cpu"`` or ``"cuda"``.
+
+    Returns:
+        One :class:`Segmentation` per frame, in order.
+
+    Raises:
+        SegmentationError: as :func:`segment`, naming the frame's index; also a bad backend,
+            frames of different sizes for kornia, or kornia not installed.
+    """
+    settings = SegmentationSettings() if settings is None else settings
+    frames = list(frames)
+    cutoffs = [background_cutoff_mm(frame, settings) for frame in frames]
+    rois = [_roi_mask(frame.depth.shape, settings.roi) for frame in frames]
+    if backend == "opencv":
+        raw = [_classify_opencv(f, settings, c, r) for f, c, r in zip(frames, cutoffs, rois)]
+    elif backend == "kornia":
+        raw = _classify_kornia(frames, settings, cutoffs, rois, device) if frames else []
+    else:
+        raise SegmentationError(f"unknown segmentation backend {backend!r}: use 'opencv' or 'kornia'")
+    results = []
+    for index, (frame, cutoff, roi, (gripper, obj)) in enumerate(zip(frames, cutoffs, rois, raw)):
+        try:
+            results.append(_components(frame, settings, cutoff, roi, gripper, obj))
+        except SegmentationError as err:
+            if len(frames) == 1:
+                raise
+            raise SegmentationError(f"frame {index}: {err}") from None
+    return results
+
+
+def background_cutoff_mm(frame: Frame, settings: SegmentationSettings) -> float:
+    """The depth (mm) beyond which ``frame``'s pixels are background.
+
+    ``settings.background_depth_mm`` if set. Otherwise the depth readings in the region of interest
+    are split in a near and a far class by Otsu's method, and the cut-off is the middle of the gap
+    between them (halfway from the near class's 99th percentile to the far class's 1st), so depth
+    noise on either side stays on its side. inf (no background in view) when the far class's mean
+    is less than 25 % deeper than the near class's.
+    """
+    if settings.background_depth_mm is not None:
+        return float(settings.background_depth_mm)
+    mm_per_unit = frame.intrinsics.depth_scale * 1000.0
+    readings = frame.depth[_roi_mask(frame.depth.shape, settings.roi)]
+    readings = readings[readings > 0]
+    if readings.size == 0:
+        return math.inf
+    threshold, _ = cv2.threshold(readings.reshape(-1, 1), 0, 65535, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    near, far = readings[readings <= threshold], readings[readings > threshold]
+    if far.size == 0 or far.mean() < 1.25 * near.mean():
+        return math.inf
+    return 0.5 * float(np.percentile(near, 99) + np.percentile(far, 1)) * mm_per_unit
+
+
+def _classify_opencv(frame: Frame, settings: SegmentationSettings, cutoff_mm: float,
+                     roi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Stage 1 with OpenCV: (gripper, object) bool (H, W) masks before components."""
+    saturation, value = _saturation_value(frame)
+    depth_mm = frame.depth.astype(np.float32) * np.float32(frame.intrinsics.depth_scale * 1000.0)
+    valid = frame.depth > 0
+    near = valid & (depth_mm <= np.float32(cutoff_mm))
+    if settings.hole_fill_px:
+        grown = cv2.dilate(near.view(np.uint8), _kernel(settings.hole_fill_px))
+        near |= ~valid & grown.view(bool)
+    foreground = near & roi
+    gripper = foreground & (saturation <= np.float32(settings.gripper_max_saturation)) \
+        & (value >= np.float32(settings.gripper_min_value))
+    obj = foreground & (saturation >= np.float32(settings.object_min_saturation)) \
+        & (value >= np.float32(settings.object_min_value))
+    if settings.gripper_open_px:
+        gripper = cv2.morphologyEx(gripper.view(np.uint8), cv2.MORPH_OPEN, _kernel(settings.gripper_open_px))
+    if settings.object_open_px:
+        obj = cv2.morphologyEx(obj.view(np.uint8), cv2.MORPH_OPEN, _kernel(settings.object_open_px))
+    return gripper.view(bool), obj.view(bool)
+
+
+def _classify_kornia(frames: list[Frame], settings: SegmentationSettings, cutoffs: list[float],
+                     rois: list[np.ndarray], device: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Stage 1 with kornia, all frames in one batch of torch tensors on ``device``."""
+    try:
+        import kornia
+        import torch
+    except ImportError as err:
+        raise SegmentationError(f"backend='kornia' needs torch and kornia ({err}): install them "
+                                f"with pip install 'softgrip-jax[kornia]', or use backend='opencv'") from None
+    sizes = {frame.depth.shape for frame in frames}
+    if len(sizes) > 1:
+        raise SegmentationError(f"backend='kornia' segments one batch, so all frames must have one size; "
+                                f"got sizes (height, width) {sorted(sizes)}: segment them in groups")
+
+    def tensor(arrays: list[np.ndarray]) -> Any:
+        return torch.from_numpy(np.stack(arrays)).to(device)
+
+    color = tensor([frame.color for frame in frames]).permute(0, 3, 1, 2).float() / 255.0
+    hsv = kornia.color.rgb_to_hsv(color)  # (B, 3, H, W): hue in radians (unused), S and V in [0, 1]
+    saturation, value = hsv[:, 1:2], hsv[:, 2:3]
+    depth = tensor([frame.depth.astype(np.int32) for frame in frames])[:, None].float()
+    mm_per_unit = tensor([np.float32(f.intrinsics.depth_scale * 1000.0) for f in frames]).view(-1, 1, 1, 1)
+    cutoff = tensor([np.float32(c) for c in cutoffs]).view(-1, 1, 1, 1)
+    valid = depth > 0
+    near = valid & (depth * mm_per_unit <= cutoff)
+    if settings.hole_fill_px:
+        grown = kornia.morphology.dilation(near.float(), _kernel_tensor(settings.hole_fill_px, device)) > 0.5
+        near = near | (~valid & grown)
+    foreground = near & tensor(rois)[:, None]
+    gripper = foreground & (saturation <= settings.gripper_max_saturation) \
+        & (value >= settings.gripper_min_value)
+    obj = foreground & (saturation >= settings.object_min_saturation) & (value >= settings.object_min_value)
+    if settings.gripper_open_px:
+        gripper = kornia.morphology.opening(gripper.float(), _kernel_tensor(settings.gripper_open_px, device)) > 0.5
+    if settings.object_open_px:
+        obj = kornia.morphology.opening(obj.float(), _kernel_tensor(settings.object_open_px, device)) > 0.5
+    gripper, obj = gripper[:, 0].cpu().numpy(), obj[:, 0].cpu().numpy()
+    return list(zip(gripper, obj))
+
+
+def _saturation_value(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+    """HSV saturation and value (H, W) float32 in [0, 1] of the frame's colour, by OpenCV."""
+    hsv = cv2.cvtColor(frame.color.astype(np.float32) * np.float32(1 / 255), cv2.COLOR_RGB2HSV)
+    return hsv[..., 1], hsv[..., 2]
+
+
+def _kernel(size: int) -> np.ndarray:
+    """uint8 (size, size) elliptic structuring element, the same for both backends."""
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+
+
+def _kernel_tensor(size: int, device: str) -> Any:
+    import torch
+
+    return torch.from_numpy(_kernel(size).astype(np.float32)).to(device)
+
+
+def _roi_mask(shape: tuple[int, int], roi: tuple[int, int, int, int] | None) -> np.ndarray:
+    """bool (H, W): True inside the region of interest (everywhere if None)."""
+    inside = np.zeros(shape, dtype=bool)
+    if roi is None:
+        inside[:] = True
+        return inside
+    x0, y0, x1, y1 = roi
+    if x0 >= shape[1] or y0 >= shape[0]:
+        raise SegmentationError(f"SegmentationSettings.roi {roi} starts outside the {shape[1]}x{shape[0]} "
+                                f"frame: give (x0, y0, x1, y1) in pixels of this frame")
+    inside[y0:y1, x0:x1] = True
+    return inside
+
+
+def _components(frame: Frame, settings: SegmentationSettings, cutoff_mm: float, roi: np.ndarray,
+                gripper: np.ndarray, obj: np.ndarray) -> Segmentation:
+    """Stage 2: split the gripper into fingers and clean the object mask."""
+    width = gripper.shape[1]
+    if settings.center_column is not None:
+        center = float(settings.center_column)
+        if center >= width:
+            raise SegmentationError(f"SegmentationSettings.center_column={center:g} is outside the frame "
+                                    f"(width {width} px): give a column between the fingers, or None")
+        left_side = np.arange(width) < center
+        left = _largest_component(gripper & left_side, settings.min_finger_px)
+        right = _largest_component(gripper & ~left_side, settings.min_finger_px)
+        if left is None and right is None:
+            _raise_no_gripper(frame, settings, cutoff_mm, roi)
+        for finger, side in ((left, "left"), (right, "right")):
+            if finger is None:
+                raise SegmentationError(
+                    f"only one finger found: no gripper region of at least min_finger_px="
+                    f"{settings.min_finger_px} px {side} of center_column={center:g}; expected one finger "
+                    f"on each side: check that both fingers are in view, or move center_column between them")
+    else:
+        _, labels, stats, centroids = cv2.connectedComponentsWithStats(gripper.view(np.uint8), connectivity=8)
+        order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable")
+        big = [k for k in order if stats[k, cv2.CC_STAT_AREA] >= settings.min_finger_px]
+        if not big:
+            _raise_no_gripper(frame, settings, cutoff_mm, roi)
+        if len(big) == 1:
+            k = big[0]
+            raise SegmentationError(
+                f"only one finger found ({stats[k, cv2.CC_STAT_AREA]} px around column "
+                f"{centroids[k, 0]:.0f}); expected two separate finger regions of at least min_finger_px="
+                f"{settings.min_finger_px} px: check that both fingers are in view; if they touch each "
+                f"other or the gripper's body joins them, set center_column to a column between them "
+                f"or roi to leave the body out")
+        first, second = sorted(big[:2], key=lambda k: centroids[k, 0])
+        left, right = labels == first, labels == second
+        center = 0.5 * float(centroids[first, 0] + centroids[second, 0])
+    return Segmentation(
+        gripper=gripper,
+        left_finger=left,
+        right_finger=right,
+        object=_drop_small(obj, settings.min_object_px),
+        background_cutoff_mm=cutoff_mm,
+        center_column=center,
+    )
+
+
+def _largest_component(mask: np.ndarray, min_px: int) -> np.ndarray | None:
+    """bool (H, W): the largest 8-connected component of ``mask`` if it has >= min_px pixels."""
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
+    if count < 2:
+        return None
+    k = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return labels == k if stats[k, cv2.CC_STAT_AREA] >= min_px else None
+
+
+def _drop_small(mask: np.ndarray, min_px: int) -> np.ndarray:
+    """bool (H, W): ``mask`` without its 8-connected components smaller than min_px pixels."""
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
+    keep = stats[:, cv2.CC_STAT_AREA] >= min_px
+    keep[0] = False
+    return keep[labels]
+
+
+def _raise_no_gripper(frame: Frame, settings: SegmentationSettings, cutoff_mm: float,
+                      roi: np.ndarray) -> NoReturn:
+    """Explain why no finger was found: no depth there, too deep, or nothing gripper-coloured."""
+    saturation, value = _saturation_value(frame)
+    coloured = roi & (saturation <= np.float32(settings.gripper_max_saturation)) \
+        & (value >= np.float32(settings.gripper_min_value))
+    candidate = _largest_component(coloured, settings.min_finger_px)
+    if candidate is not None:
+        readings = frame.depth[candidate]
+        readings = readings[readings > 0]
+        if readings.size < 0.05 * candidate.sum():
+            raise SegmentationError(
+                f"no depth in the gripper region: a gripper-coloured region of {int(candidate.sum())} px "
+                f"has depth readings on {readings.size} px only; the camera cannot measure the gripper: "
+                f"check that it is within the camera's depth range and not too shiny, and that depth is "
+                f"aligned to colour")
+        depth_mm = float(np.median(readings)) * frame.intrinsics.depth_scale * 1000.0
+        if depth_mm > cutoff_mm:
+            raise SegmentationError(
+                f"no gripper found in front of the background: the gripper-coloured region is at about "
+                f"{depth_mm:.0f} mm, beyond the background cut-off of {cutoff_mm:.0f} mm; set "
+                f"background_depth_mm above {depth_mm:.0f}")
+    raise SegmentationError(
+        f"no gripper found: expected two light, unsaturated regions (saturation <= "
+        f"gripper_max_saturation={settings.gripper_max_saturation}, value >= gripper_min_value="
+        f"{settings.gripper_min_value}) of at least min_finger_px={settings.min_finger_px} px in front "
+        f"of the background (cut-off {cutoff_mm:.0f} mm); check that the gripper is in view and lit "
+        f"evenly, or adjust gripper_max_saturation / gripper_min_value")
+
+
+def _check_real(name: str, value: Any, *, lower: float, upper: float | None = None,
+                strict: bool = False, unit: str = "") -> None:
+    ok = _is_real(value) and math.isfinite(value) and (value > lower if strict else value >= lower) \
+        and (upper is None or value <= upper)
+    if not ok:
+        bound = f"> {lower:g}" if strict else f">= {lower:g}"
+        if upper is not None:
+            bound = f"in [{lower:g}, {upper:g}]"
+        raise SegmentationError(f"SegmentationSettings.{name} must be a finite number {bound} {unit}, "
+                                f"got {value!r}".rstrip())
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
