@@ -22,6 +22,8 @@ from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, link_angles, pcc_joints, pcc_turning
 from softgrip_jax._metrics import joint_errors
 from softgrip_jax._model import FingerModel, Gripper
+from softgrip_jax._score import (RefineStatus, Refined, Score, ScoreComponents, ScoreWeights, refine, score,
+                                 score_pose)
 from softgrip_jax._sdf import FAR_MM, AbstractSDF, PolygonSDF, SDFGrid
 
 __all__ = [
@@ -29,5 +31,6 @@ __all__ = [
     "FingerModel", "GraspEstimate", "Gripper", "PolygonSDF", "SDFGrid", "SoftgripError",
     "Status", "case_shapes", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
     "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",
-    "joint_errors", "link_angles", "pcc_joints", "pcc_turning", "predict_contact", "predict_contact_local", "sweep_shape",
+    "joint_errors", "link_angles", "RefineStatus", "Refined", "Score", "ScoreComponents", "ScoreWeights",
+    "refine", "score", "score_pose", "pcc_joints", "pcc_turning", "predict_contact", "predict_contact_local", "sweep_shape",
 ]

@@ -13,10 +13,13 @@ that derivatives of s1 come from the implicit function theorem. Then (eqs. 6-8):
 
 * P_g1: the touching point of the finger (nearest the base), L_g1 its arc length, N_g1 = L_g1 N / L;
 * P_o1: P_g1 moved onto the object surface along the SDF's normal;
+* angles are measured between centreline points against the object dilated by r (the paper's
+  finger is a line; see the comment in :func:`predict_contact_local`);
 * N_g1 within half a link of N: contact at the tip only (case b);
-* otherwise the circle of radius L_g2 = L - L_g1 around P_o1 is intersected with the object
-  boundary; P_o2 is the crossing with the largest y; Theta_o1 and Theta_o1o2 are the angles of
-  P_base->P_o1 and P_o1->P_o2 from the vertical, Theta_remain = Theta - Theta_o1 (eq. 8); the tip
+* otherwise the circle of radius L_g2 = L - L_g1 around P_g1 is intersected with the dilated
+  object boundary; the crossing with the largest y is where the tip would touch (P_o2 is its
+  foot on the surface); Theta_o1 and Theta_o1o2 are the angles of P_base->P_g1 and of P_g1->that
+  crossing from the vertical, Theta_remain = Theta - Theta_o1 (eq. 8); the tip
   reaches P_o2 (case c) if Theta_remain >= Theta_o1o2, else only the other area touches (case d).
 
 All coordinates here are in the finger's frame: base at ``base``, hanging toward +y, curling
@@ -110,8 +113,8 @@ class Contact(eqx.Module):
     has_second: Bool[Array, ""]  #: the circle of Fig. 8 crosses the object boundary
     l_g1: Float[Array, ""]  #: arc length from the base to P_g1 (eq. 6, mm)
     n_g1: Float[Array, ""]  #: L_g1 / L * N (eq. 7), fractional
-    theta_o1: Float[Array, ""]  #: angle of P_base -> P_o1 from the vertical (rad)
-    theta_o1o2: Float[Array, ""]  #: angle of P_o1 -> P_o2 from the vertical (rad)
+    theta_o1: Float[Array, ""]  #: angle of P_base -> P_g1 from the vertical (rad)
+    theta_o1o2: Float[Array, ""]  #: angle of P_g1 -> the tip's second contact from the vertical (rad)
     theta_remain: Float[Array, ""]  #: Theta - Theta_o1 (eq. 8, rad)
     initial_overlap: Bool[Array, ""]  #: the object already overlaps the open finger (s = 0)
     root_converged: Bool[Array, ""]  #: the root finder met its tolerance
@@ -209,16 +212,16 @@ def _point_at_arc_length(joints, length, l):
     return joints[k] + t * (joints[k + 1] - joints[k])
 
 
-def _second_contact(dist, p_o1, radius, n_circle):
-    """Crossings of the circle (centre P_o1, ``radius``) with the object boundary (Fig. 8).
+def _second_contact(dist, centre, radius, n_circle):
+    """Crossings of the circle (``centre``, ``radius``) with the zero level of ``dist`` (Fig. 8).
 
-    Returns (has_crossing, P_o2, angle of P_o1 -> P_o2): the crossing with the largest y, i.e. the
-    direction nearest the downward vertical.
+    Returns (has_crossing, crossing point, angle of centre -> crossing): the crossing with the
+    largest y, i.e. the direction nearest the downward vertical.
     """
-    dtype = p_o1.dtype
+    dtype = centre.dtype
     step = 2.0 * jnp.pi / n_circle
     phi = (jnp.arange(n_circle, dtype=dtype) - n_circle // 2) * step  # [-pi, pi)
-    d = dist(p_o1 + radius * unit_direction(phi))
+    d = dist(centre + radius * unit_direction(phi))
     d_next = jnp.roll(d, -1)
     crossing = (d > 0) != (d_next > 0)
     frac = jnp.clip(safe_divide(d, d - d_next, 0.5), 0.0, 1.0)
@@ -228,7 +231,7 @@ def _second_contact(dist, p_o1, radius, n_circle):
     best = jnp.argmax(ranking)
     has = jnp.any(crossing)
     theta_o1o2 = jnp.where(has, angle[best], 0.0)
-    return has, p_o1 + radius * unit_direction(theta_o1o2), theta_o1o2
+    return has, centre + radius * unit_direction(theta_o1o2), theta_o1o2
 
 
 def predict_contact(
@@ -334,13 +337,19 @@ def predict_contact_local(
     p_g1 = _point_at_arc_length(joints, length, l_g1)
     n_g1 = l_g1 / length * n
 
-    # Onto the object surface along the normal.
-    p_o1 = p_g1 - dist(p_g1) * _unit_gradient(dist, p_g1)
-    theta_o1 = direction_angle(p_o1 - base)
+    # The paper's finger is a line and its angles are measured to the contact itself. For a finger
+    # of half-thickness r the same construction runs on the centreline against the object dilated
+    # by r (distance - r): Theta_o1 aims at P_g1, and the circle of Fig. 8 is centred there and
+    # crosses the dilated boundary. Aiming at the surface point P_o1 instead would put every
+    # estimated centreline r deep into the object. P_o1 and P_o2 are reported on the true surface.
+    theta_o1 = direction_angle(p_g1 - base)
     theta_remain = theta - theta_o1  # eq. 8
+    p_o1 = p_g1 - dist(p_g1) * _unit_gradient(dist, p_g1)
 
     # Second contact (Fig. 8).
-    has_second, p_o2, theta_o1o2 = _second_contact(dist, p_o1, length - l_g1, config.n_circle)
+    dilated = lambda q: dist(q) - r
+    has_second, p_g2, theta_o1o2 = _second_contact(dilated, p_g1, length - l_g1, config.n_circle)
+    p_o2 = p_g2 - dist(p_g2) * _unit_gradient(dist, p_g2)
 
     at_tip = n_g1 >= n - config.tip_tolerance
     case = jnp.where(

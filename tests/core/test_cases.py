@@ -47,15 +47,19 @@ def test_case_b_tip_rotates_the_free_shape_back_by_theta_remain():
     assert CASE_NAMES[int(est.case)] == "tip"
     assert float(c.s1) == pytest.approx(0.25, abs=2e-3)
     assert float(c.n_g1) == pytest.approx(N, abs=1e-3)
-    p_o1 = tip + np.array([R_FINGER, 0.0])
-    np.testing.assert_allclose(c.p_o1, p_o1, atol=0.05)
-    theta_o1 = math.atan2(p_o1[0], p_o1[1])
-    assert float(c.theta_o1) == pytest.approx(theta_o1, abs=2e-3)
+    np.testing.assert_allclose(c.p_g1, tip, atol=0.05)
+    np.testing.assert_allclose(c.p_o1, tip + np.array([R_FINGER, 0.0]), atol=0.05)
+    # Theta_o1 is the angle of P_base -> P_g1: for a tip contact, the chord angle at contact.
+    assert float(c.theta_o1) == pytest.approx(0.25, abs=2e-3)
     # psi = -(Theta - Theta_o1), turning 2 Theta / N.
     np.testing.assert_allclose(est.joints, chain(-(theta - float(c.theta_o1)), [2 * theta / N] * N), atol=1e-4)
-    np.testing.assert_allclose(est.joints, chain(-(theta - theta_o1), [2 * theta / N] * N), atol=0.1)
-    # The rotated shape's chord points at the object contact: its tip chord angle is Theta_o1.
-    assert math.atan2(*np.asarray(est.joints[-1])) == pytest.approx(float(c.theta_o1), abs=1e-5)
+    np.testing.assert_allclose(est.joints, chain(-(theta - 0.25), [2 * theta / N] * N), atol=0.1)
+    # The rotated shape's tip lies on the ray to where it first touched (chord angle Theta_o1),
+    # at the chord length of the fully bent shape, (L/N) sin(Theta)/sin(Theta/N): the paper keeps
+    # Theta, so the tip stops short of the contact instead of penetrating the object.
+    tip_est = np.asarray(est.joints[-1])
+    assert math.atan2(*tip_est) == pytest.approx(float(c.theta_o1), abs=1e-5)
+    assert np.linalg.norm(tip_est) == pytest.approx((L / N) * math.sin(theta) / math.sin(theta / N), abs=1e-3)
 
 
 # A big circle (R = 40) whose leftmost point is 2 mm + r from the straight finger at mid-length:
@@ -69,10 +73,14 @@ def test_case_c_tip_and_other():
     est, c = run(theta, *BIG)
     assert CASE_NAMES[int(est.case)] == "tip_and_other"
     assert 0 < float(c.n_g1) < N - 0.5 and bool(c.has_second)
-    # Both contacts lie on the object's surface, L - L_g1 apart.
+    # Both contacts lie on the object's surface; the centreline points r outside them are the
+    # remaining length L - L_g1 apart (the circle of Fig. 8 on the object dilated by r).
+    centre, radius = np.asarray(BIG[0]), BIG[1]
     for p in (c.p_o1, c.p_o2):
-        assert np.linalg.norm(np.asarray(p) - BIG[0]) == pytest.approx(BIG[1], abs=0.05)
-    assert np.linalg.norm(np.asarray(c.p_o2) - np.asarray(c.p_o1)) == pytest.approx(L - float(c.l_g1), abs=1e-3)
+        assert np.linalg.norm(np.asarray(p) - centre) == pytest.approx(radius, abs=0.05)
+    g2 = np.asarray(c.p_o2) + R_FINGER * (np.asarray(c.p_o2) - centre) / radius
+    assert np.linalg.norm(g2 - np.asarray(c.p_g1)) == pytest.approx(L - float(c.l_g1), abs=0.02)
+    assert math.atan2(*(g2 - np.asarray(c.p_g1))) == pytest.approx(float(c.theta_o1o2), abs=2e-3)
     assert float(c.theta_remain) >= float(c.theta_o1o2)
     remain = theta - float(c.theta_o1) - float(c.theta_o1o2)  # eq. 9
     np.testing.assert_allclose(est.joints, chain(-remain, [2 * theta / N] * N), atol=1e-4)

@@ -42,7 +42,8 @@ def test_rigid_sweep_first_contact_is_the_tangent_angle(center, radius):
     np.testing.assert_allclose(c.p_o1, p_o1, atol=0.1)
     assert float(c.l_g1) == pytest.approx(np.linalg.norm(foot), abs=0.1)  # eq. 6
     assert float(c.n_g1) == pytest.approx(np.linalg.norm(foot) / L * 10, abs=0.02)  # eq. 7
-    assert float(c.theta_o1) == pytest.approx(math.atan2(p_o1[0], p_o1[1]), abs=2e-3)
+    # Theta_o1 is the angle of P_base -> P_g1 (the centreline against the object dilated by r).
+    assert float(c.theta_o1) == pytest.approx(math.atan2(foot[0], foot[1]), abs=2e-3)
 
 
 def dense_pcc_first_contact(theta, n, center, radius, r, n_s=4001, per_link=200):

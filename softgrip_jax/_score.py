@@ -1,0 +1,246 @@
+"""Scoring and refining pre-touch gripper poses (DESIGN section 8; the paper's future work).
+
+A candidate is a gripper pose (x mm, y mm, angle rad). Its score combines what a planner needs to
+rank pre-touch poses from both fingers' estimates:
+
+* ``touch``: each finger closes onto the object before its closure ends (1), grazes it at the very
+  end (ramps to 0), or misses it (0);
+* ``wrap``: the fraction of each estimated finger that lies along the object surface (centreline
+  within ``contact_band`` mm of the object plus r);
+* ``opposition``: -n_left . n_right for the outward object normals at the two first contacts:
+  1 when the fingers squeeze from opposite sides, 0 when either finger misses;
+* ``tip_only``: a finger landing with its tip only (case b) on an edge, which a planner avoids;
+* ``penetration_mm``: how deep the estimated finger (centreline + r) lies inside the object. The
+  paper's wrapping cases press a soft finger's skin into the object by a millimetre or so; an
+  estimate deeper than ``max_penetration`` times r is flagged ``penetrating`` and ranks last.
+
+score = w_touch mean(touch) + w_wrap mean(wrap) + w_opposition opposition
+        - w_tip_only mean(tip_only) - w_penetration mean(penetration_mm).
+
+Every term is a continuous function of the estimate, so the score can be differentiated in the pose
+and refined by an optimistix minimiser.
+"""
+
+from __future__ import annotations
+
+import enum
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from softgrip_jax._contact import ContactCase, ContactConfig
+from softgrip_jax._deformation import Estimate
+from softgrip_jax._grasp import GraspEstimate, estimate_grasp
+from softgrip_jax._kinematics import chain_stations
+from softgrip_jax._model import FingerModel, Gripper
+from softgrip_jax._safe import safe_divide, safe_norm
+from softgrip_jax._sdf import AbstractSDF
+
+
+class ScoreWeights(eqx.Module):
+    """Weights and thresholds of the score (all static; mm where a length)."""
+
+    touch: float = eqx.field(static=True, default=1.0)
+    wrap: float = eqx.field(static=True, default=2.0)
+    opposition: float = eqx.field(static=True, default=1.0)
+    tip_only: float = eqx.field(static=True, default=1.5)
+    penetration: float = eqx.field(static=True, default=1.0)  #: per mm
+    contact_band: float = eqx.field(static=True, default=1.0)  #: mm beyond r that counts as "along"
+    max_penetration: float = eqx.field(static=True, default=0.5)  #: fraction of r; deeper is flagged
+
+
+class ScoreComponents(eqx.Module):
+    """The terms of the score; per-finger arrays are (left, right)."""
+
+    touch: Float[Array, "2"]
+    wrap: Float[Array, "2"]
+    opposition: Float[Array, ""]
+    tip_only: Float[Array, "2"]
+    penetration_mm: Float[Array, "2"]
+
+
+class Score(eqx.Module):
+    """A scored candidate: ``score`` is -inf unless ``valid`` (estimates usable, no flag)."""
+
+    score: Float[Array, ""]
+    components: ScoreComponents
+    grasp: GraspEstimate
+    penetrating: Bool[Array, ""]
+    valid: Bool[Array, ""]
+    status: Int[Array, ""]  #: the first failing finger's :class:`Status`, 0 if both are OK
+
+
+def _finger_terms(finger: FingerModel, sdf: AbstractSDF, est: Estimate, weights: ScoreWeights, config):
+    theta = finger.theta_entire
+    touches = est.case != ContactCase.NONE
+    # Closing onto the object counts fully when it happens before the last tenth of the closure.
+    touch = jnp.where(touches, jnp.clip(safe_divide(theta - est.contact.s1, 0.1 * theta, 1.0), 0.0, 1.0), 0.0)
+    joints = jnp.where(est.valid, est.joints, 0.0)
+    stations, _ = chain_stations(joints, finger.length, config.per_link(finger.n_links))
+    gap = sdf.distance(stations) - finger.half_thickness
+    wrap = jnp.mean(jax.nn.sigmoid((weights.contact_band - gap) / (0.25 * weights.contact_band)))
+    tip = jax.nn.sigmoid((est.contact.n_g1 - (finger.n_links - config.tip_tolerance)) / 0.1) * touch
+    penetration = jnp.maximum(-jnp.min(gap), 0.0)
+    # The outward normal at the contact, taken r off the surface at P_g1, where it is well defined
+    # (exactly on a polygon's boundary the direction to the nearest point is rounding noise).
+    normal = sdf.normal(jnp.where(est.valid, est.contact.p_g1, 0.0))
+    return touch, wrap, tip, penetration, normal
+
+
+def score_pose(
+    gripper: Gripper,
+    sdf: AbstractSDF,
+    pose: Float[ArrayLike, "3"],
+    weights: ScoreWeights = ScoreWeights(),
+    config: ContactConfig = ContactConfig(),
+) -> Score:
+    """Score one pose (x mm, y mm, angle rad). Pure; jit-, vmap- and grad-compatible.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import FingerModel, Gripper, PolygonSDF
+        >>> f = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=10)
+        >>> g = Gripper(left=f, right=f, base_separation=56.0)
+        >>> disc = PolygonSDF.regular((0.0, 38.0), 15.0, 128)
+        >>> centred = score_pose(g, disc, jnp.array([0.0, 0.0, 0.0]))
+        >>> missing = score_pose(g, disc, jnp.array([0.0, -60.0, 0.0]))
+        >>> bool(centred.score > missing.score)
+        True
+    """
+    grasp = estimate_grasp(gripper, sdf, pose, config)
+    left = _finger_terms(gripper.left, sdf, grasp.left, weights, config)
+    right = _finger_terms(gripper.right, sdf, grasp.right, weights, config)
+    touch, wrap, tip, penetration = (jnp.stack([a, b]) for a, b in zip(left[:4], right[:4]))
+    opposition = -jnp.dot(left[4], right[4]) * touch[0] * touch[1]
+    raw = (weights.touch * jnp.mean(touch) + weights.wrap * jnp.mean(wrap) + weights.opposition * opposition
+           - weights.tip_only * jnp.mean(tip) - weights.penetration * jnp.mean(penetration))
+    r = jnp.stack([gripper.left.half_thickness, gripper.right.half_thickness])
+    penetrating = jnp.any(penetration > weights.max_penetration * r)
+    valid = grasp.valid & ~penetrating
+    status = jnp.where(grasp.left.status != 0, grasp.left.status, grasp.right.status)
+    return Score(
+        score=jnp.where(valid, raw, -jnp.inf),
+        components=ScoreComponents(touch=touch, wrap=wrap, opposition=opposition, tip_only=tip,
+                                   penetration_mm=penetration),
+        grasp=grasp, penetrating=penetrating, valid=valid, status=status,
+    )
+
+
+def _device_mesh():
+    devices = jax.devices()
+    return jax.sharding.Mesh(np.array(devices), ("candidates",)) if len(devices) > 1 else None
+
+
+@partial(jax.jit, static_argnames=("chunk_size",))
+def _score_chunks(gripper, sdf, poses, weights, config, chunk_size):
+    # poses: (devices, per_device, 3); the device axis is vmapped (and sharded), each device's
+    # share is scanned in chunks so memory stays bounded.
+    one = lambda p: score_pose(gripper, sdf, p, weights, config)
+    return jax.vmap(lambda share: jax.lax.map(one, share, batch_size=chunk_size))(poses)
+
+
+def score(
+    gripper: Gripper,
+    sdf: AbstractSDF,
+    poses: Float[ArrayLike, "b 3"],
+    weights: ScoreWeights = ScoreWeights(),
+    config: ContactConfig = ContactConfig(),
+    *,
+    chunk_size: int = 2048,
+) -> Score:
+    """Score B candidate poses (x mm, y mm, angle rad) in one compiled call.
+
+    Poses are evaluated ``chunk_size`` at a time (memory does not grow with B). When several JAX
+    devices are present (GPUs, or hosts joined by ``jax.distributed``), the batch is split evenly
+    across them with ``jax.sharding``; results are identical to a single device's. Returns a
+    :class:`Score` whose leaves have a leading axis B; rank with ``jnp.argsort(-result.score)``.
+    """
+    poses = jnp.asarray(poses, gripper.base_separation.dtype)
+    b = poses.shape[0]
+    mesh = _device_mesh()
+    n_dev = 1 if mesh is None else mesh.devices.size
+    per_device = -(-b // n_dev)
+    padded = jnp.concatenate([poses, jnp.broadcast_to(poses[:1], (n_dev * per_device - b, 3))]) if b else poses
+    padded = padded.reshape(n_dev, per_device, 3)
+    if mesh is not None:
+        spec = jax.sharding.PartitionSpec("candidates")
+        padded = jax.device_put(padded, jax.sharding.NamedSharding(mesh, spec))
+    out = _score_chunks(gripper, sdf, padded, weights, config, max(1, min(chunk_size, per_device)))
+    return jax.tree_util.tree_map(lambda x: x.reshape((n_dev * per_device,) + x.shape[2:])[:b], out)
+
+
+class RefineStatus(enum.IntEnum):
+    IMPROVED = 0  #: the refined pose scores higher and is valid
+    NO_IMPROVEMENT = 1  #: the start was kept: the minimiser found nothing better that stays valid
+    INVALID_START = 2  #: the start pose is not valid; nothing to refine
+
+
+class Refined(eqx.Module):
+    """Result of :func:`refine`: the pose, its :class:`Score`, the start's score, and why."""
+
+    pose: Float[Array, "3"]
+    score: Score
+    start_score: Float[Array, ""]
+    status: Int[Array, ""]
+    solver_result: Int[Array, ""]  #: optimistix.RESULTS code of the minimiser, as an integer
+    steps: Int[Array, ""]
+
+
+def _refine_one(gripper, sdf, pose, weights, config, max_steps, angle_scale):
+    scale = jnp.array([1.0, 1.0, angle_scale], pose.dtype)
+
+    def objective(z, _):
+        s = score_pose(gripper, sdf, z * scale, weights, config)
+        raw = jnp.where(s.valid, s.score, 0.0)
+        # Leaving the valid set costs more than any score can gain.
+        return -raw + 10.0 * (1.0 - s.valid.astype(pose.dtype))
+
+    start = score_pose(gripper, sdf, pose, weights, config)
+    solution = optx.minimise(objective, optx.BFGS(rtol=1e-4, atol=1e-4), pose / scale, throw=False,
+                             max_steps=max_steps)
+    candidate = solution.value * scale
+    refined = score_pose(gripper, sdf, candidate, weights, config)
+    better = refined.valid & (refined.score > start.score)
+    keep = lambda new, old: jnp.where(better, new, old)
+    return Refined(
+        pose=keep(candidate, pose),
+        score=jax.tree_util.tree_map(keep, refined, start),
+        start_score=start.score,
+        status=jnp.where(~start.valid, RefineStatus.INVALID_START,
+                         jnp.where(better, RefineStatus.IMPROVED, RefineStatus.NO_IMPROVEMENT)).astype(jnp.int32),
+        solver_result=jnp.asarray(solution.result._value, jnp.int32),
+        steps=jnp.asarray(solution.stats["num_steps"], jnp.int32),
+    )
+
+
+@partial(jax.jit, static_argnames=("max_steps",))
+def _refine_batch(gripper, sdf, poses, weights, config, max_steps, angle_scale):
+    return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, max_steps, angle_scale))(poses)
+
+
+def refine(
+    gripper: Gripper,
+    sdf: AbstractSDF,
+    pose: Float[ArrayLike, "*b 3"],
+    weights: ScoreWeights = ScoreWeights(),
+    config: ContactConfig = ContactConfig(),
+    *,
+    max_steps: int = 40,
+    angle_scale: float = 0.05,
+) -> Refined:
+    """Improve one pose (3,) or a batch (B, 3) by gradient ascent of the score (optimistix BFGS).
+
+    The result never gets worse: when the minimiser ends at a pose that scores lower or is not
+    valid, the start pose is returned with ``status = NO_IMPROVEMENT``. ``angle_scale`` (rad per
+    unit of the minimiser's variable) balances millimetres against radians.
+    """
+    poses = jnp.asarray(pose, gripper.base_separation.dtype)
+    single = poses.ndim == 1
+    out = _refine_batch(gripper, sdf, poses.reshape(-1, 3), weights, config, max_steps,
+                        jnp.asarray(angle_scale, poses.dtype))
+    return jax.tree_util.tree_map(lambda x: x[0], out) if single else out
