@@ -54,6 +54,7 @@ def test_bad_candidates_do_not_poison_gradients():
     assert np.isfinite(jax.jit(jax.grad(loss))(jnp.float32(0.5)))
 
 
+@pytest.mark.slow
 def test_vmap_over_100k_bases_matches_chunked_batch():
     many = bases(100_000, 4)
     vmapped = jax.jit(jax.vmap(estimate, in_axes=(None, None, 0)))(FINGER, GRID, many)

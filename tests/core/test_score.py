@@ -43,6 +43,7 @@ def test_invalid_candidates_rank_last_and_do_not_poison_the_batch():
     assert float(s.score[0]) == float(s.score[3])
 
 
+@pytest.mark.slow
 def test_refine_improves_an_off_centre_pose_and_keeps_it_valid():
     start = jnp.array([-6.0, 4.0, 0.05])
     before = score(GRIPPER, DISC, start[None])
@@ -78,6 +79,7 @@ SHARDED = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_sharded_equals_unsharded():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
     out = subprocess.run([sys.executable, "-c", SHARDED], env=env, capture_output=True, text=True, timeout=600)
