@@ -14,7 +14,7 @@ EXIT_USER_ERROR = 2
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from softgrip_cli import cmd_capture, cmd_demo
+    from softgrip_cli import cmd_calibrate, cmd_capture, cmd_demo, cmd_estimate, cmd_score
 
     parser = argparse.ArgumentParser(
         prog="softgrip",
@@ -22,7 +22,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--debug", action="store_true", help="show tracebacks of user errors too")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in (cmd_demo, cmd_capture):
+    for module in (cmd_demo, cmd_calibrate, cmd_estimate, cmd_score, cmd_capture):
         module.add_parser(sub)
     return parser
 

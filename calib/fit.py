@@ -1,0 +1,582 @@
+"""Multi-frame least-squares calibration through the differentiable core (DESIGN section 9).
+
+Each observation is an open/closed frame pair: the object's signed distance and both finger bases
+seen in the open frame, and both fingers' observed joints in the closed frame (the closed centreline
+divided into N equal arc lengths, as in the paper's evaluation). For parameters ``p`` the residuals
+are, for every frame, finger and joint,
+
+    r = estimate_in_frame(finger(p), sdf, FingerFrame(base + base_offset(p))).joints - observed   (mm)
+
+and the fit minimises ``sum rho(|r|)`` over the joints of all usable frames with optimistix's
+Levenberg-Marquardt solver in float64, differentiating through the core's contact prediction and
+deformation (forward mode). ``rho`` is a robust loss on each joint's distance (Huber or Cauchy,
+scale about 1 mm), written as the residual ``sqrt(2 rho(|r|)) r / |r|`` so that a least-squares
+solver minimises it: a badly segmented frame pulls with a bounded force instead of a quadratic one.
+
+Parameters are named per finger (``"left.theta_entire"``, ``"right.base_offset"``); the registry
+:data:`PARAMETERS` lists what can be fitted, each with the number of frame pairs it needs. Internally
+the solver's unknown is a PyTree ``{side: {parameter: value}}`` of every registered parameter, and
+those not being fitted are held at their start values (their Jacobian columns are zero, which the
+damped solve handles), so every choice of fitted parameters reuses one compilation. Frames are
+stacked per SDF type and shape and padded to a multiple of :data:`FRAME_BUCKET` with masked copies,
+so fits over similar numbers of frames reuse it too. The first fit in a process compiles (15-25 s on
+two CPU cores); a later fit of 20 frame pairs with objects takes about 2 s.
+
+After the solve: the standard error of each fitted parameter, ``sqrt(diag(sigma^2 (J^T J)^-1))``
+with J the Jacobian of the robust residuals at the solution (the solver's own linearisation, so the
+robust loss weights it: an outlying joint counts less) and ``sigma^2 = sum r_rho^2 / (m - p)`` (m
+scalar residuals of the used frames, p fitted parameters); and the residual RMS (mm, of the raw
+joint distances) per frame and overall.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import warnings
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Bool, Float
+from tqdm import tqdm
+
+from calib.one_frame import frame_keypoints
+from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
+from softgrip_jax import AbstractSDF, ContactConfig, FingerFrame, FingerModel, SoftgripError, Status, estimate_in_frame
+from vision.frames import Frame, load_frame
+from vision.object_sdf import object_sdf
+from vision.segmentation import SegmentationSettings
+
+Loss = Literal["huber", "cauchy"]
+
+#: Theta (rad) a fit starts from when nothing better is known.
+NOMINAL_THETA = 0.5
+
+#: Frames are padded (with masked copies) to a multiple of this, so that fits over similar numbers
+#: of frame pairs share one compilation.
+FRAME_BUCKET = 16
+
+# A calibration runs one fit per process: XLA's backend optimisations would double its compile time
+# (some 15 s more) to make later fits about three times faster.
+_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+
+
+class FitError(SoftgripError):
+    """A least-squares calibration that cannot be done; the message says why and what to change."""
+
+
+class SkippedFrameWarning(UserWarning):
+    """A frame pair left out of the fit; the message names it and says why."""
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A per-finger quantity the fit can adjust (a field of :class:`calib.profile.FingerEntry`).
+
+    Attributes:
+        name: the field name, e.g. ``"theta_entire"``.
+        shape: its shape (``()`` for a number, ``(2,)`` for [dx, dy]).
+        min_frames: frame pairs needed before the fit can tell it from one pair's own noise.
+        why: the reason for ``min_frames``, for the error message.
+    """
+
+    name: str
+    shape: tuple[int, ...]
+    min_frames: int
+    why: str = ""
+
+
+#: Everything the fit can adjust, by name. Issue 7's stiffness parameters are added here.
+PARAMETERS: dict[str, Parameter] = {
+    p.name: p for p in (
+        Parameter("theta_entire", (), 1),
+        Parameter("base_offset", (2,), 2, "from a single pair a base offset absorbs that pair's own keypoint "
+                                          "error instead of a bias shared by all frames"),
+    )
+}
+
+
+@dataclass(frozen=True, eq=False)
+class Observation:
+    """One open/closed frame pair, in millimetres in the gripper plane.
+
+    Attributes:
+        sdf: the object's signed distance in the open frame (an ``SDFGrid`` from its mask, or a
+            ``PolygonSDF``); an SDF that is far everywhere when there is no object.
+        bases: (2, 2) [left, right] finger bases seen in the open frame.
+        observed: (2, N+1, 2) [left, right] observed joints of the closed fingers, base first.
+        label: how reports and warnings name the pair.
+    """
+
+    sdf: AbstractSDF
+    bases: np.ndarray
+    observed: np.ndarray
+    label: str = "frame pair"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.sdf, AbstractSDF):
+            raise FitError(f"{self.label}: sdf must be a softgrip_jax SDF (SDFGrid or PolygonSDF), got "
+                           f"{type(self.sdf).__name__}")
+        bases, observed = np.asarray(self.bases, np.float64), np.asarray(self.observed, np.float64)
+        if bases.shape != (2, 2):
+            raise FitError(f"{self.label}: bases must be (2, 2) [left, right] base points in mm, got shape "
+                           f"{bases.shape}")
+        if observed.ndim != 3 or observed.shape[0] != 2 or observed.shape[1] < 2 or observed.shape[2] != 2:
+            raise FitError(f"{self.label}: observed must be (2, N+1, 2) [left, right] joints in mm, got shape "
+                           f"{observed.shape}")
+        object.__setattr__(self, "bases", bases)
+        object.__setattr__(self, "observed", observed)
+
+
+def fit(
+    observations: Sequence[Observation],
+    start: CalibrationProfile,
+    parameters: Sequence[str] = ("theta_entire",),
+    *,
+    loss: Loss = "huber",
+    loss_scale_mm: float = 1.0,
+    config: ContactConfig = ContactConfig(),
+    max_steps: int = 100,
+    skipped: Sequence[dict[str, str]] = (),
+    progress: bool = True,
+) -> CalibrationProfile:
+    """Fit ``parameters`` of both fingers to the observations by robust least squares.
+
+    Args:
+        observations: the frame pairs.
+        start: starting values, and everything that is not fitted (L, r, N, W, segmentation,
+            camera). Both fingers must have the same ``n_links`` N, and every observation N+1
+            joints per finger.
+        parameters: names from :data:`PARAMETERS`, fitted for both fingers.
+        loss: ``"huber"`` (quadratic up to the scale, linear beyond) or ``"cauchy"`` (logarithmic
+            beyond: ignores gross outliers more, but is not convex).
+        loss_scale_mm: the scale c of the loss, mm (> 0); a very large value is plain least squares.
+        config: the contact sweep's discretisation (as for the estimate).
+        max_steps: Levenberg-Marquardt iteration cap.
+        skipped: pairs already left out upstream (``{"frame", "reason"}``), carried into the report.
+        progress: show a progress bar on stderr.
+
+    Returns:
+        ``start`` with the fitted values and ``fit`` describing the fit: method ``"least-squares"``,
+        the frames used, residual RMS (mm) per frame and overall, standard errors, skipped frames.
+        Pairs that cannot be used (non-finite input, or an invalid estimate at the start values:
+        the open finger overlaps the object, its base lies outside the SDF grid, ...) are skipped
+        with a :class:`SkippedFrameWarning`.
+
+    Raises:
+        FitError: unknown parameters or bad settings, no usable frame pair, fewer usable pairs than
+            a parameter needs (under-determined: the message names it), mismatched N, no convergence,
+            or a fitted Theta outside [0, pi/2).
+    """
+    names = _check_settings(parameters, loss, loss_scale_mm, max_steps)
+    n_links = _common_n_links(start, observations)
+    skipped = [dict(s) for s in skipped]
+    total = len(observations) + len(skipped)
+    candidates = []
+    for obs in observations:
+        reason = _non_finite(obs)
+        if reason is None:
+            candidates.append(obs)
+        else:
+            skipped.append(_skip(obs.label, reason))
+    _require_frames(candidates, names, skipped, total)
+
+    bar = tqdm(total=max_steps, desc="least-squares fit (compiles on first use)", unit="step", file=sys.stderr,
+               disable=not progress, leave=False)
+    with bar, _reporting_to(bar), jax.enable_x64(True):
+        y0, fixed, free = _unknowns(start, names)
+        groups, index = _stack(candidates)
+        out = _solve(y0, free, fixed, groups, jnp.asarray(loss_scale_mm, jnp.float64), n_links=n_links,
+                     config=config, loss=loss, max_steps=max_steps)
+        flat, result, start_status, residuals, robust, jacobian = jax.tree.map(np.asarray, out)
+
+    start_ok = (_per_frame(start_status, index) == Status.OK).all(axis=1)
+    for obs, status in zip(candidates, _per_frame(start_status, index)):
+        if not (status == Status.OK).all():
+            skipped.append(_skip(obs.label, "the estimate at the start values is invalid: " + _describe(status)))
+    used = [obs for obs, ok in zip(candidates, start_ok) if ok]
+    _require_frames(used, names, skipped, total)
+    if int(result) != _SUCCESSFUL:
+        raise FitError(f"the least-squares fit did not converge within {max_steps} steps (optimistix result "
+                       f"{int(result)}); raise max_steps, or start closer (e.g. from a one-frame calibration)")
+    return _report(start, names, flat, _per_frame(residuals, index)[start_ok], robust, jacobian, y0,
+                   [o.label for o in used], skipped)
+
+
+def observations_from_frames(
+    open_frame: Frame,
+    closed_frame: Frame,
+    settings: SegmentationSettings | None,
+    n_links: int,
+    label: str = "frame pair",
+) -> Observation:
+    """The :class:`Observation` of a pair of frames, through the vision pipeline.
+
+    The open frame gives both finger bases and the object's signed-distance grid (far everywhere
+    without an object); the closed frame gives both fingers' centrelines divided into ``n_links``
+    equal arc lengths.
+
+    Raises:
+        SoftgripError: segmentation, depth or keypoint failures (the message names what to adjust).
+    """
+    open_seg, open_camera, open_fingers = frame_keypoints(open_frame, settings)
+    _, _, closed_fingers = frame_keypoints(closed_frame, settings)
+    return Observation(
+        sdf=object_sdf(open_seg.object, open_camera),
+        bases=np.stack([f.base_mm for f in open_fingers]),
+        observed=np.stack([f.observed_mm(n_links) for f in closed_fingers]),
+        label=label,
+    )
+
+
+def load_observations(
+    pairs: Sequence[tuple[str | Path, str | Path]],
+    settings: SegmentationSettings | None,
+    n_links: int,
+    progress: bool = True,
+) -> tuple[list[Observation], list[dict[str, str]]]:
+    """Observations of (open, closed) frame folders; pairs that fail are skipped with a warning.
+
+    Returns:
+        The observations (labelled ``"OPEN + CLOSED"``) and the skipped pairs
+        (``{"frame", "reason"}``), for :func:`fit`'s ``skipped``.
+    """
+    observations, skipped = [], []
+    for open_path, closed_path in tqdm(pairs, desc="reading frame pairs", unit="pair", file=sys.stderr,
+                                       disable=not progress, leave=False):
+        label = f"{open_path} + {closed_path}"
+        try:
+            observations.append(observations_from_frames(load_frame(open_path), load_frame(closed_path),
+                                                         settings, n_links, label))
+        except SoftgripError as err:
+            skipped.append(_skip(label, str(err)))
+    return observations, skipped
+
+
+def start_from_open_frame(
+    open_frame: Frame,
+    n_links: int,
+    settings: SegmentationSettings | None = None,
+    theta_entire: float = NOMINAL_THETA,
+    camera_name: str = "unspecified",
+) -> CalibrationProfile:
+    """Starting values for :func:`fit` from an open frame alone: L (eq. 5), r and the base
+    separation W from its fingers, and a nominal Theta for both fingers.
+
+    Raises:
+        SoftgripError: the vision pipeline fails on the frame (the message names what to adjust).
+    """
+    _, _, fingers = frame_keypoints(open_frame, settings)
+    entries = {side: FingerEntry(length=f.length_mm, theta_entire=theta_entire,
+                                 half_thickness=f.half_thickness_mm, n_links=n_links)
+               for side, f in zip(SIDES, fingers)}
+    return CalibrationProfile(
+        fingers=entries, base_separation=float(np.hypot(*(fingers[1].base_mm - fingers[0].base_mm))),
+        segmentation=(settings or SegmentationSettings()).to_dict(),
+        camera={"name": camera_name, "intrinsics": open_frame.intrinsics.to_dict()},
+        fit=FitEntry(method="least-squares", frames=[]),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Checks on the host
+
+
+def _check_settings(parameters: Sequence[str], loss: str, scale: float, max_steps: int) -> list[str]:
+    names = list(dict.fromkeys(parameters))
+    unknown = [n for n in names if n not in PARAMETERS]
+    if not names or unknown:
+        raise FitError(f"unknown parameter(s) {', '.join(map(repr, unknown)) or '(none given)'}; the fit can "
+                       f"adjust: {', '.join(PARAMETERS)}")
+    if loss not in ("huber", "cauchy"):
+        raise FitError(f"loss must be 'huber' or 'cauchy', got {loss!r}")
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise FitError(f"loss_scale_mm must be a finite number of mm > 0, got {scale!r}")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise FitError(f"max_steps must be an integer >= 1, got {max_steps!r}")
+    return names
+
+
+def _common_n_links(start: CalibrationProfile, observations: Sequence[Observation]) -> int:
+    n_links = {start.fingers[side].n_links for side in SIDES}
+    if len(n_links) != 1:
+        raise FitError(f"the fit needs both fingers to have the same n_links; the start profile has "
+                       f"{start.fingers['left'].n_links} (left) and {start.fingers['right'].n_links} (right)")
+    (n,) = n_links
+    for obs in observations:
+        if obs.observed.shape[1] != n + 1:
+            raise FitError(f"{obs.label}: {obs.observed.shape[1]} observed joints per finger, but the start "
+                           f"profile has n_links = {n} (N + 1 = {n + 1} joints); divide the closed fingers "
+                           f"into n_links parts")
+    return n
+
+
+def _non_finite(obs: Observation) -> str | None:
+    """Why an observation cannot be used before any estimate, or None."""
+    for what, values in (("finger bases", obs.bases), ("observed joints", obs.observed)):
+        bad = ~np.isfinite(values)
+        if bad.any():
+            side = SIDES[int(np.argwhere(bad)[0][0])]
+            return f"non-finite {what} of the {side} finger"
+    if not all(np.isfinite(np.asarray(leaf)).all() for leaf in jax.tree.leaves(obs.sdf)):
+        return "non-finite values in the object's signed distance"
+    return None
+
+
+def _skip(label: str, reason: str) -> dict[str, str]:
+    warnings.warn(f"{label}: skipped: {reason}", SkippedFrameWarning, stacklevel=3)
+    return {"frame": label, "reason": reason}
+
+
+def _require_frames(frames: Sequence[Observation], names: Sequence[str], skipped: Sequence[dict[str, str]],
+                    total: int) -> None:
+    """Raise unless there are enough usable frame pairs for every parameter."""
+    if not frames:
+        reasons = "; ".join(f"{s['frame']}: {s['reason']}" for s in skipped) or "none given"
+        raise FitError(f"no usable frame pair (of {total}): {reasons}")
+    short = [PARAMETERS[n] for n in names if PARAMETERS[n].min_frames > len(frames)]
+    if short:
+        fitted = ", ".join(f"{side}.{p.name}" for p in short for side in SIDES)
+        need = max(p.min_frames for p in short)
+        why = "; ".join(p.why for p in short if p.why)
+        raise FitError(f"a fit of {fitted} from {len(frames)} usable frame pair(s) is under-determined: it needs "
+                       f"at least {need} ({why}); add frame pairs, or fit only theta_entire")
+
+
+# ---------------------------------------------------------------------------------------------
+# The unknowns and the stacked frames
+
+
+def _unknowns(start: CalibrationProfile, names: Sequence[str]):
+    """(y0, fixed, free), each ``{side: {field: array}}``: start values of every registered parameter
+    (float64), the finger values that are never fitted, and which parameters are fitted (bool)."""
+    numbers = np.hstack([np.ravel(v) for side in SIDES for v in dataclasses.astuple(start.fingers[side])])
+    if not np.isfinite(numbers.astype(np.float64)).all():
+        raise FitError("the start profile has non-finite finger values")
+    y0 = {side: {p.name: jnp.asarray(getattr(start.fingers[side], p.name), jnp.float64).reshape(p.shape)
+                 for p in PARAMETERS.values()} for side in SIDES}
+    fixed = {side: {name: jnp.asarray(getattr(start.fingers[side], name), jnp.float64)
+                    for name in ("length", "half_thickness")} for side in SIDES}
+    free = {side: {p.name: jnp.full(p.shape, p.name in names) for p in PARAMETERS.values()} for side in SIDES}
+    return y0, fixed, free
+
+
+class _Frames(eqx.Module):
+    """Frame pairs stacked along a leading axis F (padded copies have ``real`` False)."""
+
+    sdf: AbstractSDF
+    bases: Float[Array, "f 2 2"]
+    observed: Float[Array, "f 2 j 2"]
+    real: Bool[Array, " f"]
+
+
+def _stack(observations: Sequence[Observation]) -> tuple[list[_Frames], list[tuple[int, int]]]:
+    """Group observations by SDF type and shapes, stack each group in float64 and pad it to a
+    multiple of FRAME_BUCKET. Returns the groups and, per observation, (group, row)."""
+    def signature(obs):
+        leaves, treedef = jax.tree.flatten(obs.sdf)
+        return treedef, tuple(np.shape(leaf) for leaf in leaves)
+
+    keys: dict[Any, list[int]] = {}
+    for i, obs in enumerate(observations):
+        keys.setdefault(signature(obs), []).append(i)
+    groups, index = [], [(0, 0)] * len(observations)
+    for g, members in enumerate(keys.values()):
+        padded = members + [members[0]] * (-len(members) % FRAME_BUCKET)
+        rows = [observations[i] for i in padded]
+        groups.append(_Frames(
+            sdf=jax.tree.map(lambda *x: jnp.stack([jnp.asarray(v, jnp.float64) for v in x]), *[o.sdf for o in rows]),
+            bases=jnp.asarray(np.stack([o.bases for o in rows])),
+            observed=jnp.asarray(np.stack([o.observed for o in rows])),
+            real=jnp.asarray(np.arange(len(padded)) < len(members)),
+        ))
+        for row, i in enumerate(members):
+            index[i] = (g, row)
+    return groups, index
+
+
+def _per_frame(per_group: Sequence[np.ndarray], index: Sequence[tuple[int, int]]) -> np.ndarray:
+    """Rows of per-group arrays, one per observation, in observation order."""
+    return np.stack([per_group[g][row] for g, row in index])
+
+
+# ---------------------------------------------------------------------------------------------
+# The compiled solve
+
+
+def _finger_residuals(values, fixed, frames: _Frames, n_links: int, config: ContactConfig):
+    """Estimated minus observed joints (F, 2, J, 2) mm and estimate statuses (F, 2) of one group."""
+    fingers = jax.tree.map(lambda *v: jnp.stack(v), *({**values[side], **fixed[side]} for side in SIDES))
+    handedness = jnp.array([1.0, -1.0])
+
+    def one_finger(p, hand, sdf, base, observed):
+        finger = FingerModel(length=p["length"], theta_entire=p["theta_entire"], half_thickness=p["half_thickness"],
+                             n_links=n_links)
+        frame = FingerFrame(origin=base + p["base_offset"], angle=jnp.zeros_like(hand), handedness=hand)
+        est = estimate_in_frame(finger, sdf, frame, config)
+        return est.joints - observed, est.status
+
+    def one_frame(sdf, bases, observed):
+        return jax.vmap(one_finger, in_axes=(0, 0, None, 0, 0))(fingers, handedness, sdf, bases, observed)
+
+    return jax.vmap(one_frame)(frames.sdf, frames.bases, frames.observed)
+
+
+def _robust(residuals: Float[Array, "*b 2"], scale: Float[Array, ""], loss: Loss) -> Float[Array, "*b 2"]:
+    """Joint residuals r rescaled to sqrt(2 rho(|r|)) r / |r|, so their squares sum to 2 rho."""
+    e2 = jnp.sum(residuals**2, axis=-1, keepdims=True)
+    if loss == "huber":
+        far = e2 > scale**2
+        e = jnp.sqrt(jnp.where(far, e2, 4.0 * scale**2))
+        factor = jnp.where(far, jnp.sqrt(scale * (2.0 * e - scale)) / e, 1.0)
+    else:
+        u = e2 / scale**2
+        small = u < 1e-12
+        u_safe = jnp.where(small, 1.0, u)
+        factor = jnp.where(small, 1.0 - 0.25 * u, jnp.sqrt(jnp.log1p(u_safe) / u_safe))
+    return factor * residuals
+
+
+def _report_step(**info) -> None:
+    """optimistix's per-step hook: forward the step count and loss to the active progress bar."""
+    jax.debug.callback(_tick, info["num_steps"][1], info["loss_last_accepted_step"][1])
+
+
+# The solve is compiled once, so its host callback cannot close over one call's progress bar: it
+# reports to the innermost bar that a running fit has registered here.
+_ACTIVE_BARS: list[tqdm] = []
+
+
+def _tick(step, loss) -> None:
+    if _ACTIVE_BARS:
+        bar = _ACTIVE_BARS[-1]
+        bar.n = int(step) + 1
+        bar.set_postfix_str(f"robust loss {float(loss):.4g}", refresh=True)
+
+
+@contextmanager
+def _reporting_to(bar: tqdm) -> Iterator[None]:
+    _ACTIVE_BARS.append(bar)
+    try:
+        yield
+    finally:
+        _ACTIVE_BARS.remove(bar)
+
+
+@partial(jax.jit, static_argnames=("n_links", "config"))
+def _evaluate(values, fixed, groups: list[_Frames], n_links: int, config: ContactConfig):
+    """Raw residuals (F, 2, J, 2) and statuses (F, 2) of every group. Jitted on its own so that the
+    solve's several traces of it (start check, Jacobian) reuse one trace."""
+    out = [_finger_residuals(values, fixed, g, n_links, config) for g in groups]
+    return [r for r, _ in out], [s for _, s in out]
+
+
+@partial(jax.jit, static_argnames=("n_links", "config", "loss", "max_steps"), compiler_options=_COMPILER_OPTIONS)
+def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, config: ContactConfig, loss: Loss,
+           max_steps: int):
+    """Robust Levenberg-Marquardt from ``y0`` over the frames whose estimates are valid at ``y0``.
+
+    Returns (flattened solution, optimistix result code, estimate statuses at the start (per group,
+    (F, 2)), raw residuals at the solution (per group, (F, 2, J, 2)), robust residuals at the
+    solution flattened (M,), and their Jacobian (M, P) with respect to the flattened unknowns).
+    """
+    def with_fixed(y):
+        return jax.tree.map(lambda v, v0, f: jnp.where(f, v, v0), y, y0, free)
+
+    @jax.custom_jvp
+    def residuals(y):
+        return _evaluate(y, fixed, groups, n_links, config)[0]
+
+    @residuals.defjvp
+    def residuals_jvp(primals, tangents):
+        # Few unknowns and many residuals: one forward-mode Jacobian per linearisation, so that the
+        # solver's linear operator is a small matrix (cheaper to compile than a linearised estimate).
+        (y,), (dy,) = primals, tangents
+        jac, r = jax.jacfwd(lambda z: (residuals.fun(z),) * 2, has_aux=True)(y)
+        dy_leaves = jax.tree.leaves(dy)
+        return r, [sum(jnp.tensordot(j, d, axes=d.ndim) for j, d in zip(jax.tree.leaves(jg), dy_leaves))
+                   for jg in jac]
+
+    start_status = _evaluate(y0, fixed, groups, n_links, config)[1]
+    usable = [g.real & jnp.all(s == Status.OK, axis=-1) for g, s in zip(groups, start_status)]
+
+    def objective(y, args):
+        raw = residuals(with_fixed(y))
+        return [jnp.where(u[:, None, None, None], _robust(r, scale, loss), 0.0) for u, r in zip(usable, raw)], raw
+
+    solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6, verbose=_report_step)
+    solution = optx.least_squares(objective, solver, y0, has_aux=True, max_steps=max_steps, throw=False)
+    # The solver's state holds the residuals and the linearisation at the last accepted step: the solution.
+    robust = ravel_pytree(solution.state.f_info.residual)[0]
+    return (ravel_pytree(solution.value)[0], solution.result._value, start_status, solution.state.aux, robust,
+            solution.state.f_info.jac.as_matrix())
+
+
+# ---------------------------------------------------------------------------------------------
+# The report
+
+
+_SUCCESSFUL = int(optx.RESULTS.successful._value)
+
+
+def _describe(status: np.ndarray) -> str:
+    """Statuses (2,) of the [left, right] estimates, as text naming the invalid ones."""
+    return ", ".join(f"{side} finger {Status(int(s)).name}" for side, s in zip(SIDES, status) if s != Status.OK)
+
+
+def _columns(y0) -> list[tuple[str, str]]:
+    """(side, parameter) of each entry of the flattened unknowns, in ``ravel_pytree`` order."""
+    paths = jax.tree_util.tree_flatten_with_path(y0)[0]
+    return [(path[0].key, path[1].key) for path, leaf in paths for _ in range(int(np.size(leaf)))]
+
+
+def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, residuals: np.ndarray,
+            robust: np.ndarray, jacobian: np.ndarray, y0, labels: list[str],
+            skipped: list[dict[str, str]]) -> CalibrationProfile:
+    """The fitted profile: values, residual RMS per frame and overall, standard errors.
+
+    ``residuals`` (F, 2, J, 2) are the raw residuals of the F used frames; ``robust`` (M,) and
+    ``jacobian`` (M, P) the solver's residuals (zero for unused frames) and their Jacobian.
+    """
+    columns = _columns(y0)
+    fitted = [k for k, (_, name) in enumerate(columns) if name in names]
+    values: dict[tuple[str, str], list[float]] = {}
+    for (side, name), v in zip(columns, flat.tolist()):
+        values.setdefault((side, name), []).append(v)
+
+    distances = np.sqrt(np.sum(residuals**2, axis=-1))  # (F, 2, J) mm
+    jac = jacobian[:, fitted]
+    sigma2 = np.sum(robust**2) / (residuals.size - len(fitted))
+    covariance = sigma2 * np.linalg.inv(jac.T @ jac)
+    errors: dict[tuple[str, str], list[float]] = {}
+    for k, se in zip(fitted, np.sqrt(np.diag(covariance)).tolist()):
+        errors.setdefault(columns[k], []).append(se)
+
+    fingers = {}
+    for side in SIDES:
+        update = {}
+        for name in names:
+            v = values[(side, name)]
+            update[name] = v[0] if PARAMETERS[name].shape == () else tuple(v)
+        theta = update.get("theta_entire", start.fingers[side].theta_entire)
+        if not 0.0 <= theta < math.pi / 2:
+            raise FitError(f"the fitted Theta of the {side} finger is {theta:.4f} rad, outside [0, pi/2): the frame "
+                           f"pairs do not look like closures of this gripper (are open and closed swapped?)")
+        fingers[side] = dataclasses.replace(start.fingers[side], **update)
+    standard_errors = {f"{side}.{name}": (se[0] if PARAMETERS[name].shape == () else se)
+                       for (side, name), se in errors.items()}
+    return dataclasses.replace(start, fingers=fingers, fit=FitEntry(
+        method="least-squares", frames=labels, residual_rms_mm=float(np.sqrt(np.mean(distances**2))),
+        frame_residual_rms_mm=np.sqrt(np.mean(distances**2, axis=(1, 2))).tolist(),
+        standard_errors=standard_errors, skipped=skipped))

@@ -1,0 +1,148 @@
+"""One-frame calibration (paper section IV-A, eqs. 4-5).
+
+From a frame of the closed gripper with no object and a frame of the open gripper:
+
+* Theta of each finger from the closed frame, eq. 4: ``atan((x_tip - x_base) / (y_tip - y_base))``,
+  with the horizontal offset mirrored for the right finger (it curls toward -x);
+* L of each finger from the open frame, eq. 5: the base-tip distance of the straight finger;
+* the half-thickness r of each finger from its mask in the open frame (the keypoints' tube fit);
+* the base separation W: the distance between the two bases in the open frame.
+
+All in millimetres in the gripper plane. :func:`one_frame_profile` works on keypoints already in
+millimetres (anything with ``base_mm``, ``tip_mm``, ``half_thickness_mm`` and ``observed_mm(n)``,
+such as :class:`vision.keypoints.FingerKeypoints`); :func:`one_frame_from_frames` runs the vision
+pipeline on two frames first.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Protocol
+
+import jax.numpy as jnp
+import numpy as np
+
+from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
+from softgrip_jax import FingerFrame, SoftgripError, pcc_joints
+from vision.frames import Frame
+from vision.geometry import PlaneCamera
+from vision.keypoints import FingerKeypoints, finger_length, gripper_keypoints, theta_from_closed
+from vision.segmentation import Segmentation, SegmentationSettings, segment
+
+
+class FingerMeasurement(Protocol):
+    """One finger seen in a frame, in millimetres in the gripper plane."""
+
+    @property
+    def base_mm(self) -> np.ndarray:
+        """(2,) base point."""
+
+    @property
+    def tip_mm(self) -> np.ndarray:
+        """(2,) tip point."""
+
+    @property
+    def half_thickness_mm(self) -> float:
+        """Half-thickness r."""
+
+    def observed_mm(self, n_links: int) -> np.ndarray:
+        """(N+1, 2) the centreline divided into N equal arc lengths, base first."""
+
+
+def one_frame_profile(
+    closed: Sequence[FingerMeasurement],
+    open_: Sequence[FingerMeasurement],
+    n_links: int,
+    *,
+    label: str = "one frame pair",
+    segmentation: dict | None = None,
+    camera: dict | None = None,
+) -> CalibrationProfile:
+    """Calibrate both fingers from their keypoints in a closed (no object) and an open frame.
+
+    Args:
+        closed: [left, right] fingers of the closed gripper without an object (Theta, eq. 4).
+        open_: [left, right] fingers of the open gripper (L by eq. 5, r, and the bases for W).
+        n_links: number of links N of the model.
+        label: how the profile's ``fit.frames`` names the frame pair.
+        segmentation: segmentation settings to record (``{}`` if None).
+        camera: ``{"name", "intrinsics"}`` to record (``"unspecified"`` if None).
+
+    Returns:
+        A profile with ``fit.method = "one-frame"``. Its residual is the RMS distance (mm) between
+        the joints of the calibrated PCC shape (eqs. 1-3) hanging from the closed frame's bases and
+        the closed fingers' observed positions (centreline in N equal arc lengths): how well one
+        constant curvature describes the closed fingers.
+
+    Raises:
+        SoftgripError: a finger bent away from the gripper's centre (negative Theta: are the frames
+            swapped?) or not below its base (``vision.keypoints.KeypointError``), or a bad N.
+    """
+    fingers, squared = {}, []
+    for side, shut, straight in zip(SIDES, closed, open_):
+        theta = theta_from_closed(shut.base_mm, shut.tip_mm, side)  # eq. 4
+        if theta < 0:
+            raise SoftgripError(
+                f"the {side} finger of the closed frame bends away from the gripper's centre (Theta = "
+                f"{theta:.3f} rad by eq. 4): pass the frame of the closed gripper as CLOSED and the open "
+                f"one as --open")
+        entry = FingerEntry(length=finger_length(straight.base_mm, straight.tip_mm), theta_entire=theta,
+                            half_thickness=float(straight.half_thickness_mm), n_links=n_links)
+        fingers[side] = entry
+        model_joints = free_closure_joints(entry, shut.base_mm, side)
+        squared.append(np.sum((model_joints - shut.observed_mm(n_links)) ** 2, axis=-1))
+    rms = float(np.sqrt(np.mean(squared)))
+    base_separation = float(np.hypot(*(np.asarray(open_[1].base_mm) - np.asarray(open_[0].base_mm))))
+    return CalibrationProfile(
+        fingers=fingers, base_separation=base_separation, segmentation=dict(segmentation or {}),
+        camera=dict(camera or {"name": "unspecified", "intrinsics": None}),
+        fit=FitEntry(method="one-frame", frames=[label], residual_rms_mm=rms, frame_residual_rms_mm=[rms]),
+    )
+
+
+def free_closure_joints(entry: FingerEntry, base_mm: np.ndarray, side: str) -> np.ndarray:
+    """(N+1, 2) joints (mm) of the closed, untouched finger (eqs. 1-3) hanging from ``base_mm``,
+    mirrored for the right finger as the core mirrors it (a ``FingerFrame`` of handedness -1)."""
+    frame = FingerFrame(origin=jnp.asarray(base_mm, jnp.float32), angle=jnp.zeros(()),
+                        handedness=jnp.asarray(1.0 if side == "left" else -1.0))
+    return np.asarray(frame.to_world(pcc_joints(entry.model(), jnp.zeros(2))), np.float64)
+
+
+def frame_keypoints(
+    frame: Frame, settings: SegmentationSettings | None = None
+) -> tuple[Segmentation, PlaneCamera, tuple[FingerKeypoints, FingerKeypoints]]:
+    """Segment a frame and find both fingers' keypoints (the camera at the fingers' median depth).
+
+    Raises:
+        SoftgripError: segmentation or keypoint failures (their messages say what to adjust).
+    """
+    seg = segment(frame, settings)
+    camera = PlaneCamera.from_frame(frame, seg.fingers)
+    return seg, camera, gripper_keypoints(seg, camera)
+
+
+def one_frame_from_frames(
+    closed_frame: Frame,
+    open_frame: Frame,
+    n_links: int,
+    settings: SegmentationSettings | None = None,
+    *,
+    label: str = "one frame pair",
+    camera_name: str = "unspecified",
+) -> CalibrationProfile:
+    """:func:`one_frame_profile` on a closed frame without an object and an open frame.
+
+    Raises:
+        SoftgripError: the closed frame shows an object (eq. 4 needs a free closure), or the vision
+            pipeline fails on either frame (the message names what to adjust).
+    """
+    settings = settings or SegmentationSettings()
+    closed_seg, _, closed = frame_keypoints(closed_frame, settings)
+    if closed_seg.object.any():
+        raise SoftgripError(
+            f"the closed frame shows an object ({int(closed_seg.object.sum())} px): eq. 4 needs the gripper "
+            f"closed without touching anything; take the calibration frame without the object (or raise "
+            f"the segmentation's object_min_saturation / min_object_px if that is not an object)")
+    _, _, opened = frame_keypoints(open_frame, settings)
+    return one_frame_profile(closed, opened, n_links, label=label, segmentation=settings.to_dict(),
+                             camera={"name": camera_name, "intrinsics": closed_frame.intrinsics.to_dict()})

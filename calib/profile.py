@@ -1,0 +1,371 @@
+"""Calibration profiles on disk: a small, versioned JSON file (DESIGN section 9).
+
+A profile says everything the estimator needs about one gripper and how it was obtained::
+
+    {
+      "version": 1,
+      "gripper": {"base_separation": 64.0},
+      "fingers": {
+        "left":  {"length": 52.0, "theta_entire": 0.55, "half_thickness": 4.0, "n_links": 10,
+                  "base_offset": [0.0, 0.0]},
+        "right": {...}
+      },
+      "segmentation": {...},
+      "camera": {"name": "synthetic", "intrinsics": {"width": 640, ...}},
+      "fit": {"method": "least-squares", "frames": [...], "residual_rms_mm": 0.41,
+              "frame_residual_rms_mm": [...], "standard_errors": {"left.theta_entire": 0.002, ...},
+              "skipped": [{"frame": "...", "reason": "..."}]}
+    }
+
+Each finger's entry uses the field names of :class:`softgrip_jax.FingerModel` (mm, rad), plus an
+optional ``base_offset`` [dx, dy] (mm, image axes: x right, y down): the correction a least-squares
+fit found between the finger base seen in an open frame and the base the estimate should use.
+``segmentation`` holds :class:`vision.segmentation.SegmentationSettings` fields (``{}``: defaults);
+``camera`` names the camera (serial number, ``"synthetic"``, or ``"unspecified"``) and its
+intrinsics (pyrealsense2 names, or null).
+
+Loading validates every field and names the bad one as a path, e.g.
+``fingers.left.theta_entire: expected a number in [0, pi/2), got "abc"``. Saving writes a temporary
+file next to the target and renames it over the target (``os.replace``), so a profile on disk is
+never half-written.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from jaxtyping import ArrayLike
+
+from softgrip_jax import FingerModel, Gripper, SoftgripError
+from vision.frames import FrameError, Intrinsics
+from vision.segmentation import SegmentationError, SegmentationSettings
+
+#: The profile format this code writes and reads.
+PROFILE_VERSION = 1
+SIDES: tuple[str, str] = ("left", "right")
+Method = Literal["one-frame", "least-squares"]
+METHODS: tuple[str, ...] = ("one-frame", "least-squares")
+
+
+class ProfileError(SoftgripError):
+    """A calibration profile that cannot be read or written; the message names the file and field."""
+
+
+@dataclass(frozen=True)
+class FingerEntry:
+    """One finger's calibration: the :class:`~softgrip_jax.FingerModel` fields and a base offset.
+
+    Attributes:
+        length: finger length L, mm, > 0 (eq. 5).
+        theta_entire: entire bending angle Theta, rad, in [0, pi/2) (eq. 4).
+        half_thickness: half the finger thickness r, mm, >= 0.
+        n_links: number of links N, >= 1.
+        base_offset: (dx, dy) mm in image axes, added to a base detected in an open frame.
+    """
+
+    length: float
+    theta_entire: float
+    half_thickness: float
+    n_links: int
+    base_offset: tuple[float, float] = (0.0, 0.0)
+
+    def model(self) -> FingerModel:
+        """The core's finger model (float32 by default, as every core input)."""
+        return FingerModel(length=self.length, theta_entire=self.theta_entire,
+                           half_thickness=self.half_thickness, n_links=self.n_links)
+
+
+@dataclass(frozen=True)
+class FitEntry:
+    """How a profile was obtained.
+
+    Attributes:
+        method: ``"one-frame"`` (eqs. 4-5 from one closed and one open frame) or
+            ``"least-squares"`` (several open/closed frame pairs).
+        frames: labels of the frame pairs used (e.g. ``"OPEN + CLOSED"`` folder names).
+        residual_rms_mm: RMS over the used frames of the joint distances |estimated - observed|, mm;
+            None when nothing was compared.
+        frame_residual_rms_mm: the same per used frame, in the order of ``frames``.
+        standard_errors: standard error of each fitted parameter (``"left.theta_entire"``: rad,
+            ``"left.base_offset"``: [mm, mm]); empty for a one-frame calibration.
+        skipped: frame pairs left out, each ``{"frame": label, "reason": why}``.
+    """
+
+    method: Method
+    frames: list[str]
+    residual_rms_mm: float | None = None
+    frame_residual_rms_mm: list[float] = field(default_factory=list)
+    standard_errors: dict[str, float | list[float]] = field(default_factory=dict)
+    skipped: list[dict[str, str]] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class CalibrationProfile:
+    """A gripper's calibration (see the module docstring for the JSON layout).
+
+    Attributes:
+        fingers: ``{"left": FingerEntry, "right": FingerEntry}``.
+        base_separation: distance W between the two finger bases, mm, > 0 (JSON
+            ``gripper.base_separation``).
+        segmentation: :class:`~vision.segmentation.SegmentationSettings` fields as a dict (``{}``
+            for the defaults).
+        camera: ``{"name": str, "intrinsics": dict | None}``.
+        fit: how it was obtained.
+        version: the format version, :data:`PROFILE_VERSION`.
+    """
+
+    fingers: dict[str, FingerEntry]
+    base_separation: float
+    segmentation: dict[str, Any]
+    camera: dict[str, Any]
+    fit: FitEntry
+    version: int = PROFILE_VERSION
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object written by :func:`save_profile`."""
+        return {
+            "version": self.version,
+            "gripper": {"base_separation": self.base_separation},
+            "fingers": {side: {"length": f.length, "theta_entire": f.theta_entire,
+                               "half_thickness": f.half_thickness, "n_links": f.n_links,
+                               "base_offset": list(f.base_offset)}
+                        for side, f in self.fingers.items()},
+            "segmentation": dict(self.segmentation),
+            "camera": dict(self.camera),
+            "fit": {"method": self.fit.method, "frames": list(self.fit.frames),
+                    "residual_rms_mm": self.fit.residual_rms_mm,
+                    "frame_residual_rms_mm": list(self.fit.frame_residual_rms_mm),
+                    "standard_errors": dict(self.fit.standard_errors),
+                    "skipped": [dict(s) for s in self.fit.skipped]},
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "profile") -> CalibrationProfile:
+        """Validate a JSON object field by field and build the profile.
+
+        Raises:
+            ProfileError: the first bad, missing or unknown field, as ``source: path: problem``.
+        """
+        return _parse(data, source)
+
+    def segmentation_settings(self) -> SegmentationSettings:
+        """The segmentation settings (defaults for fields the profile leaves out)."""
+        return SegmentationSettings.from_dict(self.segmentation)
+
+    def corrected_bases(self, bases_mm: ArrayLike) -> np.ndarray:
+        """(2, 2) [left, right] finger bases detected in an open frame (mm) plus each base offset."""
+        offsets = np.array([self.fingers[side].base_offset for side in SIDES])
+        return np.asarray(bases_mm, np.float64).reshape(2, 2) + offsets
+
+
+def to_gripper(profile: CalibrationProfile) -> Gripper:
+    """The core's :class:`~softgrip_jax.Gripper` of a profile (base offsets are not part of it:
+    apply them to detected bases with :meth:`CalibrationProfile.corrected_bases`)."""
+    return Gripper(left=profile.fingers["left"].model(), right=profile.fingers["right"].model(),
+                   base_separation=profile.base_separation)
+
+
+def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str]) -> Path:
+    """Validate ``profile`` and write it to ``path`` atomically (replacing an existing file).
+
+    Raises:
+        ProfileError: a field is out of range (named, as when loading), or the file cannot be written.
+    """
+    path = Path(path)
+    data = profile.to_dict()
+    _parse(data, str(path))  # the same checks as loading: never write a profile that cannot be read
+    text = json.dumps(data, indent=2, allow_nan=False) + "\n"
+    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        # Created like any new file (mode 0o666 less the umask), then renamed over the target.
+        fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    except OSError as err:
+        raise ProfileError(f"{path}: cannot write the profile there ({err.strerror}): check that the "
+                           f"folder {path.parent} exists and is writable") from None
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except OSError as err:
+        raise ProfileError(f"{path}: cannot write the profile ({err.strerror})") from None
+    finally:
+        if temporary.exists():
+            temporary.unlink()
+    return path
+
+
+def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
+    """Read and validate a profile.
+
+    Raises:
+        ProfileError: missing or unreadable file, invalid JSON, or a bad field (named by its path).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ProfileError(f"{path}: no such calibration profile; make one with `softgrip calibrate`") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise ProfileError(f"{path}: cannot read the profile ({err})") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ProfileError(f"{path}: not valid JSON ({err.msg} at line {err.lineno}, column {err.colno})") from None
+    return _parse(data, str(path))
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation: each reader takes the value, its path in the document, and raises naming both.
+
+
+class _Reader:
+    """Field checks that raise a :class:`ProfileError` as ``source: path: expected ..., got ...``."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, path: str, expected: str, value: Any = ...) -> ProfileError:
+        got = "" if value is ... else f", got {_show(value)}"
+        return ProfileError(f"{self.source}: {path}: expected {expected}{got}")
+
+    def obj(self, value: Any, path: str, required: tuple[str, ...], optional: tuple[str, ...] = ()) -> dict:
+        if not isinstance(value, dict):
+            raise self.fail(path, "a JSON object", value)
+        for key in required:
+            if key not in value:
+                raise self.fail(f"{path}.{key}" if path else key, "a value (the field is missing)")
+        unknown = sorted(set(value) - set(required) - set(optional))
+        if unknown:
+            where = f"{path}.{unknown[0]}" if path else unknown[0]
+            raise ProfileError(f"{self.source}: {where}: unknown field (valid: {', '.join(required + optional)})")
+        return value
+
+    def number(self, value: Any, path: str, ok: Callable[[float], bool], expected: str) -> float:
+        if not _is_number(value) or not math.isfinite(value) or not ok(float(value)):
+            raise self.fail(path, expected, value)
+        return float(value)
+
+    def integer(self, value: Any, path: str, lower: int) -> int:
+        if not _is_int(value) or value < lower:
+            raise self.fail(path, f"an integer >= {lower}", value)
+        return int(value)
+
+    def text(self, value: Any, path: str, choices: tuple[str, ...] | None = None) -> str:
+        if choices is not None and value not in choices:
+            raise self.fail(path, "one of " + ", ".join(f'"{c}"' for c in choices), value)
+        if not isinstance(value, str) or not value:
+            raise self.fail(path, "a non-empty string", value)
+        return value
+
+    def array(self, value: Any, path: str) -> list:
+        if not isinstance(value, list):
+            raise self.fail(path, "a JSON array", value)
+        return value
+
+
+def _parse(data: Any, source: str) -> CalibrationProfile:
+    r = _Reader(source)
+    root = r.obj(data, "", ("version", "gripper", "fingers", "segmentation", "camera", "fit"))
+    version = root["version"]
+    if not _is_int(version) or version != PROFILE_VERSION:
+        newer = _is_int(version) and version > PROFILE_VERSION
+        raise r.fail("version", f"{PROFILE_VERSION}" + (" (the file was written by a newer softgrip-jax)"
+                                                         if newer else ""), version)
+    gripper = r.obj(root["gripper"], "gripper", ("base_separation",))
+    base_separation = r.number(gripper["base_separation"], "gripper.base_separation", lambda v: v > 0,
+                               "a distance in mm > 0")
+    fingers_obj = r.obj(root["fingers"], "fingers", SIDES)
+    fingers = {side: _parse_finger(r, fingers_obj[side], f"fingers.{side}") for side in SIDES}
+    segmentation = root["segmentation"]
+    if not isinstance(segmentation, dict):
+        raise r.fail("segmentation", "a JSON object of segmentation settings ({} for the defaults)", segmentation)
+    try:
+        SegmentationSettings.from_dict(segmentation, source=f"{source}: segmentation")
+    except SegmentationError as err:
+        raise ProfileError(str(err)) from None
+    camera = r.obj(root["camera"], "camera", ("name", "intrinsics"))
+    r.text(camera["name"], "camera.name")
+    if camera["intrinsics"] is not None:
+        try:
+            Intrinsics.from_dict(camera["intrinsics"], source=f"{source}: camera.intrinsics")
+        except FrameError as err:
+            raise ProfileError(str(err)) from None
+    return CalibrationProfile(fingers=fingers, base_separation=base_separation, segmentation=dict(segmentation),
+                              camera=dict(camera), fit=_parse_fit(r, root["fit"]), version=PROFILE_VERSION)
+
+
+def _parse_finger(r: _Reader, value: Any, path: str) -> FingerEntry:
+    f = r.obj(value, path, ("length", "theta_entire", "half_thickness", "n_links"), ("base_offset",))
+    offset = r.array(f.get("base_offset", [0.0, 0.0]), f"{path}.base_offset")
+    if len(offset) != 2:
+        raise r.fail(f"{path}.base_offset", "[dx, dy] in mm (two numbers)", offset)
+    return FingerEntry(
+        length=r.number(f["length"], f"{path}.length", lambda v: v > 0, "a length in mm > 0"),
+        theta_entire=r.number(f["theta_entire"], f"{path}.theta_entire", lambda v: 0 <= v < math.pi / 2,
+                              "a number in [0, pi/2)"),
+        half_thickness=r.number(f["half_thickness"], f"{path}.half_thickness", lambda v: v >= 0,
+                                "a half-thickness in mm >= 0"),
+        n_links=r.integer(f["n_links"], f"{path}.n_links", 1),
+        base_offset=tuple(r.number(v, f"{path}.base_offset[{i}]", lambda _: True, "a finite number of mm")
+                          for i, v in enumerate(offset)),
+    )
+
+
+def _parse_fit(r: _Reader, value: Any) -> FitEntry:
+    f = r.obj(value, "fit", ("method", "frames"),
+              ("residual_rms_mm", "frame_residual_rms_mm", "standard_errors", "skipped"))
+    method = r.text(f["method"], "fit.method", METHODS)
+    frames = [r.text(v, f"fit.frames[{i}]") for i, v in enumerate(r.array(f["frames"], "fit.frames"))]
+    non_negative = (lambda v: v >= 0, "a number >= 0")
+    rms = f.get("residual_rms_mm")
+    if rms is not None:
+        rms = r.number(rms, "fit.residual_rms_mm", *non_negative)
+    per_frame = [r.number(v, f"fit.frame_residual_rms_mm[{i}]", *non_negative)
+                 for i, v in enumerate(r.array(f.get("frame_residual_rms_mm", []), "fit.frame_residual_rms_mm"))]
+    if per_frame and len(per_frame) != len(frames):
+        raise r.fail("fit.frame_residual_rms_mm", f"one value per frame in fit.frames ({len(frames)})",
+                     per_frame)
+    errors_obj = f.get("standard_errors", {})
+    if not isinstance(errors_obj, dict):
+        raise r.fail("fit.standard_errors", "a JSON object (parameter name -> standard error)", errors_obj)
+    errors: dict[str, float | list[float]] = {}
+    for name, v in errors_obj.items():
+        path = f"fit.standard_errors.{name}"
+        if isinstance(v, list):
+            errors[name] = [r.number(x, f"{path}[{i}]", *non_negative) for i, x in enumerate(v)]
+        else:
+            errors[name] = r.number(v, path, *non_negative)
+    skipped = []
+    for i, v in enumerate(r.array(f.get("skipped", []), "fit.skipped")):
+        entry = r.obj(v, f"fit.skipped[{i}]", ("frame", "reason"))
+        skipped.append({"frame": r.text(entry["frame"], f"fit.skipped[{i}].frame"),
+                        "reason": r.text(entry["reason"], f"fit.skipped[{i}].reason")})
+    return FitEntry(method=method, frames=frames, residual_rms_mm=rms, frame_residual_rms_mm=per_frame,
+                    standard_errors=errors, skipped=skipped)
+
+
+def _show(value: Any) -> str:
+    """A value as JSON text (strings quoted), shortened."""
+    try:
+        text = json.dumps(value)
+    except (TypeError, ValueError):
+        text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)

@@ -1,0 +1,166 @@
+"""``softgrip calibrate``: a calibration profile from one frame pair (eq. 4) or by least squares."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from pathlib import Path
+
+from softgrip_jax import SoftgripError
+
+DEFAULT_N_LINKS = 10
+
+EPILOG = """\
+examples:
+  softgrip calibrate closed_0 --open open_0 --n-links 10 -o profile.json
+      one-frame calibration (eqs. 4-5): Theta of each finger from a frame of the gripper closed
+      without an object, L, r and the base separation from a frame of the open gripper
+  softgrip calibrate --fit open_1 closed_1 open_2 closed_2 open_3 closed_3 -o fitted.json
+      least squares over open/closed frame pairs (objects allowed), starting from the first open
+      frame and Theta = 0.5 rad
+  softgrip calibrate --fit open_1 closed_1 open_2 closed_2 --profile profile.json --base-offset \\
+      --json -o fitted.json
+      start from a profile (its N, L, r, segmentation), also fit a base offset per finger, and print
+      the report as JSON
+
+Frame arguments are frame folders (color.png, depth.png, intrinsics.json; see `softgrip capture`).
+In a fit, a pair that cannot be used (segmentation fails, the open finger already overlaps the
+object, ...) is skipped with a warning and listed in the profile's fit.skipped. The first fit in a
+process compiles for tens of seconds; progress goes to stderr.
+"""
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``calibrate`` on the ``softgrip`` sub-command parsers."""
+    parser = subparsers.add_parser(
+        "calibrate",
+        help="make a calibration profile from frames (one pair, or least squares over several)",
+        description="Calibrate the deformation model: Theta of each finger from a frame of the closed "
+                    "gripper without an object and L from a frame of the open gripper (the paper's eqs. "
+                    "4-5), or fit Theta (and optionally a base offset) to several open/closed frame "
+                    "pairs by robust least squares through the estimator.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("closed", nargs="?", type=Path, metavar="CLOSED_FRAME",
+                        help="frame of the gripper closed without an object (one-frame calibration)")
+    parser.add_argument("--open", type=Path, metavar="OPEN_FRAME", dest="open_frame",
+                        help="frame of the open gripper (one-frame calibration)")
+    parser.add_argument("--fit", nargs="+", type=Path, metavar="FRAME",
+                        help="least squares over pairs OPEN CLOSED [OPEN CLOSED ...]")
+    parser.add_argument("--profile", type=Path, metavar="START",
+                        help="starting values for --fit (default: the first open frame, Theta 0.5 rad)")
+    parser.add_argument("--n-links", type=_positive_int, metavar="N",
+                        help=f"number of links of the model (default: the --profile's, else {DEFAULT_N_LINKS})")
+    parser.add_argument("--base-offset", action="store_true",
+                        help="with --fit, also fit a base offset per finger (needs 2 or more pairs)")
+    parser.add_argument("--loss", choices=("huber", "cauchy"), default="huber",
+                        help="robust loss of the fit (default: huber)")
+    parser.add_argument("--loss-scale", type=float, default=1.0, metavar="MM",
+                        help="scale of the robust loss in mm (default: 1.0)")
+    parser.add_argument("--camera", metavar="NAME",
+                        help="camera name or serial number to record (default: the --profile's, else "
+                             "'unspecified')")
+    parser.add_argument("-o", "--output", type=Path, required=True, metavar="PROFILE",
+                        help="profile file to write (JSON; replaced atomically if it exists)")
+    parser.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
+    parser.set_defaults(func=run)
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    """Calibrate as ``args`` says, write the profile, print a report; 0 on success."""
+    from calib.fit import SkippedFrameWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", SkippedFrameWarning)
+        warnings.showwarning = _print_warning
+        profile = _fit(args) if args.fit else _one_frame(args)
+    from calib.profile import save_profile
+
+    save_profile(profile, args.output)
+    if args.json:
+        print(json.dumps({"output": str(args.output), "profile": profile.to_dict()}))
+    else:
+        _print_summary(profile, args.output)
+    return 0
+
+
+def _one_frame(args: argparse.Namespace):
+    from calib.one_frame import one_frame_from_frames
+    from vision.frames import load_frame
+
+    if args.closed is None or args.open_frame is None:
+        raise SoftgripError("give CLOSED_FRAME and --open OPEN_FRAME for a one-frame calibration, or --fit OPEN "
+                            "CLOSED [...] for least squares (see softgrip calibrate --help)")
+    fit_only = [f"--{name.replace('_', '-')}" for name in ("profile", "base_offset")
+                if getattr(args, name) not in (None, False)]
+    if fit_only:
+        raise SoftgripError(f"{', '.join(fit_only)} only apply to --fit")
+    return one_frame_from_frames(load_frame(args.closed), load_frame(args.open_frame),
+                                 args.n_links or DEFAULT_N_LINKS, label=f"{args.open_frame} + {args.closed}",
+                                 camera_name=args.camera or "unspecified")
+
+
+def _fit(args: argparse.Namespace):
+    import dataclasses
+
+    from calib.fit import fit, load_observations, start_from_open_frame
+    from calib.profile import load_profile
+    from vision.frames import load_frame
+
+    if args.closed is not None or args.open_frame is not None:
+        raise SoftgripError("CLOSED_FRAME and --open are for a one-frame calibration; with --fit give the frames "
+                            "as pairs: --fit OPEN CLOSED [OPEN CLOSED ...]")
+    if len(args.fit) % 2:
+        raise SoftgripError(f"--fit needs frame pairs OPEN CLOSED, got {len(args.fit)} folders (an odd number)")
+    pairs = list(zip(args.fit[0::2], args.fit[1::2]))
+    if args.profile is not None:
+        start = load_profile(args.profile)
+        n_links = start.fingers["left"].n_links
+        if args.n_links is not None and args.n_links != n_links:
+            raise SoftgripError(f"--n-links {args.n_links} differs from n_links = {n_links} in {args.profile}; "
+                                f"drop --n-links, or calibrate a new profile with that N")
+        if args.camera is not None:
+            start = dataclasses.replace(start, camera={**start.camera, "name": args.camera})
+        settings = start.segmentation_settings()
+    else:
+        n_links = args.n_links or DEFAULT_N_LINKS
+        start = start_from_open_frame(load_frame(pairs[0][0]), n_links, camera_name=args.camera or "unspecified")
+        settings = None
+    observations, skipped = load_observations(pairs, settings, n_links, progress=True)
+    parameters = ["theta_entire", "base_offset"] if args.base_offset else ["theta_entire"]
+    return fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, skipped=skipped)
+
+
+def _print_summary(profile, output: Path) -> None:
+    errors = profile.fit.standard_errors
+    for side, f in profile.fingers.items():
+        se = errors.get(f"{side}.theta_entire")
+        spread = "" if se is None else f" +/- {se:.4f}"
+        offset = ""
+        if f"{side}.base_offset" in errors:
+            offset = ", base offset ({:+.2f}, {:+.2f}) mm".format(*f.base_offset)
+        print(f"{side:<5} Theta {f.theta_entire:.4f}{spread} rad, L {f.length:.2f} mm, r {f.half_thickness:.2f} mm, "
+              f"N {f.n_links}{offset}")
+    fit = profile.fit
+    skipped = f", {len(fit.skipped)} skipped" if fit.skipped else ""
+    print(f"base separation {profile.base_separation:.2f} mm; {fit.method}: residual RMS {fit.residual_rms_mm:.3f} mm "
+          f"over {len(fit.frames)} frame pair(s){skipped}")
+    print(f"wrote {output}")
+
+
+def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"softgrip calibrate: warning: {message}", file=sys.stderr)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value

@@ -1,0 +1,454 @@
+"""``softgrip score``: score and rank many candidate gripper poses on one frame, with a heat map."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+import re
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from softgrip_cli import _pipeline as pipe
+from softgrip_jax import SoftgripError
+
+EPILOG = """examples:
+  softgrip score data/circle_open --profile data/sample_profile.json --heatmap heat.png
+  softgrip score data/circle_open --profile data/sample_profile.json --grid=-20:20:41,-75:-40:36,-0.2:0.2:5 --json
+  softgrip score data/circle_open --profile data/sample_profile.json --poses poses.csv --top 5
+
+A pose is (x mm, y mm, angle rad): the point midway between the finger bases, in the gripper plane's
+millimetres (the frame of `softgrip estimate`'s joints_mm), and the gripper's in-plane rotation
+(0: fingers hanging straight down the image). Give --grid with '=' when it starts with a minus sign.
+
+Poses:
+  (default)   a grid around the object: x over its extent +-10 mm, y from one finger length above
+              its top down to its top, the frame's gripper angle and +-0.2 rad (25 x 21 x 3 poses)
+  --grid      X0:X1:NX,Y0:Y1:NY,A0:A1:NA  (inclusive ranges: NX values from X0 to X1, ...)
+  --poses     FILE.json: [[x, y, angle], ...], [{"x_mm", "y_mm", "angle_rad"}, ...], {"poses": [...]}
+              or this command's own --json output; FILE.csv: rows x_mm,y_mm[,angle_rad], optional
+              header naming the columns; angle 0 when left out
+
+With --json, stdout is {"frame", "n_links", "n_candidates", "n_valid", "candidates": [...]}, the
+candidates ranked best first (--top K of them, 0 for all), each {"pose": {"x_mm", "y_mm",
+"angle_rad"}, "score" (null when not valid), "components", "valid", "status", "fingers": [left,
+right]} with the fingers' fields as in `softgrip estimate --json`.
+The heat map (--heatmap PNG) colours each gripper-centre position by its best score over the angles,
+blended over the frame, with the best pose's estimate drawn (joints blue, contacts red).
+"""
+
+#: Poses of the default grid along x, y and the angle (fixed, so every frame reuses one compilation).
+DEFAULT_GRID_SHAPE = (25, 21, 3)
+DEFAULT_MARGIN_MM = 10.0
+DEFAULT_ANGLES = (-0.2, 0.0, 0.2)
+MAX_POSES = 1_000_000
+_GRID_FORMAT = "X0:X1:NX,Y0:Y1:NY,A0:A1:NA (mm, mm, rad; e.g. -20:20:21,-80:-40:21,-0.2:0.2:3)"
+
+
+class PoseInputError(SoftgripError):
+    """A grid or a pose file that cannot be read; the message names it (and the line)."""
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "score", help="score and rank candidate gripper poses on a frame, with a heat map",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Estimate both fingers at many candidate gripper poses on one frame in one compiled, "
+                    "batched call, score each (DESIGN section 8) and rank them best first.",
+    )
+    parser.add_argument("frame", metavar="FRAME", help="frame folder with the object")
+    parser.add_argument("--profile", required=True, metavar="P", help="calibration profile (JSON)")
+    poses = parser.add_mutually_exclusive_group()
+    poses.add_argument("--grid", metavar="X0:X1:NX,Y0:Y1:NY,A0:A1:NA", help="a grid of poses (mm, mm, rad)")
+    poses.add_argument("--poses", metavar="FILE", help="poses from a .json or .csv file")
+    parser.add_argument("--json", action="store_true", help="print the ranked candidates as JSON")
+    parser.add_argument("--heatmap", metavar="PNG", help="write the score heat map over the frame")
+    parser.add_argument("--top", type=int, default=10, metavar="K",
+                        help="how many of the best candidates to print (default 10; 0 for all)")
+    parser.add_argument("--length-from-frame", action="store_true",
+                        help="use each finger's length measured in the frame instead of the profile's")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vision.overlay import save_png
+
+    if args.top < 0:
+        raise SoftgripError(f"--top must be >= 0 (0 prints every candidate), got {args.top}")
+    pipe.enable_compilation_cache()
+    profile = pipe.load_profile(args.profile)
+    grid = None
+    if args.poses:
+        poses = read_poses(args.poses)  # before the frame: a bad file fails fast
+    elif args.grid:
+        grid = parse_grid(args.grid)
+    if args.heatmap:
+        pipe.ensure_dir(Path(args.heatmap).parent, "heat map's folder")
+    scene = pipe.frame_scene(args.frame, profile, length_from_frame=args.length_from_frame)
+    if not args.poses:
+        grid = grid or default_grid(scene)
+        poses = grid_poses(*grid)
+    if not scene.has_object:
+        pipe.warn(f"{args.frame}: no object found; every candidate closes on nothing (case none)")
+
+    result, elapsed = score_poses(scene, poses)
+    order = rank(result)
+    n_valid = int(np.sum(result.valid))
+    print(f"scored {len(poses)} candidate poses in {elapsed:.1f} s (including compilation the first "
+          f"time); {n_valid} valid", file=sys.stderr)
+
+    shown = order if args.top == 0 else order[:args.top]
+    if args.heatmap:
+        image = heatmap_image(scene, poses, result, grid, int(order[0]))
+        save_png(args.heatmap, image)
+    if args.json:
+        out = {"frame": scene.path, "n_links": scene.n_links, "n_candidates": len(poses), "n_valid": n_valid,
+               "candidates": [pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera)
+                              for i in shown]}
+        json.dump(out, sys.stdout, allow_nan=False)
+        print()
+    else:
+        print(_table(scene, poses, result, shown, n_valid))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Poses
+
+
+def parse_grid(spec: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``X0:X1:NX,Y0:Y1:NY,A0:A1:NA`` -> the values along x (mm), y (mm) and the angle (rad)."""
+    parts = spec.split(",")
+    if len(parts) != 3:
+        raise PoseInputError(f"--grid {spec!r}: expected three ranges, {_GRID_FORMAT}")
+    axes = []
+    for part, what in zip(parts, ("x", "y", "angle")):
+        fields = part.split(":")
+        try:
+            if len(fields) != 3:
+                raise ValueError
+            lo, hi, count = float(fields[0]), float(fields[1]), int(fields[2])
+        except ValueError:
+            raise PoseInputError(f"--grid {spec!r}: the {what} range {part!r} is not FROM:TO:COUNT; expected "
+                                 f"{_GRID_FORMAT}") from None
+        if not (math.isfinite(lo) and math.isfinite(hi)) or count < 1:
+            raise PoseInputError(f"--grid {spec!r}: the {what} range {part!r} needs finite ends and a count >= 1")
+        axes.append(np.linspace(lo, hi, count))
+    total = math.prod(len(a) for a in axes)
+    if total > MAX_POSES:
+        raise PoseInputError(f"--grid {spec!r} has {total} poses; at most {MAX_POSES} per call (split the grid)")
+    return axes[0], axes[1], axes[2]
+
+
+def grid_poses(xs: np.ndarray, ys: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """(NX * NY * NA, 3) poses, x slowest, angle fastest."""
+    return np.stack(np.meshgrid(xs, ys, angles, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def default_grid(scene: pipe.FrameScene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The default grid (see EPILOG); around the frame's own pose when there is no object."""
+    nx, ny, _ = DEFAULT_GRID_SHAPE
+    angles = scene.pose[2] + np.asarray(DEFAULT_ANGLES)
+    if not scene.has_object:
+        x, y = scene.pose[:2]
+        return np.linspace(x - 20.0, x + 20.0, nx), np.linspace(y - 20.0, y + 20.0, ny), angles
+    rows, cols = np.nonzero(scene.segmentation.object)
+    (x0, y0), (x1, _) = scene.camera.px_to_mm([[cols.min() - 0.5, rows.min() - 0.5],
+                                               [cols.max() + 0.5, rows.max() + 0.5]])
+    reach = max(float(scene.gripper.left.length), float(scene.gripper.right.length))
+    return (np.linspace(x0 - DEFAULT_MARGIN_MM, x1 + DEFAULT_MARGIN_MM, nx), np.linspace(y0 - reach, y0, ny),
+            angles)
+
+
+def read_poses(path: str) -> np.ndarray:
+    """(B, 3) poses from a .json or .csv file (formats in EPILOG).
+
+    Raises:
+        PoseInputError: a missing or unreadable file, or a bad entry (named by its line).
+    """
+    file = Path(path)
+    try:
+        text = file.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise PoseInputError(f"{file}: no such pose file") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise PoseInputError(f"{file}: cannot read the pose file ({err})") from None
+    suffix = file.suffix.lower()
+    if suffix == ".json":
+        poses = _json_poses(text, file)
+    elif suffix == ".csv":
+        poses = _csv_poses(text, file)
+    else:
+        raise PoseInputError(f"{file}: a pose file must be .json or .csv, got {suffix or 'no suffix'!r}")
+    if not poses:
+        raise PoseInputError(f"{file}: no poses in the file")
+    if len(poses) > MAX_POSES:
+        raise PoseInputError(f"{file}: {len(poses)} poses; at most {MAX_POSES} per call (split the file)")
+    return np.asarray(poses, np.float64)
+
+
+def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise PoseInputError(f"{file}, line {err.lineno}: not valid JSON ({err.msg}, column {err.colno})") from None
+    key = None
+    if isinstance(data, dict):
+        key = next((k for k in ("poses", "candidates") if isinstance(data.get(k), list)), None)
+        if key is None:
+            raise PoseInputError(f'{file}, line 1: expected a list of poses, or an object with a "poses" list, '
+                                 f'got an object with keys {", ".join(sorted(data)) or "(none)"}')
+        items = data[key]
+    elif isinstance(data, list):
+        items = data
+    else:
+        raise PoseInputError(f"{file}, line 1: expected a list of poses, got {type(data).__name__}")
+    lines = _element_lines(text, key, len(items))
+    poses = []
+    for i, item in enumerate(items):
+        where = f"{file}, line {lines[i]}" if lines else f"{file}, pose {i + 1}"
+        poses.append(_json_pose(item, where))
+    return poses
+
+
+def _json_pose(item, where: str) -> tuple[float, float, float]:
+    expected = 'expected [x_mm, y_mm] or [x_mm, y_mm, angle_rad], or {"x_mm", "y_mm", "angle_rad"}'
+    if isinstance(item, dict) and isinstance(item.get("pose"), dict):
+        item = item["pose"]  # a candidate of `softgrip score --json`
+    if isinstance(item, dict):
+        unknown = sorted(set(item) - {"x_mm", "y_mm", "angle_rad"})
+        if unknown or "x_mm" not in item or "y_mm" not in item:
+            raise PoseInputError(f"{where}: {expected}, got {_show(item)}")
+        values = [item["x_mm"], item["y_mm"], item.get("angle_rad", 0.0)]
+    elif isinstance(item, list) and len(item) in (2, 3):
+        values = list(item) + [0.0] * (3 - len(item))
+    else:
+        raise PoseInputError(f"{where}: {expected}, got {_show(item)}")
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values):
+        raise PoseInputError(f"{where}: pose values must be finite numbers, got {_show(item)}")
+    return float(values[0]), float(values[1]), float(values[2])
+
+
+def _element_lines(text: str, key: str | None, count: int) -> list[int] | None:
+    """Line numbers of the elements of the pose list (top-level, or under ``key``); None if unsure."""
+    if key is None:
+        start = len(text) - len(text.lstrip())
+    else:
+        match = re.search(r'"%s"\s*:\s*\[' % re.escape(key), text)
+        if match is None:
+            return None
+        start = match.end() - 1
+    decoder, gap, lines = json.JSONDecoder(), re.compile(r"[\s,]*"), []
+    i = start + 1
+    try:
+        while True:
+            i = gap.match(text, i).end()
+            if i >= len(text) or text[i] == "]":
+                break
+            lines.append(text.count("\n", 0, i) + 1)
+            _, i = decoder.raw_decode(text, i)
+    except json.JSONDecodeError:
+        return None
+    return lines if len(lines) == count else None
+
+
+_COLUMN_NAMES = {"x_mm": 0, "x": 0, "y_mm": 1, "y": 1, "angle_rad": 2, "angle": 2}
+
+
+def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
+    poses, columns = [], None
+    for line_no, row in enumerate(csv.reader(io.StringIO(text)), start=1):
+        cells = [c.strip() for c in row]
+        if not any(cells) or cells[0].startswith("#"):
+            continue
+        if columns is None and not poses and not _numeric(cells[0]):
+            names = [c.lower() for c in cells]
+            bad = [n for n in names if n not in _COLUMN_NAMES]
+            if bad or len({_COLUMN_NAMES[n] for n in names}) != len(names) or not {0, 1} <= {_COLUMN_NAMES[n] for n in names}:
+                raise PoseInputError(f"{file}, line {line_no}: a header must name the columns x_mm, y_mm and "
+                                     f"optionally angle_rad, got {','.join(cells)!r}")
+            columns = [_COLUMN_NAMES[n] for n in names]
+            continue
+        expected = len(columns) if columns else None
+        if (expected and len(cells) != expected) or (not expected and len(cells) not in (2, 3)):
+            want = f"{expected} values" if expected else "2 or 3 values (x_mm, y_mm[, angle_rad])"
+            raise PoseInputError(f"{file}, line {line_no}: expected {want}, got {len(cells)}: {','.join(cells)!r}")
+        try:
+            values = [float(c) for c in cells]
+        except ValueError:
+            raise PoseInputError(f"{file}, line {line_no}: not a number in {','.join(cells)!r}") from None
+        if not all(math.isfinite(v) for v in values):
+            raise PoseInputError(f"{file}, line {line_no}: pose values must be finite, got {','.join(cells)!r}")
+        pose = [0.0, 0.0, 0.0]
+        for index, value in zip(columns or range(len(values)), values):
+            pose[index] = value
+        poses.append(tuple(pose))
+    return poses
+
+
+def _numeric(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _show(value) -> str:
+    text = json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+#: Smallest padded batch: every grid or file of up to this many poses shares one compilation (with
+#: the persistent cache, across runs too); evaluating the padding costs a fraction of a second.
+MIN_BATCH = 2048
+
+
+def _pad(poses: np.ndarray) -> np.ndarray:
+    """Poses padded (with copies of the first) to a power of two >= MIN_BATCH, so that batches of
+    similar sizes share one compilation."""
+    size = max(MIN_BATCH, 1 << (len(poses) - 1).bit_length())
+    return np.concatenate([poses, np.repeat(poses[:1], size - len(poses), axis=0)])
+
+
+def score_poses(scene: pipe.FrameScene, poses: np.ndarray):
+    """Score (B, 3) poses on ``scene`` in one compiled call (``softgrip_jax.score``).
+
+    Returns:
+        The ``Score`` with numpy leaves of leading axis B, and the seconds it took (compilation
+        included the first time a batch size is seen).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from softgrip_jax import score
+
+    start = time.perf_counter()
+    padded = jnp.asarray(_pad(poses), scene.gripper.base_separation.dtype)
+    result = pipe.to_numpy(jax.block_until_ready(score(scene.gripper, scene.sdf, padded)))
+    result = jax.tree_util.tree_map(lambda x: x[:len(poses)], result)
+    return result, time.perf_counter() - start
+
+
+def rank(result) -> np.ndarray:
+    """Candidate indices, best score first; invalid candidates last, each group in input order."""
+    key = np.where(np.asarray(result.valid) & np.isfinite(result.score), result.score, -np.inf)
+    return np.argsort(-key, kind="stable")
+
+
+# ---------------------------------------------------------------------------------------------
+# Output
+
+
+def _table(scene: pipe.FrameScene, poses: np.ndarray, result, shown: np.ndarray, n_valid: int) -> str:
+    from softgrip_jax import CASE_NAMES
+
+    lines = [f"{scene.path}: {len(poses)} candidate poses, {n_valid} valid; best first",
+             f"{'rank':>4}  {'x (mm)':>8} {'y (mm)':>8} {'angle':>7}  {'score':>7}  {'left':<14} {'right':<14} status"]
+    for k, i in enumerate(shown, start=1):
+        x, y, a = poses[i]
+        valid = bool(result.valid[i])
+        value = f"{float(result.score[i]):7.3f}" if valid else f"{'-':>7}"
+        cases = [CASE_NAMES[int(getattr(result.grasp, side).case[i])] for side in pipe.SIDES]
+        status = pipe.status_name(result.status[i], bool(result.penetrating[i]))
+        lines.append(f"{k:>4}  {x:8.2f} {y:8.2f} {a:7.3f}  {value}  {cases[0]:<14} {cases[1]:<14} {status}")
+    return "\n".join(lines)
+
+
+def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best: int) -> np.ndarray:
+    """The frame with the best score over the angles at each gripper-centre position (viridis:
+    yellow best, purple worst among the valid; grey where no angle is valid), the best candidate's
+    estimate (joints blue, contacts red) and its centre and base line, a colour bar and a caption."""
+    rgb = scene.frame.color
+    h, w = rgb.shape[:2]
+    scores = np.where(np.asarray(result.valid), np.asarray(result.score, np.float64), np.nan)
+    finite = scores[np.isfinite(scores)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+
+    def colours(values: np.ndarray) -> np.ndarray:
+        level = np.clip((values - lo) / (hi - lo) if hi > lo else np.ones_like(values), 0.0, 1.0)
+        level = np.nan_to_num(level, nan=0.0)
+        mapped = cv2.applyColorMap(np.rint(255 * level).astype(np.uint8).reshape(-1, 1), cv2.COLORMAP_VIRIDIS)
+        return mapped.reshape(values.shape + (3,))[..., ::-1]
+
+    layer = np.zeros_like(rgb)
+    alpha = np.zeros((h, w), np.float32)
+    if grid is not None:
+        xs, ys, angles = grid
+        best_xy = np.full((len(xs), len(ys)), np.nan)
+        per_angle = scores.reshape(len(xs), len(ys), len(angles))
+        has_valid = np.isfinite(per_angle).any(axis=2)
+        best_xy[has_valid] = np.nanmax(per_angle[has_valid], axis=1)
+        cells = best_xy.T  # rows: y, columns: x
+        step_x = (xs[-1] - xs[0]) / (len(xs) - 1) if len(xs) > 1 else 2.0
+        step_y = (ys[-1] - ys[0]) / (len(ys) - 1) if len(ys) > 1 else 2.0
+        (u0, v0), (u1, v1) = scene.camera.mm_to_px([[xs[0] - step_x / 2, ys[0] - step_y / 2],
+                                                    [xs[-1] + step_x / 2, ys[-1] + step_y / 2]])
+        col = np.floor((np.arange(w) - u0) / (u1 - u0) * len(xs)).astype(int)
+        row = np.floor((np.arange(h) - v0) / (v1 - v0) * len(ys)).astype(int)
+        us, vs = np.flatnonzero((col >= 0) & (col < len(xs))), np.flatnonzero((row >= 0) & (row < len(ys)))
+        if us.size and vs.size:
+            block = cells[np.ix_(row[vs], col[us])]
+            coloured = colours(block)
+            coloured[~np.isfinite(block)] = (128, 128, 128)
+            layer[np.ix_(vs, us)] = coloured
+            alpha[np.ix_(vs, us)] = np.where(np.isfinite(block), 0.65, 0.35)
+    else:
+        order = np.argsort(np.nan_to_num(scores, nan=-np.inf), kind="stable")  # best drawn last, on top
+        centres = scene.camera.mm_to_px(poses[order, :2])
+        for (u, v), value in zip(centres, scores[order]):
+            if not (np.isfinite(u) and np.isfinite(v)) or not (-10 <= u < w + 10 and -10 <= v < h + 10):
+                continue
+            colour = (128, 128, 128) if not np.isfinite(value) else tuple(int(c) for c in colours(np.array([value]))[0])
+            centre = (int(round(u)), int(round(v)))
+            cv2.circle(layer, centre, 5, colour, -1)
+            cv2.circle(alpha, centre, 5, 0.8 if np.isfinite(value) else 0.4, -1)
+    blended = (rgb * (1.0 - alpha[..., None]) + layer * alpha[..., None]).round().astype(np.uint8)
+
+    chosen = pipe.take(result, best)
+    valid = bool(chosen.valid)
+    image = pipe.grasp_overlay(blended, chosen.grasp, scene.camera) if valid else blended
+    if valid:
+        # The finger bases sit W/2 either side of the centre along (cos a, -sin a) (softgrip_jax.finger_frames).
+        x, y, angle = poses[best]
+        half = 0.5 * float(scene.gripper.base_separation) * np.array([math.cos(angle), -math.sin(angle)])
+        ends = scene.camera.mm_to_px(np.array([[x, y] - half, [x, y] + half]))
+        centre = scene.camera.mm_to_px([x, y])
+        for colour, width in (((255, 255, 255), 4), ((0, 0, 0), 1)):
+            cv2.line(image, tuple(np.rint(ends[0]).astype(int)), tuple(np.rint(ends[1]).astype(int)), colour, width,
+                     cv2.LINE_AA)
+        cv2.drawMarker(image, tuple(np.rint(centre).astype(int)), (255, 255, 255), cv2.MARKER_CROSS, 14, 3)
+        cv2.drawMarker(image, tuple(np.rint(centre).astype(int)), (0, 0, 0), cv2.MARKER_CROSS, 12, 1)
+    _colour_bar(image, lo, hi, colours, finite.size > 0)
+    if valid:
+        x, y, angle = poses[best]
+        best_text = f"best: x {x:.1f} mm, y {y:.1f} mm, angle {angle:.2f} rad, score {float(chosen.score):.2f}"
+    else:
+        best_text = "no valid candidate"
+    pipe.caption(image, "\n".join([
+        f"{scene.name}: score of each gripper-centre position (best over {len(grid[2]) if grid else 'the'} angles)",
+        "grey: no valid grasp there; cross: best pose's centre, bar: its finger bases",
+        "blue: best pose's estimated fingers, red: contacts", best_text]), (8, image.shape[0] - 8), bottom=True)
+    return image
+
+
+def _colour_bar(image: np.ndarray, lo: float, hi: float, colours, any_valid: bool) -> None:
+    """A vertical viridis bar at the right edge, labelled with the highest and lowest valid score."""
+    h, w = image.shape[:2]
+    height, width = min(160, h // 2), 14
+    x0, y0 = w - width - 56, 30
+    if x0 < 0:
+        return
+    pipe.caption(image, "score", (x0 - 6, 6), scale=0.4)
+    values = lo + (hi - lo) * np.linspace(1.0, 0.0, height)[:, None] * np.ones((1, width))
+    image[y0:y0 + height, x0:x0 + width] = colours(values) if any_valid else 128
+    cv2.rectangle(image, (x0 - 1, y0 - 1), (x0 + width, y0 + height), (255, 255, 255), 1)
+    if any_valid:
+        pipe.caption(image, f"{hi:.2f}", (x0 + width + 3, y0 - 2), scale=0.4)
+        pipe.caption(image, f"{lo:.2f}", (x0 + width + 3, y0 + height - 16), scale=0.4)

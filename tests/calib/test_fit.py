@@ -1,0 +1,449 @@
+"""One-frame calibration (eqs. 4-5), the multi-frame least-squares fit, and ``softgrip calibrate``.
+
+Every fit here uses 480 x 640 signed-distance grids, N = 10 and at most 16 frame pairs, so the
+whole file compiles the fit once (about half a minute on two cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from calib.fit import (FRAME_BUCKET, FitError, Observation, SkippedFrameWarning, _robust, _solve, fit,
+                       load_observations, observations_from_frames)
+from calib.one_frame import free_closure_joints, one_frame_from_frames, one_frame_profile
+from calib.profile import CalibrationProfile, FingerEntry, FitEntry, load_profile
+from softgrip_cli import cmd_calibrate
+from softgrip_jax import FAR_MM, SDFGrid, SoftgripError
+from vision.frames import save_frame
+from vision.geometry import PlaneCamera
+from vision.synthetic.render import Scene, d405_intrinsics, render
+from vision.synthetic.rod import free_arc_points
+from vision.synthetic.scenes import gripper_centrelines
+from vision.synthetic.shapes import shape
+
+N = 10
+LENGTH, HALF_THICKNESS, SEPARATION = 52.0, 4.0, 64.0
+TRUE = {"left": 0.55, "right": 0.45}
+CAMERA = PlaneCamera(d405_intrinsics(), 120.0)  # the grid of a 640 x 480 frame 120 mm away
+
+
+def entry(theta: float, offset=(0.0, 0.0)) -> FingerEntry:
+    return FingerEntry(LENGTH, theta, HALF_THICKNESS, N, tuple(offset))
+
+
+def start_profile(left: float, right: float) -> CalibrationProfile:
+    return CalibrationProfile(fingers={"left": entry(left), "right": entry(right)}, base_separation=SEPARATION,
+                              segmentation={}, camera={"name": "synthetic", "intrinsics": None},
+                              fit=FitEntry(method="one-frame", frames=["nominal"]))
+
+
+def grid(disc=None) -> SDFGrid:
+    """A frame-sized signed-distance grid: of a disc ((x, y), radius) in mm, or far everywhere."""
+    h, w = CAMERA.intrinsics.height, CAMERA.intrinsics.width
+    if disc is None:
+        values = np.full((h, w), FAR_MM)
+    else:
+        (cx, cy), radius = disc
+        x, y = CAMERA.px_to_mm(np.stack(np.meshgrid(np.arange(w), np.arange(h)), axis=-1)).transpose(2, 0, 1)
+        values = np.hypot(x - cx, y - cy) - radius
+    return SDFGrid(jnp.asarray(values, jnp.float32), jnp.asarray(CAMERA.origin_mm, jnp.float32),
+                   jnp.asarray(CAMERA.spacing_mm, jnp.float32))
+
+
+EMPTY = grid()
+
+
+def observation(rng, label: str, noise: float = 0.2, thetas=TRUE, observed_shift=(0.0, 0.0),
+                base_bias=((0.0, 0.0), (0.0, 0.0))) -> Observation:
+    """A pair without an object: the closed fingers are the PCC shapes of ``thetas`` (plus Gaussian
+    noise, mm) and the open frame's bases are the true ones plus ``base_bias``."""
+    centre = np.array([rng.uniform(-15.0, 15.0), rng.uniform(-45.0, -35.0)])
+    bases = centre + np.array([[-SEPARATION / 2, 0.0], [SEPARATION / 2, 0.0]])
+    observed = np.stack([free_closure_joints(entry(thetas[side]), base, side)
+                         for side, base in zip(("left", "right"), bases)])
+    observed = observed + noise * rng.normal(size=observed.shape) + np.asarray(observed_shift)
+    return Observation(EMPTY, bases + np.asarray(base_bias), observed, label)
+
+
+def thetas(profile: CalibrationProfile) -> np.ndarray:
+    return np.array([profile.fingers[side].theta_entire for side in ("left", "right")])
+
+
+def quiet_fit(*args, **kwargs) -> CalibrationProfile:
+    return fit(*args, progress=False, **kwargs)
+
+
+# ---------------------------------------------------------------------------------------------
+# The fit at the millimetre level
+
+
+@pytest.fixture(scope="module")
+def five_frame_fit():
+    rng = np.random.default_rng(0)
+    observations = [observation(rng, f"pair {i}") for i in range(5)]
+    start = start_profile(TRUE["left"] + 0.2, TRUE["right"] - 0.2)
+    return observations, quiet_fit(observations, start)
+
+
+def test_theta_is_recovered_from_five_noisy_frames(five_frame_fit) -> None:
+    observations, fitted = five_frame_fit
+    np.testing.assert_allclose(thetas(fitted), [TRUE["left"], TRUE["right"]], atol=0.005)
+    assert fitted.fit.method == "least-squares"
+    assert fitted.fit.frames == [o.label for o in observations]
+    assert fitted.fit.skipped == []
+    # Noise of 0.2 mm per coordinate is 0.28 mm per joint.
+    assert 0.2 < fitted.fit.residual_rms_mm < 0.36
+    assert len(fitted.fit.frame_residual_rms_mm) == 5
+    assert fitted.fingers["left"].length == LENGTH and fitted.fingers["left"].base_offset == (0.0, 0.0)
+    assert set(fitted.fit.standard_errors) == {"left.theta_entire", "right.theta_entire"}
+
+
+def test_standard_error_matches_the_analytic_value(five_frame_fit) -> None:
+    """For noise sigma on every coordinate, SE(Theta) = sigma / sqrt(sum |dP_j / dTheta|^2)."""
+    observations, fitted = five_frame_fit
+    step = 1e-4
+    for side, k in (("left", 0), ("right", 1)):
+        sensitivity = 0.0
+        for obs in observations:
+            up = free_closure_joints(entry(TRUE[side] + step), obs.bases[k], side)
+            down = free_closure_joints(entry(TRUE[side] - step), obs.bases[k], side)
+            sensitivity += np.sum(((up - down) / (2 * step)) ** 2)
+        analytic = 0.2 / math.sqrt(sensitivity)
+        se = fitted.fit.standard_errors[f"{side}.theta_entire"]
+        assert analytic / 1.5 < se < 1.5 * analytic, (side, se, analytic)
+
+
+def test_standard_error_matches_the_spread_of_repeated_fits() -> None:
+    rng = np.random.default_rng(7)
+    start = start_profile(0.5, 0.5)
+    fits = [quiet_fit([observation(rng, f"pair {i}", noise=0.5) for i in range(2)], start) for _ in range(12)]
+    errors = np.array([thetas(f) for f in fits]) - [TRUE["left"], TRUE["right"]]
+    reported = np.array([[f.fit.standard_errors[f"{s}.theta_entire"] for s in ("left", "right")] for f in fits])
+    # Both fingers' fits are independent draws: 24 errors against their reported standard errors.
+    ratio = np.sqrt(np.mean(errors**2)) / np.sqrt(np.mean(reported**2))
+    assert 1 / 1.5 < ratio < 1.5, ratio
+
+
+def test_one_grossly_wrong_frame_among_ten_moves_theta_little() -> None:
+    rng = np.random.default_rng(1)
+    good = [observation(rng, f"pair {i}") for i in range(9)]
+    bad = observation(rng, "shifted pair", observed_shift=(10.0, 0.0))  # e.g. a wrong mask
+    start = start_profile(0.5, 0.5)
+    clean = thetas(quiet_fit(good, start))
+    robust = thetas(quiet_fit([*good[:4], bad, *good[4:]], start))
+    assert np.abs(robust - clean).max() < 0.01, (robust, clean)
+    # Without the robust loss (an enormous scale is plain least squares) the same frame drags Theta.
+    plain = thetas(quiet_fit([*good[:4], bad, *good[4:]], start, loss_scale_mm=1e6))
+    assert np.abs(plain - clean).max() > 0.01, (plain, clean)
+
+
+def test_base_offsets_and_theta_are_fitted_together() -> None:
+    rng = np.random.default_rng(2)
+    bias = ((0.8, -1.2), (-0.6, -1.0))  # the open frames' bases are seen off by this
+    observations = [observation(rng, f"pair {i}", base_bias=bias) for i in range(6)]
+    fitted = quiet_fit(observations, start_profile(0.4, 0.6), ["theta_entire", "base_offset"])
+    np.testing.assert_allclose(thetas(fitted), [TRUE["left"], TRUE["right"]], atol=0.005)
+    for side, offset in zip(("left", "right"), bias):
+        np.testing.assert_allclose(fitted.fingers[side].base_offset, -np.asarray(offset), atol=0.2)
+        se = fitted.fit.standard_errors[f"{side}.base_offset"]
+        assert len(se) == 2 and all(0.0 < v < 0.2 for v in se)
+
+
+def test_robust_residuals_square_to_twice_the_loss() -> None:
+    r = jnp.array([[0.0, 0.0], [0.03, -0.04], [3.0, 4.0], [-30.0, 40.0]])
+    e = jnp.linalg.norm(r, axis=-1)
+    huber = jnp.where(e <= 1.0, 0.5 * e**2, e - 0.5)
+    cauchy = 0.5 * jnp.log1p(e**2)
+    for loss, rho in (("huber", huber), ("cauchy", cauchy)):
+        robust = jax.jit(lambda x, loss=loss: _robust(x, jnp.asarray(1.0), loss))
+        out = robust(r)
+        np.testing.assert_allclose(jnp.sum(out**2, axis=-1), 2.0 * rho, rtol=1e-5)
+        np.testing.assert_allclose(out[:2], r[:2], rtol=0.05)  # small residuals unchanged
+        grad = jax.jit(jax.jacfwd(robust))(r[:1])
+        assert np.isfinite(np.asarray(grad)).all()  # no NaN at a zero residual
+
+
+# ---------------------------------------------------------------------------------------------
+# Frames that cannot be used, and bad input
+
+
+def test_a_non_finite_frame_is_skipped_with_a_warning() -> None:
+    rng = np.random.default_rng(3)
+    observations = [observation(rng, f"pair {i}") for i in range(4)]
+    broken = observation(rng, "broken pair")
+    broken.observed[0, 3] = np.nan
+    with pytest.warns(SkippedFrameWarning, match="broken pair: skipped: non-finite observed joints of the left"):
+        fitted = quiet_fit([*observations, broken], start_profile(0.5, 0.5))
+    assert fitted.fit.frames == [o.label for o in observations]
+    assert fitted.fit.skipped == [{"frame": "broken pair", "reason": "non-finite observed joints of the left finger"}]
+    np.testing.assert_allclose(thetas(fitted), [TRUE["left"], TRUE["right"]], atol=0.01)
+
+
+def test_a_frame_whose_open_finger_overlaps_the_object_is_skipped() -> None:
+    rng = np.random.default_rng(4)
+    observations = [observation(rng, f"pair {i}") for i in range(3)]
+    clash = observation(rng, "clash")
+    clash = Observation(grid((clash.bases[0] + (0.0, 20.0), 6.0)), clash.bases, clash.observed, "clash")
+    with pytest.warns(SkippedFrameWarning, match="clash: skipped: .*invalid: left finger INITIAL_OVERLAP"):
+        fitted = quiet_fit([*observations, clash], start_profile(0.5, 0.5))
+    assert [s["frame"] for s in fitted.fit.skipped] == ["clash"]
+    assert len(fitted.fit.frames) == 3
+
+
+def test_no_usable_frame() -> None:
+    with pytest.raises(FitError, match=r"no usable frame pair \(of 0\): none given"):
+        quiet_fit([], start_profile(0.5, 0.5))
+    rng = np.random.default_rng(5)
+    broken = [observation(rng, f"pair {i}") for i in range(2)]
+    for obs in broken:
+        obs.bases[1, 0] = np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SkippedFrameWarning)
+        with pytest.raises(FitError, match=r"no usable frame pair \(of 3\): earlier: no gripper; pair 0: non-finite "
+                                           r"finger bases of the right finger; pair 1: non-finite"):
+            quiet_fit(broken, start_profile(0.5, 0.5), skipped=[{"frame": "earlier", "reason": "no gripper"}])
+
+
+def test_a_single_frame_cannot_determine_a_base_offset() -> None:
+    rng = np.random.default_rng(6)
+    single = [observation(rng, "only pair")]
+    with pytest.raises(FitError, match=r"a fit of left\.base_offset, right\.base_offset from 1 usable frame pair\(s\) "
+                                       r"is under-determined: it needs at least 2"):
+        quiet_fit(single, start_profile(0.5, 0.5), ["theta_entire", "base_offset"])
+    # Theta alone is determined by one pair (this is what the one-frame calibration does).
+    fitted = quiet_fit(single, start_profile(0.5, 0.5))
+    np.testing.assert_allclose(thetas(fitted), [TRUE["left"], TRUE["right"]], atol=0.01)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"parameters": ["stiffness"]}, "unknown parameter.*'stiffness'.*theta_entire, base_offset"),
+    ({"parameters": []}, "unknown parameter.*none given"),
+    ({"loss": "l1"}, "loss must be 'huber' or 'cauchy'"),
+    ({"loss_scale_mm": 0.0}, "loss_scale_mm must be a finite number of mm > 0"),
+    ({"max_steps": 0}, "max_steps must be an integer >= 1"),
+])
+def test_bad_settings(kwargs, message) -> None:
+    rng = np.random.default_rng(8)
+    with pytest.raises(FitError, match=message):
+        quiet_fit([observation(rng, "pair")], start_profile(0.5, 0.5), **kwargs)
+
+
+def test_observations_must_match_the_profile() -> None:
+    rng = np.random.default_rng(9)
+    obs = observation(rng, "pair")
+    with pytest.raises(FitError, match="pair: 11 observed joints per finger, but the start profile has n_links = 20"):
+        quiet_fit([obs], CalibrationProfile(
+            fingers={s: FingerEntry(LENGTH, 0.5, HALF_THICKNESS, 20) for s in ("left", "right")},
+            base_separation=SEPARATION, segmentation={}, camera={"name": "x", "intrinsics": None},
+            fit=FitEntry("one-frame", ["x"])))
+    with pytest.raises(FitError, match="same n_links"):
+        quiet_fit([obs], CalibrationProfile(
+            fingers={"left": entry(0.5), "right": FingerEntry(LENGTH, 0.5, HALF_THICKNESS, 12)},
+            base_separation=SEPARATION, segmentation={}, camera={"name": "x", "intrinsics": None},
+            fit=FitEntry("one-frame", ["x"])))
+    with pytest.raises(FitError, match=r"bad: bases must be \(2, 2\)"):
+        Observation(EMPTY, np.zeros(2), obs.observed, "bad")
+    with pytest.raises(FitError, match=r"bad: observed must be \(2, N\+1, 2\)"):
+        Observation(EMPTY, obs.bases, obs.observed[0], "bad")
+    with pytest.raises(FitError, match="bad: sdf must be a softgrip_jax SDF"):
+        Observation(np.zeros((4, 4)), obs.bases, obs.observed, "bad")
+
+
+def test_fits_of_other_frame_counts_and_parameters_reuse_the_compilation(five_frame_fit) -> None:
+    rng = np.random.default_rng(10)
+    compiled = _solve._cache_size()
+    quiet_fit([observation(rng, f"pair {i}") for i in range(FRAME_BUCKET - 3)], start_profile(0.5, 0.5),
+              ["theta_entire", "base_offset"])
+    quiet_fit([observation(rng, f"pair {i}") for i in range(3)], start_profile(0.6, 0.4))
+    assert _solve._cache_size() == compiled
+
+
+# ---------------------------------------------------------------------------------------------
+# One-frame calibration (eqs. 4-5) on keypoints
+
+
+@dataclass(frozen=True)
+class Keypoints:
+    """The keypoints the one-frame calibration reads, as vision.keypoints.FingerKeypoints has them."""
+
+    base_mm: np.ndarray
+    tip_mm: np.ndarray
+    half_thickness_mm: float
+    joints: np.ndarray
+
+    def observed_mm(self, n_links: int) -> np.ndarray:
+        assert n_links == len(self.joints) - 1
+        return self.joints
+
+
+def keypoints(base, theta: float, side: str, half_thickness: float = HALF_THICKNESS) -> Keypoints:
+    joints = free_closure_joints(entry(theta), np.asarray(base, np.float64), side)
+    return Keypoints(joints[0], joints[-1], half_thickness, joints)
+
+
+def test_one_frame_calibration_by_eqs_4_and_5() -> None:
+    closed = [keypoints((-30.0, -40.0), 0.6, "left"), keypoints((30.0, -40.0), 0.4, "right")]
+    opened = [keypoints((-31.0, -41.0), 0.0, "left", 3.8), keypoints((31.5, -41.0), 0.0, "right", 4.2)]
+    profile = one_frame_profile(closed, opened, N, label="open + closed")
+    left, right = profile.fingers["left"], profile.fingers["right"]
+    tip = closed[0].tip_mm - closed[0].base_mm
+    assert left.theta_entire == pytest.approx(math.atan(tip[0] / tip[1]))  # eq. 4
+    assert left.theta_entire == pytest.approx(0.6, abs=1e-5)
+    assert right.theta_entire == pytest.approx(0.4, abs=1e-5)  # mirrored: curls toward -x
+    assert left.length == pytest.approx(LENGTH, rel=1e-5)  # eq. 5: the open finger's base-tip distance
+    assert (left.half_thickness, right.half_thickness) == (3.8, 4.2)
+    assert profile.base_separation == pytest.approx(62.5)
+    assert profile.fit.method == "one-frame" and profile.fit.frames == ["open + closed"]
+    assert profile.fit.residual_rms_mm < 1e-3  # a PCC closure is fitted exactly
+
+
+def test_one_frame_residual_measures_how_far_the_closure_is_from_one_curvature() -> None:
+    closed = [keypoints((-30.0, -40.0), 0.6, "left"), keypoints((30.0, -40.0), 0.4, "right")]
+    bent = Keypoints(closed[0].base_mm, closed[0].tip_mm, HALF_THICKNESS,
+                     closed[0].joints + np.array([1.0, 0.0]) * np.sin(np.linspace(0, np.pi, N + 1))[:, None])
+    opened = [keypoints((-30.0, -40.0), 0.0, "left"), keypoints((30.0, -40.0), 0.0, "right")]
+    profile = one_frame_profile([bent, closed[1]], opened, N)
+    assert 0.3 < profile.fit.residual_rms_mm < 1.0
+
+
+def test_one_frame_refuses_a_finger_bent_outward() -> None:
+    closed = [keypoints((-30.0, -40.0), 0.5, "right"), keypoints((30.0, -40.0), 0.5, "left")]  # sides swapped
+    opened = [keypoints((-30.0, -40.0), 0.0, "left"), keypoints((30.0, -40.0), 0.0, "right")]
+    with pytest.raises(SoftgripError, match="left finger of the closed frame bends away"):
+        one_frame_profile(closed, opened, N)
+
+
+# ---------------------------------------------------------------------------------------------
+# Rendered frames: the whole pipeline, and the command
+
+
+def closed_centrelines(center, thetas_=TRUE):
+    shapes = {side: np.asarray(free_arc_points((0.0, 0.0), thetas_[side], LENGTH, np.linspace(0.0, LENGTH, 257)))
+              for side in ("left", "right")}
+    return gripper_centrelines(center, SEPARATION, LENGTH, left_shape=shapes["left"], right_shape=shapes["right"])
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    """Frame folders: a calibration pair (closed without object, open) and four fit pairs (open frames
+    with an object out of reach or none; closed along the free arcs), plus a pair whose closed frame
+    shows no gripper."""
+    root = tmp_path_factory.mktemp("frames")
+    intrinsics = d405_intrinsics()
+
+    def write(name, scene):
+        return save_frame(render(scene, intrinsics), root / name)
+
+    out = {"closed": write("closed", Scene(closed_centrelines((0.0, -40.0)), seed=1)),
+           "open": write("open", Scene(gripper_centrelines((0.0, -40.0), SEPARATION, LENGTH), seed=2)),
+           "pairs": []}
+    for i, (cx, cy) in enumerate([(-8.0, -42.0), (5.0, -38.0), (10.0, -44.0), (-3.0, -36.0)]):
+        polygon = shape(("circle", "square", "clover", None)[i] or "circle", 24.0) + (cx + 2.0, cy + 80.0)
+        open_scene = Scene(gripper_centrelines((cx, cy), SEPARATION, LENGTH),
+                           object_polygon=polygon if i < 3 else None, seed=10 + i)
+        out["pairs"].append((write(f"open_{i}", open_scene),
+                             write(f"closed_{i}", Scene(closed_centrelines((cx, cy)), seed=20 + i))))
+    out["pairs"].append((out["pairs"][0][0], write("closed_empty", Scene([], seed=30))))
+    return out
+
+
+def test_one_frame_calibration_from_rendered_frames(frames) -> None:
+    from vision.frames import load_frame
+
+    profile = one_frame_from_frames(load_frame(frames["closed"]), load_frame(frames["open"]), N,
+                                    camera_name="synthetic")
+    np.testing.assert_allclose(thetas(profile), [TRUE["left"], TRUE["right"]], atol=0.01)
+    for side in ("left", "right"):
+        assert profile.fingers[side].length == pytest.approx(LENGTH, rel=0.01)
+        assert profile.fingers[side].half_thickness == pytest.approx(HALF_THICKNESS, abs=0.3)
+    assert profile.base_separation == pytest.approx(SEPARATION, abs=0.5)
+    assert profile.fit.residual_rms_mm < 0.5
+    assert profile.camera["name"] == "synthetic" and profile.camera["intrinsics"]["fx"] == d405_intrinsics().fx
+
+
+def test_least_squares_fit_on_rendered_frames(frames) -> None:
+    with pytest.warns(SkippedFrameWarning, match="closed_empty: skipped: .*gripper"):
+        observations, skipped = load_observations(frames["pairs"], None, N, progress=False)
+    assert len(observations) == 4 and len(skipped) == 1
+    assert isinstance(observations[0].sdf, SDFGrid) and observations[0].observed.shape == (2, N + 1, 2)
+    fitted = quiet_fit(observations, start_profile(0.5, 0.5), skipped=skipped)
+    np.testing.assert_allclose(thetas(fitted), [TRUE["left"], TRUE["right"]], atol=0.01)
+    assert fitted.fit.residual_rms_mm < 0.6
+    assert [s["frame"] for s in fitted.fit.skipped] == [skipped[0]["frame"]]
+
+
+def test_observation_of_a_frame_pair_reads_bases_and_the_closed_fingers(frames) -> None:
+    from vision.frames import load_frame
+
+    open_path, closed_path = frames["pairs"][3]
+    obs = observations_from_frames(load_frame(open_path), load_frame(closed_path), None, N, "p")
+    true_bases = np.array([[-3.0 - SEPARATION / 2, -36.0], [-3.0 + SEPARATION / 2, -36.0]])
+    np.testing.assert_allclose(obs.bases, true_bases, atol=0.5)
+    truth = np.stack([free_closure_joints(entry(TRUE[side]), base, side) for side, base in
+                      zip(("left", "right"), true_bases)])
+    assert np.abs(obs.observed - truth).max() < 0.8
+    assert float(jnp.min(obs.sdf.values)) == FAR_MM  # no object in that open frame
+
+
+def run_cli(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="softgrip")
+    cmd_calibrate.add_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["calibrate", *argv])
+    return args.func(args)
+
+
+def test_cli_one_frame_then_fit(frames, tmp_path: Path, capsys) -> None:
+    one = tmp_path / "one.json"
+    assert run_cli([str(frames["closed"]), "--open", str(frames["open"]), "--n-links", str(N), "-o", str(one),
+                    "--camera", "synthetic"]) == 0
+    out = capsys.readouterr().out
+    assert "Theta" in out and f"wrote {one}" in out
+    assert load_profile(one).fit.method == "one-frame"
+    with pytest.raises(SoftgripError, match="--n-links 20 differs from n_links = 10"):
+        run_cli(["--fit", *map(str, frames["pairs"][0]), "--profile", str(one), "--n-links", "20", "-o", "x.json"])
+
+    fitted = tmp_path / "fitted.json"
+    argv = ["--fit", *(str(p) for pair in frames["pairs"] for p in pair), "--profile", str(one), "--json",
+            "-o", str(fitted)]
+    assert run_cli(argv) == 0
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)
+    assert report["output"] == str(fitted)
+    assert report["profile"] == load_profile(fitted).to_dict()
+    assert len(report["profile"]["fit"]["frames"]) == 4
+    assert "closed_empty" in report["profile"]["fit"]["skipped"][0]["frame"]
+    assert "softgrip calibrate: warning:" in captured.err and "closed_empty" in captured.err
+    np.testing.assert_allclose(thetas(load_profile(fitted)), [TRUE["left"], TRUE["right"]], atol=0.01)
+
+
+def test_cli_fit_starts_from_the_first_open_frame(frames, tmp_path: Path, capsys) -> None:
+    output = tmp_path / "fitted.json"
+    argv = ["--fit", *(str(p) for pair in frames["pairs"][:2] for p in pair), "--n-links", str(N), "-o", str(output)]
+    assert run_cli(argv) == 0
+    assert "least-squares: residual RMS" in capsys.readouterr().out
+    profile = load_profile(output)
+    np.testing.assert_allclose(thetas(profile), [TRUE["left"], TRUE["right"]], atol=0.01)
+    assert profile.fingers["left"].length == pytest.approx(LENGTH, rel=0.01)  # eq. 5 on the first open frame
+    assert profile.base_separation == pytest.approx(SEPARATION, abs=0.5)
+    assert profile.camera == {"name": "unspecified", "intrinsics": d405_intrinsics().to_dict()}
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--fit", "a", "b", "c", "-o", "p.json"], "--fit needs frame pairs OPEN CLOSED, got 3 folders"),
+    (["closed", "-o", "p.json"], "give CLOSED_FRAME and --open OPEN_FRAME"),
+    (["closed", "--open", "open", "--base-offset", "-o", "p.json"], "--base-offset only apply to --fit"),
+    (["closed", "--fit", "a", "b", "-o", "p.json"], "with --fit give the frames as pairs"),
+])
+def test_cli_usage_errors(argv, message) -> None:
+    with pytest.raises(SoftgripError, match=message):
+        run_cli(argv)

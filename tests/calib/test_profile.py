@@ -1,0 +1,229 @@
+"""Calibration profiles: round trip, atomic writes, and a named error for every bad field."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calib.profile import (PROFILE_VERSION, CalibrationProfile, FingerEntry, FitEntry, ProfileError, load_profile,
+                           save_profile, to_gripper)
+from softgrip_jax import Gripper, SoftgripError
+from vision.segmentation import SegmentationSettings
+from vision.synthetic.render import d405_intrinsics
+
+
+def make_profile() -> CalibrationProfile:
+    """A profile with every optional field filled in."""
+    return CalibrationProfile(
+        fingers={"left": FingerEntry(52.1, 0.55, 3.9, 10, (0.25, -0.5)),
+                 "right": FingerEntry(51.8, 0.45, 4.1, 10, (-0.25, -0.5))},
+        base_separation=64.2,
+        segmentation=SegmentationSettings(roi=(10, 20, 600, 400)).to_dict(),
+        camera={"name": "123456789012", "intrinsics": d405_intrinsics().to_dict()},
+        fit=FitEntry(method="least-squares", frames=["open_0 + closed_0", "open_1 + closed_1"], residual_rms_mm=0.4,
+                     frame_residual_rms_mm=[0.3, 0.5],
+                     standard_errors={"left.theta_entire": 0.002, "left.base_offset": [0.1, 0.12]},
+                     skipped=[{"frame": "open_2 + closed_2", "reason": "no gripper found"}]),
+    )
+
+
+def test_round_trip(tmp_path: Path) -> None:
+    profile = make_profile()
+    path = save_profile(profile, tmp_path / "profile.json")
+    loaded = load_profile(path)
+    assert loaded == profile
+    assert json.loads(path.read_text())["fingers"]["left"]["theta_entire"] == 0.55
+    assert os.listdir(tmp_path) == ["profile.json"]  # no temporary file left behind
+
+
+def test_finger_entries_use_the_finger_model_names(tmp_path: Path) -> None:
+    data = json.loads(save_profile(make_profile(), tmp_path / "p.json").read_text())
+    assert set(data) == {"version", "gripper", "fingers", "segmentation", "camera", "fit"}
+    assert data["version"] == PROFILE_VERSION
+    assert set(data["fingers"]["left"]) == {"length", "theta_entire", "half_thickness", "n_links", "base_offset"}
+    assert data["gripper"] == {"base_separation": 64.2}
+
+
+def test_optional_fields_take_their_defaults(tmp_path: Path) -> None:
+    data = make_profile().to_dict()
+    for side in ("left", "right"):
+        del data["fingers"][side]["base_offset"]
+    for key in ("residual_rms_mm", "frame_residual_rms_mm", "standard_errors", "skipped"):
+        del data["fit"][key]
+    data["segmentation"] = {}
+    data["camera"]["intrinsics"] = None
+    profile = CalibrationProfile.from_dict(data)
+    assert profile.fingers["left"].base_offset == (0.0, 0.0)
+    assert profile.fit.skipped == [] and profile.fit.residual_rms_mm is None
+    assert profile.segmentation_settings() == SegmentationSettings()
+
+
+def test_to_gripper_and_corrected_bases() -> None:
+    profile = make_profile()
+    gripper = to_gripper(profile)
+    assert isinstance(gripper, Gripper)
+    assert float(gripper.left.theta_entire) == pytest.approx(0.55)
+    assert float(gripper.right.length) == pytest.approx(51.8)
+    assert gripper.right.n_links == 10
+    assert float(gripper.base_separation) == pytest.approx(64.2)
+    bases = profile.corrected_bases([[-32.0, -40.0], [32.0, -40.0]])
+    np.testing.assert_allclose(bases, [[-31.75, -40.5], [31.75, -40.5]])
+
+
+def _set(data: dict, keys: tuple, value) -> None:
+    for key in keys[:-1]:
+        data = data[key]
+    data[keys[-1]] = value
+
+
+def _delete(data: dict, keys: tuple) -> None:
+    for key in keys[:-1]:
+        data = data[key]
+    del data[keys[-1]]
+
+
+REQUIRED = [
+    "version", "gripper", "gripper.base_separation", "fingers", "fingers.left", "fingers.right",
+    *(f"fingers.{side}.{name}" for side in ("left", "right")
+      for name in ("length", "theta_entire", "half_thickness", "n_links")),
+    "segmentation", "camera", "camera.name", "camera.intrinsics", "fit", "fit.method", "fit.frames",
+]
+
+
+@pytest.mark.parametrize("path", REQUIRED)
+def test_a_missing_field_is_named(tmp_path: Path, path: str) -> None:
+    data = make_profile().to_dict()
+    _delete(data, tuple(path.split(".")))
+    file = tmp_path / "p.json"
+    file.write_text(json.dumps(data))
+    with pytest.raises(ProfileError) as info:
+        load_profile(file)
+    assert str(info.value) == f"{file}: {path}: expected a value (the field is missing)"
+
+
+BAD_VALUES = [
+    # (keys to set, value, the field as the message names it, what the message says)
+    (("version",), "1", "version", 'expected 1, got "1"'),
+    (("version",), 2, "version", "newer softgrip-jax"),
+    (("gripper",), [64.0], "gripper", "expected a JSON object"),
+    (("gripper", "base_separation"), "abc", "gripper.base_separation", 'a distance in mm > 0, got "abc"'),
+    (("gripper", "base_separation"), 0, "gripper.base_separation", "a distance in mm > 0, got 0"),
+    (("gripper", "base_separation"), True, "gripper.base_separation", "a distance in mm > 0, got true"),
+    (("fingers", "left", "theta_entire"), "abc", "fingers.left.theta_entire",
+     'expected a number in [0, pi/2), got "abc"'),
+    (("fingers", "left", "theta_entire"), 1.6, "fingers.left.theta_entire", "a number in [0, pi/2), got 1.6"),
+    (("fingers", "right", "theta_entire"), -0.1, "fingers.right.theta_entire", "a number in [0, pi/2)"),
+    (("fingers", "left", "length"), 0.0, "fingers.left.length", "a length in mm > 0"),
+    (("fingers", "right", "length"), None, "fingers.right.length", "a length in mm > 0, got null"),
+    (("fingers", "left", "half_thickness"), -1.0, "fingers.left.half_thickness", "a half-thickness in mm >= 0"),
+    (("fingers", "left", "n_links"), 10.5, "fingers.left.n_links", "an integer >= 1, got 10.5"),
+    (("fingers", "left", "n_links"), 0, "fingers.left.n_links", "an integer >= 1"),
+    (("fingers", "right", "n_links"), True, "fingers.right.n_links", "an integer >= 1"),
+    (("fingers", "left", "base_offset"), [1.0], "fingers.left.base_offset", "two numbers"),
+    (("fingers", "left", "base_offset"), "x", "fingers.left.base_offset", "a JSON array"),
+    (("fingers", "left", "base_offset", 1), "a", "fingers.left.base_offset[1]", "a finite number of mm"),
+    (("fingers", "left", "lenght"), 52.0, "fingers.left.lenght", "unknown field"),
+    (("fingers", "middle"), {}, "fingers.middle", "unknown field"),
+    (("segmentation",), "x", "segmentation", "a JSON object of segmentation settings"),
+    (("segmentation", "hole_fill_px"), 4, "segmentation", "hole_fill_px must be 0 (off) or an odd number"),
+    (("segmentation", "colour"), 1, "segmentation", "unknown segmentation setting(s) colour"),
+    (("camera", "name"), 3, "camera.name", "a non-empty string, got 3"),
+    (("camera", "name"), "", "camera.name", "a non-empty string"),
+    (("camera", "intrinsics"), {"width": 640}, "camera.intrinsics", "fx"),
+    (("camera", "lens"), "x", "camera.lens", "unknown field"),
+    (("fit", "method"), "magic", "fit.method", 'one of "one-frame", "least-squares", got "magic"'),
+    (("fit", "frames"), "x", "fit.frames", "a JSON array"),
+    (("fit", "frames", 0), 3, "fit.frames[0]", "a non-empty string"),
+    (("fit", "residual_rms_mm"), -1.0, "fit.residual_rms_mm", "a number >= 0"),
+    (("fit", "frame_residual_rms_mm"), [0.1, 0.2, 0.3], "fit.frame_residual_rms_mm", "one value per frame"),
+    (("fit", "frame_residual_rms_mm", 0), "x", "fit.frame_residual_rms_mm[0]", "a number >= 0"),
+    (("fit", "standard_errors"), [], "fit.standard_errors", "a JSON object"),
+    (("fit", "standard_errors", "left.theta_entire"), -0.1, "fit.standard_errors.left.theta_entire",
+     "a number >= 0"),
+    (("fit", "standard_errors", "left.base_offset", 1), "x", "fit.standard_errors.left.base_offset[1]",
+     "a number >= 0"),
+    (("fit", "skipped", 0), {"frame": "x"}, "fit.skipped[0].reason", "the field is missing"),
+    (("fit", "skipped", 0, "reason"), "", "fit.skipped[0].reason", "a non-empty string"),
+    (("fit", "comment"), "x", "fit.comment", "unknown field"),
+]
+
+
+@pytest.mark.parametrize("keys, value, field, expected", BAD_VALUES, ids=[f"{c[2]}={c[1]!r}" for c in BAD_VALUES])
+def test_a_bad_field_is_named(tmp_path: Path, keys: tuple, value, field: str, expected: str) -> None:
+    data = make_profile().to_dict()
+    _set(data, keys, value)
+    file = tmp_path / "p.json"
+    file.write_text(json.dumps(data))
+    with pytest.raises(ProfileError) as info:
+        load_profile(file)
+    message = str(info.value)
+    assert message.startswith(f"{file}: {field}: "), message
+    assert expected in message, message
+    assert isinstance(info.value, SoftgripError)
+
+
+def test_non_finite_numbers_are_refused(tmp_path: Path) -> None:
+    text = json.dumps(make_profile().to_dict()).replace('"theta_entire": 0.55', '"theta_entire": NaN')
+    file = tmp_path / "p.json"
+    file.write_text(text)
+    with pytest.raises(ProfileError, match=r"fingers\.left\.theta_entire: expected a number in \[0, pi/2\), got NaN"):
+        load_profile(file)
+
+
+def test_unreadable_files(tmp_path: Path) -> None:
+    with pytest.raises(ProfileError, match="no such calibration profile"):
+        load_profile(tmp_path / "missing.json")
+    broken = tmp_path / "broken.json"
+    broken.write_text('{"version": 1,')
+    with pytest.raises(ProfileError, match=f"{broken}: not valid JSON"):
+        load_profile(broken)
+    listing = tmp_path / "list.json"
+    listing.write_text("[]")
+    with pytest.raises(ProfileError, match="expected a JSON object"):
+        load_profile(listing)
+
+
+def test_saving_an_invalid_profile_names_the_field_and_keeps_the_old_file(tmp_path: Path) -> None:
+    path = save_profile(make_profile(), tmp_path / "p.json")
+    before = path.read_bytes()
+    bad = copy.deepcopy(make_profile())
+    bad.fingers["left"] = FingerEntry(52.0, math.pi / 2, 4.0, 10)
+    with pytest.raises(ProfileError, match=r"fingers\.left\.theta_entire"):
+        save_profile(bad, path)
+    assert path.read_bytes() == before
+
+
+def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path: Path, monkeypatch) -> None:
+    path = save_profile(make_profile(), tmp_path / "p.json")
+    before = path.read_bytes()
+
+    def fail(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", fail)
+    changed = make_profile()
+    changed.fingers["left"] = FingerEntry(50.0, 0.5, 4.0, 10)
+    with pytest.raises(ProfileError, match="No space left on device"):
+        save_profile(changed, path)
+    assert path.read_bytes() == before
+    assert os.listdir(tmp_path) == ["p.json"]
+
+
+def test_a_saved_profile_is_created_like_any_new_file(tmp_path: Path) -> None:
+    previous = os.umask(0o022)
+    try:
+        path = save_profile(make_profile(), tmp_path / "p.json")
+    finally:
+        os.umask(previous)
+    assert path.stat().st_mode & 0o777 == 0o644
+
+
+def test_saving_into_a_missing_folder(tmp_path: Path) -> None:
+    with pytest.raises(ProfileError, match="cannot write the profile there"):
+        save_profile(make_profile(), tmp_path / "nowhere" / "p.json")

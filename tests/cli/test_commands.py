@@ -1,0 +1,300 @@
+"""End-to-end tests of `softgrip estimate`, `softgrip score` and `softgrip demo` on the frames in data/.
+
+Each command runs once per module (fixtures below) and the tests read its outputs; the commands run
+in this process, so the compiled estimate and score functions are shared (a few compilations for
+the whole file).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from softgrip_cli import main
+from softgrip_jax import CASE_NAMES, SoftgripError
+
+ROOT = Path(__file__).resolve().parents[2]
+DATA = ROOT / "data"
+PROFILE = DATA / "sample_profile.json"
+SCENES = ("circle", "square", "star_a")
+FRAMES = [str(DATA / f"{name}_open") for name in SCENES]
+FINGER_KEYS = {"side", "case", "theta_entire", "joints_px", "joints_mm", "contacts_px", "contacts_mm"}
+CANDIDATE_KEYS = {"pose", "score", "components", "valid", "status", "fingers"}
+TOP = 40
+
+
+def run_cli(argv: list[str]) -> tuple[int, str, str]:
+    """Run `softgrip ARGV` in this process: (exit code, stdout, stderr)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(argv)
+    return code, out.getvalue(), err.getvalue()
+
+
+def profile_data() -> dict:
+    return json.loads(PROFILE.read_text())
+
+
+def frame_camera(path: str):
+    """The frame's plane camera, built the way the pipeline builds it (profile's segmentation)."""
+    from vision.frames import load_frame
+    from vision.geometry import PlaneCamera
+    from vision.segmentation import SegmentationSettings, segment
+
+    frame = load_frame(path)
+    seg = segment(frame, SegmentationSettings.from_dict(profile_data()["segmentation"]))
+    return frame, PlaneCamera.from_frame(frame, seg.fingers)
+
+
+def check_finger(finger: dict, side: str, n_links: int) -> None:
+    assert set(finger) == FINGER_KEYS
+    assert finger["side"] == side
+    assert finger["case"] in CASE_NAMES
+    assert finger["theta_entire"] == pytest.approx(profile_data()["fingers"][side]["theta_entire"], abs=1e-5)
+    for key in ("joints_px", "joints_mm"):
+        joints = np.array(finger[key], dtype=float)
+        assert joints.shape == (n_links + 1, 2) and np.isfinite(joints).all()
+    expected_contacts = {"none": 0, "tip": 1, "other": 1, "tip_and_other": 2}[finger["case"]]
+    assert len(finger["contacts_px"]) == len(finger["contacts_mm"]) == expected_contacts
+
+
+def check_png(path: Path, width: int, height: int) -> None:
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert image is not None and image.shape == (height, width, 3) and image.dtype == np.uint8
+
+
+# --- estimate ---------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def estimated(tmp_path_factory):
+    overlays = tmp_path_factory.mktemp("overlays")
+    code, out, err = run_cli(["estimate", *FRAMES, "--profile", str(PROFILE), "--json",
+                              "--overlay-dir", str(overlays)])
+    assert code == 0, err
+    return [json.loads(line) for line in out.splitlines()], overlays
+
+
+def test_estimate_prints_one_json_object_per_frame_in_order(estimated):
+    records, _ = estimated
+    n_links = profile_data()["fingers"]["left"]["n_links"]
+    assert [r["frame"] for r in records] == FRAMES
+    for record in records:
+        assert set(record) == {"frame", "n_links", "fingers"}
+        assert record["n_links"] == n_links
+        assert [f["side"] for f in record["fingers"]] == ["left", "right"]
+        for finger in record["fingers"]:
+            check_finger(finger, finger["side"], n_links)
+        # Objects sit between the fingers: every finger touches.
+        assert all(f["case"] != "none" for f in record["fingers"])
+
+
+def test_estimate_pixels_and_millimetres_agree_through_the_frames_camera(estimated):
+    records, _ = estimated
+    truth = json.loads((DATA / "truth.json").read_text())
+    profile = profile_data()
+    for record in records:
+        _, camera = frame_camera(record["frame"])
+        for finger in record["fingers"]:
+            for px, mm in (("joints_px", "joints_mm"), ("contacts_px", "contacts_mm")):
+                if finger[mm]:
+                    np.testing.assert_allclose(camera.mm_to_px(finger[mm]), finger[px], atol=2e-3)
+            joints = np.array(finger["joints_mm"])
+            link = profile["fingers"][finger["side"]]["length"] / record["n_links"]
+            np.testing.assert_allclose(np.hypot(*np.diff(joints, axis=0).T), link, rtol=1e-3)
+        # Base 0 of each finger is where the renderer put it (mm in the gripper plane).
+        centre = np.array(truth["gripper"]["center_mm"])
+        half = np.array([truth["gripper"]["base_separation_mm"] / 2, 0.0])
+        for finger, base in zip(record["fingers"], (centre - half, centre + half)):
+            assert np.hypot(*(np.array(finger["joints_mm"][0]) - base)) < 0.3
+
+
+def test_estimate_writes_one_overlay_per_frame(estimated):
+    _, overlays = estimated
+    for path in FRAMES:
+        check_png(overlays / f"{Path(path).name}.png", 640, 480)
+
+
+def test_estimate_table_without_json():
+    code, out, _ = run_cli(["estimate", FRAMES[0], "--profile", str(PROFILE)])
+    assert code == 0
+    assert "left" in out and "right" in out and FRAMES[0] in out
+
+
+# --- score ------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def scored(tmp_path_factory):
+    heatmap = tmp_path_factory.mktemp("score") / "heat.png"
+    code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--json", "--heatmap", str(heatmap),
+                              "--top", str(TOP)])
+    assert code == 0, err
+    return json.loads(out), heatmap
+
+
+def test_score_json_is_ranked_best_first(scored):
+    out, _ = scored
+    n_links = profile_data()["fingers"]["left"]["n_links"]
+    candidates = out["candidates"]
+    assert out["n_candidates"] >= len(candidates) == TOP and out["n_valid"] > 0
+    for c in candidates:
+        assert set(c) == CANDIDATE_KEYS
+        assert set(c["pose"]) == {"x_mm", "y_mm", "angle_rad"}
+        assert c["valid"] == (c["score"] is not None)
+        assert isinstance(c["status"], str)
+        assert set(c["components"]) >= {"touch", "wrap", "opposition", "tip_only", "penetration_mm"}
+        assert [f["side"] for f in c["fingers"]] == ["left", "right"]
+        for finger in c["fingers"]:
+            check_finger(finger, finger["side"], n_links)
+    scores = [c["score"] for c in candidates if c["valid"]]
+    assert scores == sorted(scores, reverse=True)
+    # Invalid candidates (score null) only after every valid one.
+    valid_flags = [c["valid"] for c in candidates]
+    assert valid_flags == sorted(valid_flags, reverse=True)
+
+
+def test_score_heatmap_is_a_png_of_the_frames_size(scored):
+    _, heatmap = scored
+    check_png(heatmap, 640, 480)
+    frame, _ = frame_camera(FRAMES[0])
+    image = cv2.cvtColor(cv2.imread(str(heatmap)), cv2.COLOR_BGR2RGB)
+    assert np.mean(np.any(image != frame.color, axis=-1)) > 0.02  # something was drawn
+
+
+def test_score_ranks_a_grasp_above_closing_on_nothing(tmp_path):
+    poses = tmp_path / "poses.csv"
+    poses.write_text("x_mm,y_mm,angle_rad\n# far left: both fingers close on nothing\n-60,-45,0\n0,-45,0\n")
+    code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--poses", str(poses), "--json"])
+    assert code == 0, err
+    first, second = json.loads(out)["candidates"]
+    assert first["pose"]["x_mm"] == 0.0 and first["score"] > second["score"]
+    assert [f["case"] for f in second["fingers"]] == ["none", "none"]
+    assert all(f["case"] != "none" for f in first["fingers"])
+
+
+@pytest.mark.parametrize("name, text, where", [
+    ("bad.csv", "x_mm,y_mm\n1,2\n1,2,3\n", "line 3"),
+    ("bad.csv", "1,2\n1,two\n", "line 2"),
+    ("bad.json", '[\n  [0, -45, 0],\n  {"x_mm": 1}\n]\n', "line 3"),
+    ("bad.json", '{"poses": [\n [0, 1],\n [0, 1, 2, 3]\n]}', "line 3"),
+    ("bad.json", '[[0, 1],\n [0, 1]', "line 2"),
+    ("empty.csv", "x_mm,y_mm\n", "no poses"),
+    ("poses.txt", "0,0\n", ".json or .csv"),
+])
+def test_bad_pose_files_name_the_file_and_line(tmp_path, name, text, where):
+    path = tmp_path / name
+    path.write_text(text)
+    code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--poses", str(path)])
+    assert code == 2 and out == ""
+    assert str(path) in err and where in err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_bad_grid_is_a_user_error():
+    code, _, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--grid", "1:2:3"])
+    assert code == 2 and "--grid" in err and len(err.strip().splitlines()) == 1
+
+
+# --- demo -------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out_dir = tmp_path_factory.mktemp("demo")
+    code, out, err = run_cli(["demo", "--out", str(out_dir), "--json"])
+    assert code == 0, err
+    return json.loads(out), out_dir
+
+
+def test_demo_writes_its_outputs(demo):
+    summary, out_dir = demo
+    assert {s["scene"] for s in summary["scenes"]} == set(SCENES)
+    for name in summary["files"]:
+        assert (out_dir / name).is_file(), name
+    for name in summary["files"]:
+        if name.endswith(".png"):
+            check_png(out_dir / name, 640, 480)
+    assert json.loads((out_dir / "summary.json").read_text()) == summary
+    from calib.profile import load_profile
+
+    profile = load_profile(out_dir / "profile.json")
+    assert profile.fingers["left"].theta_entire == pytest.approx(0.55, abs=0.01)
+
+
+def test_demo_estimates_match_the_observed_closure(demo):
+    summary, _ = demo
+    for scene in summary["scenes"]:
+        for finger in scene["fingers"]:
+            assert finger["case"] != "none"
+            errors = scene["errors_vs_observed"][finger["side"]]
+            # The paper's geometric cases, against an independent elastic rod: millimetres at most.
+            assert errors["tip_mm"] < 3.0 and errors["mid_mm"] < 3.0
+
+
+def test_demo_refinement_never_loses_score(demo):
+    summary, _ = demo
+    refined = summary["refine"]
+    assert summary["score"]["best"]["valid"]
+    assert refined["score"] is not None and refined["score"] >= refined["start_score"] - 1e-6
+    assert refined["status"] in ("improved", "no_improvement")
+
+
+# --- user errors ------------------------------------------------------------------------------
+
+
+def one_line_error(code: int, err: str) -> None:
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_missing_frame_is_a_user_error(tmp_path):
+    missing = tmp_path / "no_such_frame"
+    code, out, err = run_cli(["estimate", str(missing), "--profile", str(PROFILE)])
+    one_line_error(code, err)
+    assert str(missing) in err and out == ""
+
+
+def test_bad_profile_names_the_field(tmp_path):
+    data = profile_data()
+    data["fingers"]["left"]["theta_entire"] = "abc"
+    bad = tmp_path / "bad_profile.json"
+    bad.write_text(json.dumps(data))
+    for argv in (["estimate", FRAMES[0]], ["score", FRAMES[0]]):
+        code, _, err = run_cli([*argv, "--profile", str(bad)])
+        one_line_error(code, err)
+        assert "bad_profile.json" in err and "fingers.left.theta_entire" in err
+
+
+def test_missing_profile_is_a_user_error(tmp_path):
+    code, _, err = run_cli(["estimate", FRAMES[0], "--profile", str(tmp_path / "nope.json")])
+    one_line_error(code, err)
+    assert "nope.json" in err
+
+
+@pytest.fixture(scope="module")
+def frame_without_gripper(tmp_path_factory):
+    from vision.frames import save_frame
+    from vision.synthetic.render import Scene, d405_intrinsics, render
+
+    path = tmp_path_factory.mktemp("frames") / "empty_frame"
+    save_frame(render(Scene([], seed=3), d405_intrinsics()), path)
+    return path
+
+
+def test_unusable_frame_is_a_user_error_naming_the_frame(frame_without_gripper):
+    code, _, err = run_cli(["estimate", FRAMES[0], str(frame_without_gripper), "--profile", str(PROFILE)])
+    one_line_error(code, err)
+    assert str(frame_without_gripper) in err and "no gripper" in err
+
+
+def test_debug_shows_the_exception(frame_without_gripper):
+    with pytest.raises(SoftgripError):
+        main(["--debug", "estimate", str(frame_without_gripper), "--profile", str(PROFILE)])
