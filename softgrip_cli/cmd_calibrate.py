@@ -9,6 +9,7 @@ import warnings
 from pathlib import Path
 
 from softgrip_jax import SoftgripError
+from softgrip_cli._args import positive_int
 
 DEFAULT_N_LINKS = 10
 
@@ -52,7 +53,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="least squares over pairs OPEN CLOSED [OPEN CLOSED ...]")
     parser.add_argument("--profile", type=Path, metavar="START",
                         help="starting values for --fit (default: the first open frame, Theta 0.5 rad)")
-    parser.add_argument("--n-links", type=_positive_int, metavar="N",
+    parser.add_argument("--n-links", type=positive_int, metavar="N",
                         help=f"number of links of the model (default: the --profile's, else {DEFAULT_N_LINKS})")
     parser.add_argument("--base-offset", action="store_true",
                         help="with --fit, also fit a base offset per finger (needs 2 or more pairs)")
@@ -154,13 +155,3 @@ def _print_summary(profile, output: Path) -> None:
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
     print(f"softgrip calibrate: warning: {message}", file=sys.stderr)
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from vision.realsense import CameraError, capture_from_camera, capture_from_recording
+from softgrip_cli._args import positive_int
 
 EPILOG = """\
 examples:
@@ -38,12 +39,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--bag", type=Path, metavar="FILE",
                         help="read this recording (.db3, or legacy .bag) instead of a camera")
     parser.add_argument("--serial", help="camera serial number (default: the first camera)")
-    parser.add_argument("--width", type=_positive_int, metavar="PX",
+    parser.add_argument("--width", type=positive_int, metavar="PX",
                         help="camera stream width (default: 640)")
-    parser.add_argument("--height", type=_positive_int, metavar="PX",
+    parser.add_argument("--height", type=positive_int, metavar="PX",
                         help="camera stream height (default: 480)")
-    parser.add_argument("--fps", type=_positive_int, help="camera frame rate (default: 30)")
-    parser.add_argument("--count", type=_positive_int, metavar="N",
+    parser.add_argument("--fps", type=positive_int, help="camera frame rate (default: 30)")
+    parser.add_argument("--count", type=positive_int, metavar="N",
                         help="number of frames (default: 1 from a camera, all of a recording)")
     parser.add_argument("--json", action="store_true",
                         help='print {"frames": [folder, ...]} on stdout')
@@ -75,13 +76,3 @@ def run(args: argparse.Namespace) -> int:
         for path in paths:
             print(path)
     return 0
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
