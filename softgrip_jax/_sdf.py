@@ -39,8 +39,13 @@ class AbstractSDF(eqx.Module):
 
     def normal(self, point: Float[Array, "2"]) -> Float[Array, "2"]:
         """Unit gradient of the distance at one point (outward normal); zero where it vanishes."""
-        grad = jax.grad(self.distance)(point)
-        return safe_divide(grad, safe_norm(grad)[..., None])
+        return unit_gradient(self.distance, point)
+
+
+def unit_gradient(distance: Callable[[Array], Array], point: Float[Array, "2"]) -> Float[Array, "2"]:
+    """Unit gradient of a distance function at ``point``; zero where the gradient vanishes."""
+    grad = jax.grad(distance)(point)
+    return safe_divide(grad, safe_norm(grad)[..., None])
 
 
 class SDFGrid(AbstractSDF):
