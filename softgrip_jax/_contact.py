@@ -64,9 +64,10 @@ class ContactConfig(eqx.Module):
     Attributes:
         sweep: ``"pcc"`` (default) closes the finger along its PCC shapes; ``"rigid"`` rotates the
             straight finger about its base (the paper's Fig. 7 read literally).
-        n_sweep: values of s on the coarse bracketing grid over [0, Theta]. A protrusion thinner
-            than the tip's travel between two grid values (about L Theta / (n_sweep - 1)) can be
-            missed.
+        n_sweep: values of s on the coarse bracketing grid over [0, Theta]. The tip travels about
+            L Theta / (n_sweep - 1) between two of them; the finger (2r thick) could only pass
+            through an object between grid values if that travel exceeded 2r plus the object's
+            thickness, and a graze shallower than about travel^2 / (8 r) can be missed.
         n_stations: centreline sample points at least, base to tip: every link gets
             ceil((n_stations - 1) / N) equally spaced points (plus the tip), so that the sampling
             is about as fine for any N. Between stations the distance is refined by a parabola.
