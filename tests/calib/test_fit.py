@@ -147,6 +147,23 @@ def test_one_grossly_wrong_frame_among_ten_moves_theta_little() -> None:
     assert np.abs(plain - clean).max() > 0.01, (plain, clean)
 
 
+def test_one_frame_with_a_wrong_object_mask_among_ten_moves_theta_little() -> None:
+    """A segmentation that saw an object where there was none: that frame's estimate wraps a disc
+    the real finger never met, so its residuals are millimetres; the robust loss must contain it."""
+    rng = np.random.default_rng(2)
+    good = [observation(rng, f"pair {i}") for i in range(9)]
+    wrong = observation(rng, "wrong mask")
+    centre = wrong.bases.mean(axis=0)
+    wrong = Observation(grid(((centre[0], centre[1] + 30.0), 12.0)), wrong.bases, wrong.observed, wrong.label)
+    start = start_profile(0.5, 0.5)
+    clean = thetas(quiet_fit(good, start))
+    robust = thetas(quiet_fit([*good[:4], wrong, *good[4:]], start))
+    assert np.abs(robust - clean).max() < 0.01, (robust, clean)
+    # The wrong frame does pull: plain least squares moves Theta further.
+    plain = thetas(quiet_fit([*good[:4], wrong, *good[4:]], start, loss_scale_mm=1e6))
+    assert np.abs(plain - clean).max() > np.abs(robust - clean).max(), (plain, robust, clean)
+
+
 def test_base_offsets_and_theta_are_fitted_together() -> None:
     rng = np.random.default_rng(2)
     bias = ((0.8, -1.2), (-0.6, -1.0))  # the open frames' bases are seen off by this
