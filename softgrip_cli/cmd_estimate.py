@@ -8,6 +8,7 @@ import sys
 import time
 
 from softgrip_cli import _pipeline as pipe
+from softgrip_jax import Status
 
 EPILOG = """examples:
   softgrip estimate data/circle_open --profile data/sample_profile.json
@@ -30,10 +31,10 @@ Overlays (--overlay-dir): DIR/<frame-name>.png, estimated joints blue, contacts 
 """
 
 _STATUS_TEXT = {
-    1: "a non-finite base or calibration value",
-    2: "its base lies outside the image",
-    3: "the object already overlaps the open finger (is the object touching it?)",
-    4: "the contact search did not converge",
+    Status.NON_FINITE_INPUT: "a non-finite base or calibration value",
+    Status.BASE_OUTSIDE_SDF: "its base lies outside the image",
+    Status.INITIAL_OVERLAP: "the object already overlaps the open finger (is the object touching it?)",
+    Status.ROOT_NOT_CONVERGED: "the contact search did not converge",
 }
 
 
