@@ -21,6 +21,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Measure this checkout's package, not whichever one the interpreter has installed (editable).
+sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
 
 
 def run_one(n_links: int, batch: int, chunk: int, repeats: int) -> dict:

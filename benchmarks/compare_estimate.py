@@ -1,0 +1,85 @@
+"""Back-to-back throughput of estimate_batch: this checkout against a baseline copy of the package.
+
+The baseline is a copy of ``softgrip_jax`` renamed ``softgrip_jax_base`` (imports rewritten) in the
+directory given by ``--base-dir``, e.g.::
+
+    git archive cfcecf0 softgrip_jax | tar -x -C /tmp/sg_base
+    (cd /tmp/sg_base && mv softgrip_jax softgrip_jax_base &&
+     sed -i 's/softgrip_jax\\./softgrip_jax_base./g; s/from softgrip_jax import/from softgrip_jax_base import/g' \\
+        softgrip_jax_base/*.py)
+    python benchmarks/compare_estimate.py --base-dir /tmp/sg_base --n 20 --batch 100000
+
+Same scene as bench_estimate.py; the two versions alternate so that machine load hits both alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# This checkout's package, not whichever one the interpreter has installed.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def scene(pkg, n_links, batch):
+    spacing = 120.0 / 385.0
+    grid = pkg.SDFGrid.sample(lambda p: jnp.linalg.norm(p, axis=-1) - 15.0, origin=(-320 * spacing, -240 * spacing),
+                              spacing=(spacing, spacing), shape=(480, 640))
+    finger = pkg.FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0, n_links=n_links)
+    rng = np.random.default_rng(0)
+    bases = jnp.asarray(rng.uniform([-60.0, -70.0], [20.0, -10.0], (batch, 2)).astype(np.float32))
+    return finger, jax.block_until_ready(grid), bases
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--base-dir", default="/tmp/sg_base")
+    parser.add_argument("--n", type=int, default=20)
+    parser.add_argument("--batch", type=int, default=100_000)
+    parser.add_argument("--chunk", type=int, default=2048)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--no-base", action="store_true")
+    args = parser.parse_args()
+    sys.path.insert(0, args.base_dir)
+    versions = {"new": importlib.import_module("softgrip_jax")}
+    if not args.no_base:
+        versions["base"] = importlib.import_module("softgrip_jax_base")
+    setups = {k: scene(p, args.n, args.batch) for k, p in versions.items()}
+    outs, best, cpu = {}, {k: np.inf for k in versions}, {k: np.inf for k in versions}
+    for k, p in versions.items():
+        f, g, b = setups[k]
+        t0 = time.perf_counter()
+        outs[k] = jax.block_until_ready(p.estimate_batch(f, g, b, chunk_size=args.chunk))
+        print(f"{k}: first call {time.perf_counter() - t0:.1f} s", flush=True)
+    for _ in range(args.repeats):
+        for k, p in versions.items():
+            f, g, b = setups[k]
+            t0, c0 = time.perf_counter(), time.process_time()
+            jax.block_until_ready(p.estimate_batch(f, g, b, chunk_size=args.chunk))
+            best[k] = min(best[k], time.perf_counter() - t0)
+            cpu[k] = min(cpu[k], time.process_time() - c0)
+    for k in versions:
+        print(f"{k}: {args.batch / best[k]:,.0f} candidate-fingers/s (best {best[k]:.3f} s, cpu {cpu[k]:.3f} s)")
+    if "base" in versions:
+        print(f"speed-up new/base: {best['base'] / best['new']:.2f}x wall, {cpu['base'] / cpu['new']:.2f}x cpu")
+        a, b = outs["new"], outs["base"]
+        case_a, case_b = np.asarray(a.case), np.asarray(b.case)
+        print("cases new", np.bincount(case_a, minlength=4).tolist(), "base", np.bincount(case_b, minlength=4).tolist(),
+              "differ:", int(np.sum(case_a != case_b)))
+        same = (case_a == case_b) & np.asarray(a.valid) & np.asarray(b.valid)
+        dj = np.abs(np.asarray(a.joints) - np.asarray(b.joints)).max(axis=(1, 2))[same]
+        ds = np.abs(np.asarray(a.contact.s1) - np.asarray(b.contact.s1))[same]
+        print(f"same-case valid: max |joints diff| {dj.max():.2e} mm (99.9%: {np.quantile(dj, 0.999):.2e}), "
+              f"max |s1 diff| {ds.max():.2e}; status differ: {int(np.sum(np.asarray(a.status) != np.asarray(b.status)))}")
+
+
+if __name__ == "__main__":
+    main()
