@@ -6,8 +6,12 @@ Where each equation of the paper lives:
 eqs. 1-3              :mod:`softgrip_jax._kinematics` (``pcc_joints``, ``forward_kinematics``)
 eqs. 5-8, Figs. 7-8   :mod:`softgrip_jax._contact` (``predict_contact``)
 eq. 9, Fig. 9         :mod:`softgrip_jax._deformation` (``estimate``)
+spring chain [16]     :mod:`softgrip_jax._mechanics` (``method="mechanics"``, ``MechanicsConfig``)
 eq. 10                :mod:`softgrip_jax._metrics` (``joint_errors``)
 ====================  ===============================================================
+
+The spring chain at equilibrium (the paper's ref. [16]) is beyond the paper: an estimate chosen by
+``method="mechanics"`` in every estimate, score and refine function.
 
 The object is a signed-distance function (:mod:`softgrip_jax._sdf`); fingers at other places,
 rotated or mirrored, see it through a frame (:mod:`softgrip_jax._frames`).
@@ -20,6 +24,7 @@ from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, link_angles, pcc_joints, pcc_turning
+from softgrip_jax._mechanics import METHODS, MechanicsConfig, link_stiffness
 from softgrip_jax._metrics import joint_errors
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._score import (RefineStatus, Refined, Score, ScoreComponents, ScoreWeights, refine, score,
@@ -31,6 +36,6 @@ __all__ = [
     "FingerModel", "GraspEstimate", "Gripper", "PolygonSDF", "SDFGrid", "SoftgripError",
     "Status", "case_shapes", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
     "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",
-    "joint_errors", "link_angles", "RefineStatus", "Refined", "Score", "ScoreComponents", "ScoreWeights",
+    "joint_errors", "link_angles", "link_stiffness", "METHODS", "MechanicsConfig", "RefineStatus", "Refined", "Score", "ScoreComponents", "ScoreWeights",
     "refine", "score", "score_pose", "pcc_joints", "pcc_turning", "predict_contact", "predict_contact_local", "sweep_shape",
 ]

@@ -1,4 +1,11 @@
-"""Many candidates at once, in chunks so that memory stays bounded for any batch size."""
+"""Many candidates at once, in chunks so that memory stays bounded for any batch size.
+
+With ``method="mechanics"`` each chunk first computes every geometric estimate, then runs the
+equilibrium solve only for the candidates whose finger touches the object (the others rest in
+their geometric shape, or are invalid): those are gathered to the front and solved a group of
+``ceil(chunk / _SOLVE_GROUPS)`` at a time, so the solver's cost follows the number of touching
+candidates rather than the batch size.
+"""
 
 from __future__ import annotations
 
@@ -6,26 +13,101 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import ArrayLike, Float
+from jaxtyping import ArrayLike, Bool, Float
 
 from softgrip_jax._contact import ContactConfig
-from softgrip_jax._deformation import Estimate, estimate
-from softgrip_jax._grasp import GraspEstimate, estimate_grasp
+from softgrip_jax._deformation import Estimate, estimate, finish, geometric_stage, mechanics_of, needs_mechanics
+from softgrip_jax._frames import FingerFrame
+from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
+from softgrip_jax._mechanics import MechanicsConfig, check_method
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 
 #: Candidates evaluated together inside one chunk; peak memory scales with this, not the batch.
 DEFAULT_CHUNK = 2048
 
-
-@partial(jax.jit, static_argnames=("chunk_size",))
-def _estimate_batch(finger, sdf, bases, config, chunk_size):
-    return jax.lax.map(lambda b: estimate(finger, sdf, b, config), bases, batch_size=chunk_size)
+#: A chunk's touching candidates are solved in groups of ceil(chunk / _SOLVE_GROUPS).
+_SOLVE_GROUPS = 8
 
 
-@partial(jax.jit, static_argnames=("chunk_size",))
-def _estimate_grasp_batch(gripper, sdf, poses, config, chunk_size):
-    return jax.lax.map(lambda p: estimate_grasp(gripper, sdf, p, config), poses, batch_size=chunk_size)
+def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_GROUPS):
+    """``jax.vmap(fn)(inputs)`` evaluated only where ``need`` holds (elsewhere: zeros).
+
+    The needed elements are gathered to the front and mapped a group at a time; groups with
+    nothing to do are skipped (``lax.cond``), so the cost follows the number of needed elements.
+    Differentiable (gathers, ``lax.map`` and ``lax.cond``).
+    """
+    b = need.shape[0]
+    size = -(-b // groups)
+    order = jnp.argsort(~need, stable=True)  # needed first, each part in its original order
+    padded = jnp.concatenate([order, jnp.zeros(groups * size - b, order.dtype)])
+    wanted = jnp.concatenate([need[order], jnp.zeros(groups * size - b, bool)])
+    take = lambda idx: jax.tree_util.tree_map(lambda x: x[idx], inputs)  # noqa: E731
+    out_shape = jax.eval_shape(jax.vmap(fn), take(padded[:size]))
+
+    def group(g):
+        idx = jax.lax.dynamic_slice_in_dim(padded, g * size, size)
+        work = jax.lax.dynamic_slice_in_dim(wanted, g * size, size)
+        return jax.lax.cond(
+            jnp.any(work),
+            lambda: jax.vmap(fn)(take(idx)),
+            lambda: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape),
+        )
+
+    out = jax.lax.map(group, jnp.arange(groups))
+    back = jnp.argsort(order)  # position of each element in the needed-first order
+
+    def restore(x):
+        x = x.reshape((groups * size,) + x.shape[2:])[back]
+        return jnp.where(need.reshape((b,) + (1,) * (x.ndim - 1)), x, jnp.zeros((), x.dtype))
+
+    return jax.tree_util.tree_map(restore, out)
+
+
+def finger_chunk(finger, sdf, frames, config, mechanics):
+    """Mechanics estimates of a chunk of finger frames (leading axis), solving only the touching ones."""
+    stages = jax.vmap(lambda f: geometric_stage(finger, sdf, f, config, "mechanics"))(frames)
+    need = jax.vmap(needs_mechanics)(stages)
+    eq = where_needed(lambda st: mechanics_of(finger, sdf, st, mechanics, config), need, stages)
+    return jax.vmap(lambda st, e: finish(finger, st, e))(stages, eq)
+
+
+def map_chunks(fn, xs, chunk_size):
+    """``fn`` on chunks of ``chunk_size`` rows of ``xs`` (padded with its first row), concatenated."""
+    b = xs.shape[0]
+    n_chunks = -(-b // chunk_size)
+    pad = n_chunks * chunk_size - b
+    padded = jnp.concatenate([xs, jnp.broadcast_to(xs[:1], (pad,) + xs.shape[1:])]) if pad else xs
+    out = jax.lax.map(fn, padded.reshape((n_chunks, chunk_size) + xs.shape[1:]))
+    return jax.tree_util.tree_map(lambda x: x.reshape((n_chunks * chunk_size,) + x.shape[2:])[:b], out)
+
+
+def _base_frames(bases):
+    """Frames (batched) of fingers hanging from ``bases`` (B, 2) and curling toward +x."""
+    one = lambda b: FingerFrame(origin=b, angle=jnp.zeros((), b.dtype), handedness=jnp.ones((), b.dtype))  # noqa: E731
+    return jax.vmap(one)(bases)
+
+
+@partial(jax.jit, static_argnames=("chunk_size", "method"))
+def _estimate_batch(finger, sdf, bases, config, mechanics, chunk_size, method):
+    if method == "geometric":
+        return jax.lax.map(lambda b: estimate(finger, sdf, b, config), bases, batch_size=chunk_size)
+    return map_chunks(lambda chunk: finger_chunk(finger, sdf, _base_frames(chunk), config, mechanics),
+                       bases, chunk_size)
+
+
+def grasp_chunk(gripper, sdf, poses, config, mechanics):
+    left, right = jax.vmap(lambda p: finger_frames(gripper, p))(poses)
+    left = finger_chunk(gripper.left, sdf, left, config, mechanics)
+    right = finger_chunk(gripper.right, sdf, right, config, mechanics)
+    return jax.vmap(lambda a, b: GraspEstimate(left=a, right=b, valid=a.valid & b.valid))(left, right)
+
+
+@partial(jax.jit, static_argnames=("chunk_size", "method"))
+def _estimate_grasp_batch(gripper, sdf, poses, config, mechanics, chunk_size, method):
+    if method == "geometric":
+        return jax.lax.map(lambda p: estimate_grasp(gripper, sdf, p, config), poses, batch_size=chunk_size)
+    return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, mechanics), poses, chunk_size)
 
 
 def estimate_batch(
@@ -35,14 +117,19 @@ def estimate_batch(
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = DEFAULT_CHUNK,
+    method: str = "geometric",
+    mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Estimate:
     """:func:`estimate` for B finger bases (mm), compiled once per shape, ``chunk_size`` at a time.
 
     Returns an :class:`Estimate` whose every leaf has a leading axis of length B. A bad base
     (NaN, outside the SDF grid) comes back ``valid=False`` and does not affect the others.
+    ``method`` and ``mechanics`` (static) are as for :func:`estimate`; with ``"mechanics"`` the
+    equilibrium is solved only for the candidates that touch the object.
     """
+    check_method(method)
     bases = jnp.asarray(bases, finger.length.dtype)
-    return _estimate_batch(finger, sdf, bases, config, min(chunk_size, max(1, bases.shape[0])))
+    return _estimate_batch(finger, sdf, bases, config, mechanics, min(chunk_size, max(1, bases.shape[0])), method)
 
 
 def estimate_grasp_batch(
@@ -52,7 +139,14 @@ def estimate_grasp_batch(
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = DEFAULT_CHUNK,
+    method: str = "geometric",
+    mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> GraspEstimate:
-    """:func:`estimate_grasp` for B poses (x mm, y mm, angle rad), ``chunk_size`` at a time."""
+    """:func:`estimate_grasp` for B poses (x mm, y mm, angle rad), ``chunk_size`` at a time.
+
+    ``method`` and ``mechanics`` (static) are as for :func:`estimate_grasp`.
+    """
+    check_method(method)
     poses = jnp.asarray(poses, gripper.base_separation.dtype)
-    return _estimate_grasp_batch(gripper, sdf, poses, config, min(chunk_size, max(1, poses.shape[0])))
+    return _estimate_grasp_batch(gripper, sdf, poses, config, mechanics,
+                                 min(chunk_size, max(1, poses.shape[0])), method)

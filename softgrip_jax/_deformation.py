@@ -14,6 +14,10 @@ All four are computed and the case selects one, so the estimate is branch-free a
 Cases (b) and (c) rotate the whole free arc about P_base as if the base were a pin; a finger
 clamped at its base unbends instead, so against a clamped closure they miss the tip by
 millimetres. That is the paper's model, kept faithful here.
+
+``method="mechanics"`` replaces eq. 9 by the spring chain at equilibrium against the object
+(:mod:`softgrip_jax._mechanics`), started from the geometric estimate; the contact prediction
+(eqs. 5-8) is shared.
 """
 
 from __future__ import annotations
@@ -24,9 +28,10 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._contact import Contact, ContactConfig, predict_contact_local
+from softgrip_jax._contact import Contact, ContactCase, ContactConfig, predict_contact_local
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics, pcc_turning
+from softgrip_jax._mechanics import Equilibrium, MechanicsConfig, check_method, mechanics_start, solve_equilibrium
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
@@ -40,6 +45,7 @@ class Status(enum.IntEnum):
     BASE_OUTSIDE_SDF = 2  #: the base lies outside the SDF's grid (outside the image); joints are NaN
     INITIAL_OVERLAP = 3  #: the object already overlaps the open finger: the pose collides
     ROOT_NOT_CONVERGED = 4  #: the first-contact root finder hit its iteration cap
+    MECHANICS_NOT_CONVERGED = 5  #: the mechanics equilibrium missed its tolerances within its budget
 
 
 class Estimate(eqx.Module):
@@ -49,9 +55,15 @@ class Estimate(eqx.Module):
         joints: (N+1, 2) joints from the base (index 0) to the tip (index N).
         psi: base rotation of the estimated shape (rad, in the finger's frame).
         turning: (N,) turning angles of the estimated shape (rad).
-        case: the :class:`ContactCase` value.
+        case: the :class:`ContactCase` value. For ``method="mechanics"``, read from the
+            equilibrium: which centreline stations touch (within ``MechanicsConfig.contact_tol``),
+            the tip (within ``ContactConfig.tip_tolerance`` links of it), another area, both or none.
         contact: the :class:`Contact` prediction, with its points in image-plane mm and its
-            angles in the finger's frame.
+            angles in the finger's frame. Its first touch (``s1``, ``p_g1``, ``p_o1``, ``l_g1``,
+            ``n_g1``, ``theta_o1``) holds for both methods: the finger closes freely until then.
+            For ``method="mechanics"``, ``contact.case`` is the equilibrium's case and ``p_o2`` the
+            tip's foot on the object when the tip touches; the other fields describe the
+            geometric construction of Fig. 8.
         valid: the inputs were usable and the pose is collision-free at the start.
         status: a :class:`Status` value saying why not, when not valid.
     """
@@ -82,15 +94,31 @@ def case_shapes(finger: FingerModel, contact: Contact) -> tuple[Float[Array, "4"
     return psi, turning
 
 
-def estimate_in_frame(
-    finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig = ContactConfig()
-) -> Estimate:
-    """Estimate one finger placed by ``frame`` (base, gripper angle, handedness); image-plane output."""
-    dtype = finger.length.dtype
+class Stage(eqx.Module):
+    """The geometric estimate of one finger before it is placed in the image (finger frame).
+
+    The first stage of :func:`estimate_in_frame`; batched code runs the mechanics solve on only
+    the stages that :func:`needs_mechanics` selects, then :func:`finish` each.
+    """
+
+    frame: FingerFrame  #: the finger's frame, made harmless (zero) where the input is unusable
+    finite: Bool[Array, ""]
+    inside: Bool[Array, ""]
+    contact: Contact
+    psi: Float[Array, ""]
+    turning: Float[Array, " n"]
+
+
+def geometric_stage(
+    finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig, method: str
+) -> Stage:
+    """Contact prediction (eqs. 5-8) and the deformation of its case (eq. 9), in the finger frame."""
     finite = (
         jnp.all(jnp.isfinite(frame.origin)) & jnp.isfinite(frame.angle)
         & jnp.isfinite(finger.theta_entire) & jnp.isfinite(finger.length) & jnp.isfinite(finger.half_thickness)
     )
+    if method == "mechanics":
+        finite = finite & jnp.isfinite(finger.stiffness_ratio) & jnp.isfinite(finger.base_compliance)
     inside = sdf.contains(jnp.where(finite, frame.origin, 0.0))
     usable = finite & inside
     # An unusable input is replaced by a harmless one so it cannot produce NaN gradients;
@@ -101,20 +129,49 @@ def estimate_in_frame(
         handedness=frame.handedness,
     )
     contact = predict_contact_local(finger, lambda q: sdf.distance(safe_frame.to_world(q)), config)
-    base = jnp.zeros(2, dtype)
     psi_all, turning_all = case_shapes(finger, contact)
-    psi, turning = psi_all[contact.case], turning_all[contact.case]
-    joints_local = forward_kinematics(base, psi, turning, finger.length)
+    return Stage(frame=safe_frame, finite=finite, inside=inside, contact=contact,
+                 psi=psi_all[contact.case], turning=turning_all[contact.case])
 
+
+def needs_mechanics(stage: Stage) -> Bool[Array, ""]:
+    """Whether the mechanics solve can change this estimate: a usable input that touches the object.
+
+    Without contact the spring chain rests in its PCC shape, which is the geometric estimate of
+    case (a); an unusable or colliding input is reported as such either way.
+    """
+    c = stage.contact
+    return stage.finite & stage.inside & c.touches & ~c.initial_overlap & c.root_converged
+
+
+def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = None) -> Estimate:
+    """The :class:`Estimate` of a stage, with the mechanics ``equilibrium`` where one applies.
+
+    ``equilibrium`` is used where :func:`needs_mechanics` holds (None: the geometric estimate).
+    """
+    contact, psi, turning = stage.contact, stage.psi, stage.turning
+    solved = jnp.array(True)
+    if equilibrium is not None:
+        eq, use = equilibrium, needs_mechanics(stage)
+        psi = jnp.where(use, eq.psi, psi)
+        turning = jnp.where(use, eq.turning, turning)
+        solved = eq.converged | ~use
+        tip_touches = use & ((eq.case == ContactCase.TIP) | (eq.case == ContactCase.TIP_AND_OTHER))
+        contact = eqx.tree_at(lambda c: (c.case, c.p_o2), contact,
+                              (jnp.where(use, eq.case, contact.case),
+                               jnp.where(tip_touches, eq.tip_foot, contact.p_o2)))
+    joints_local = forward_kinematics(jnp.zeros(2, turning.dtype), psi, turning, finger.length)
+    finite, inside, usable = stage.finite, stage.inside, stage.finite & stage.inside
     status = jnp.where(
         ~finite, Status.NON_FINITE_INPUT,
         jnp.where(~inside, Status.BASE_OUTSIDE_SDF,
                   jnp.where(contact.initial_overlap, Status.INITIAL_OVERLAP,
-                            jnp.where(~contact.root_converged, Status.ROOT_NOT_CONVERGED, Status.OK))),
+                            jnp.where(~contact.root_converged, Status.ROOT_NOT_CONVERGED,
+                                      jnp.where(~solved, Status.MECHANICS_NOT_CONVERGED, Status.OK)))),
     ).astype(jnp.int32)
 
     def world(q):
-        return jnp.where(usable, safe_frame.to_world(q), jnp.nan)
+        return jnp.where(usable, stage.frame.to_world(q), jnp.nan)
 
     contact = eqx.tree_at(
         lambda c: (c.p_g1, c.p_o1, c.p_o2), contact,
@@ -126,14 +183,52 @@ def estimate_in_frame(
     )
 
 
+def mechanics_of(
+    finger: FingerModel, sdf: AbstractSDF, stage: Stage, mechanics: MechanicsConfig, config: ContactConfig
+) -> Equilibrium:
+    """The spring chain's equilibrium started from a stage's geometric estimate."""
+    psi, turning = mechanics_start(finger, stage.contact, stage.psi, stage.turning, config)
+    return solve_equilibrium(finger, sdf, stage.frame, psi, turning, mechanics, config)
+
+
+def estimate_in_frame(
+    finger: FingerModel,
+    sdf: AbstractSDF,
+    frame: FingerFrame,
+    config: ContactConfig = ContactConfig(),
+    *,
+    method: str = "geometric",
+    mechanics: MechanicsConfig = MechanicsConfig(),
+) -> Estimate:
+    """Estimate one finger placed by ``frame`` (base, gripper angle, handedness); image-plane output.
+
+    ``method`` (static) chooses the deformation: ``"geometric"`` (the paper's eq. 9) or
+    ``"mechanics"`` (the spring chain at equilibrium, :mod:`softgrip_jax._mechanics`, solved with
+    the settings ``mechanics`` wherever the finger touches the object).
+    """
+    check_method(method)
+    stage = geometric_stage(finger, sdf, frame, config, method)
+    if method == "geometric":
+        return finish(finger, stage)
+    return finish(finger, stage, mechanics_of(finger, sdf, stage, mechanics, config))
+
+
 def estimate(
-    finger: FingerModel, sdf: AbstractSDF, base: Float[ArrayLike, "2"], config: ContactConfig = ContactConfig()
+    finger: FingerModel,
+    sdf: AbstractSDF,
+    base: Float[ArrayLike, "2"],
+    config: ContactConfig = ContactConfig(),
+    *,
+    method: str = "geometric",
+    mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Estimate:
     """Estimate the deformation of a finger hanging from ``base`` (mm) and curling toward +x.
 
     This is the paper's whole pipeline for one finger: contact prediction (eqs. 5-8) and the
     deformation of the predicted case (eq. 9). Pure and jit-, vmap- and grad-compatible; a NaN or
     out-of-grid ``base`` gives ``valid=False`` and NaN joints without affecting other batch elements.
+    ``method="mechanics"`` (static) replaces eq. 9 by the spring chain at equilibrium
+    (:mod:`softgrip_jax._mechanics`, settings ``mechanics``).
 
     Example:
         >>> import jax.numpy as jnp
@@ -146,4 +241,4 @@ def estimate(
     frame = FingerFrame(
         origin=jnp.asarray(base, dtype), angle=jnp.zeros((), dtype), handedness=jnp.ones((), dtype)
     )
-    return estimate_in_frame(finger, sdf, frame, config)
+    return estimate_in_frame(finger, sdf, frame, config, method=method, mechanics=mechanics)

@@ -16,6 +16,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._deformation import Estimate, estimate_in_frame
 from softgrip_jax._frames import FingerFrame
+from softgrip_jax._mechanics import MechanicsConfig, check_method
 from softgrip_jax._model import Gripper
 from softgrip_jax._safe import unit_direction
 from softgrip_jax._sdf import AbstractSDF
@@ -45,9 +46,18 @@ def finger_frames(gripper: Gripper, pose: Float[ArrayLike, "3"]) -> tuple[Finger
 
 
 def estimate_grasp(
-    gripper: Gripper, sdf: AbstractSDF, pose: Float[ArrayLike, "3"], config: ContactConfig = ContactConfig()
+    gripper: Gripper,
+    sdf: AbstractSDF,
+    pose: Float[ArrayLike, "3"],
+    config: ContactConfig = ContactConfig(),
+    *,
+    method: str = "geometric",
+    mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> GraspEstimate:
     """Estimate both fingers of ``gripper`` at ``pose`` = (x mm, y mm, angle rad) against ``sdf``.
+
+    ``method`` (static): ``"geometric"`` (the paper's eq. 9) or ``"mechanics"`` (the spring chain
+    at equilibrium, solver settings ``mechanics``), as for :func:`estimate_in_frame`.
 
     Example:
         >>> import jax.numpy as jnp
@@ -58,7 +68,8 @@ def estimate_grasp(
         >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
         ['other', 'other']
     """
+    check_method(method)
     left_frame, right_frame = finger_frames(gripper, pose)
-    left = estimate_in_frame(gripper.left, sdf, left_frame, config)
-    right = estimate_in_frame(gripper.right, sdf, right_frame, config)
+    left = estimate_in_frame(gripper.left, sdf, left_frame, config, method=method, mechanics=mechanics)
+    right = estimate_in_frame(gripper.right, sdf, right_frame, config, method=method, mechanics=mechanics)
     return GraspEstimate(left=left, right=right, valid=left.valid & right.valid)

@@ -40,6 +40,11 @@ class FingerModel(eqx.Module):
         half_thickness: half of the finger's thickness r in mm, >= 0; "in contact" means that the
             centreline is within r of the object.
         n_links: number N of rigid links (static), >= 1.
+        stiffness_ratio: bending stiffness at the base over that at the tip, > 0 (default 1: uniform).
+            The profile is linear along the finger with mean 1; only the mechanics estimate uses it.
+        base_compliance: compliance of a rotational spring at the base, >= 0, in units of the whole
+            finger's bending compliance L / mean(k); 0 (default) clamps the base. Only the
+            mechanics estimate uses it.
 
     Construction with concrete values rejects bad ones with a :class:`SoftgripError` naming the field.
 
@@ -53,6 +58,8 @@ class FingerModel(eqx.Module):
     theta_entire: Float[Array, ""] = eqx.field(converter=_as_float)
     half_thickness: Float[Array, ""] = eqx.field(converter=_as_float)
     n_links: int = eqx.field(static=True)
+    stiffness_ratio: Float[Array, ""] = eqx.field(converter=_as_float, default=1.0)
+    base_compliance: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
 
     def __check_init__(self):
         if not isinstance(self.n_links, (int, np.integer)) or isinstance(self.n_links, bool) or self.n_links < 1:
@@ -62,6 +69,9 @@ class FingerModel(eqx.Module):
             ("theta_entire", lambda v: np.isfinite(v) and 0 <= v < THETA_MAX,
              "a finite angle in radians in [0, pi/2)"),
             ("half_thickness", lambda v: np.isfinite(v) and v >= 0, "a finite half-thickness in mm >= 0"),
+            ("stiffness_ratio", lambda v: np.isfinite(v) and v > 0, "a finite base-to-tip stiffness ratio > 0"),
+            ("base_compliance", lambda v: np.isfinite(v) and v >= 0,
+             "a finite base compliance >= 0 (0 clamps the base)"),
         )
         for name, ok, expected in checks:
             value = _concrete(getattr(self, name))

@@ -33,10 +33,12 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from softgrip_jax._batch import grasp_chunk, map_chunks
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._deformation import Estimate
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
 from softgrip_jax._kinematics import chain_stations
+from softgrip_jax._mechanics import MechanicsConfig, check_method
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._safe import safe_divide, safe_norm
 from softgrip_jax._sdf import AbstractSDF
@@ -98,8 +100,14 @@ def score_pose(
     pose: Float[ArrayLike, "3"],
     weights: ScoreWeights = ScoreWeights(),
     config: ContactConfig = ContactConfig(),
+    *,
+    method: str = "geometric",
+    mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Score:
     """Score one pose (x mm, y mm, angle rad). Pure; jit-, vmap- and grad-compatible.
+
+    ``method`` (static) chooses the fingers' deformation estimate, ``"geometric"`` or
+    ``"mechanics"`` (solver settings ``mechanics``), as for :func:`estimate_grasp`.
 
     Example:
         >>> import jax.numpy as jnp
@@ -112,7 +120,13 @@ def score_pose(
         >>> bool(centred.score > missing.score)
         True
     """
-    grasp = estimate_grasp(gripper, sdf, pose, config)
+    check_method(method)
+    grasp = estimate_grasp(gripper, sdf, pose, config, method=method, mechanics=mechanics)
+    return _score_grasp(gripper, sdf, grasp, weights, config)
+
+
+def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weights: ScoreWeights, config) -> Score:
+    """The :class:`Score` of both fingers' estimates at one pose."""
     left = _finger_terms(gripper.left, sdf, grasp.left, weights, config)
     right = _finger_terms(gripper.right, sdf, grasp.right, weights, config)
     touch, wrap, tip, penetration = (jnp.stack([a, b]) for a, b in zip(left[:4], right[:4]))
@@ -136,11 +150,23 @@ def _device_mesh():
     return jax.sharding.Mesh(np.array(devices), ("candidates",)) if len(devices) > 1 else None
 
 
-@partial(jax.jit, static_argnames=("chunk_size",))
-def _score_chunks(gripper, sdf, poses, weights, config, chunk_size):
+@partial(jax.jit, static_argnames=("chunk_size", "method"))
+def _score_chunks(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
     # poses: (devices, per_device, 3); the device axis is vmapped (and sharded), each device's
     # share is scanned in chunks so memory stays bounded.
-    one = lambda p: score_pose(gripper, sdf, p, weights, config)
+    if method == "mechanics":
+        # Chunks of both fingers' estimates, the equilibrium solved only where a finger touches
+        # (softgrip_jax._batch), then the score of each pose. On one device the share is mapped
+        # directly: under vmap the skipped solves would run anyway.
+        def chunk(share):
+            grasps = grasp_chunk(gripper, sdf, share, config, mechanics)
+            return jax.vmap(lambda g: _score_grasp(gripper, sdf, g, weights, config))(grasps)
+
+        per_share = lambda share: map_chunks(chunk, share, chunk_size)  # noqa: E731
+        if poses.shape[0] == 1:
+            return jax.tree_util.tree_map(lambda x: x[None], per_share(poses[0]))
+        return jax.vmap(per_share)(poses)
+    one = lambda p: score_pose(gripper, sdf, p, weights, config)  # noqa: E731
     return jax.vmap(lambda share: jax.lax.map(one, share, batch_size=chunk_size))(poses)
 
 
@@ -152,6 +178,8 @@ def score(
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = 2048,
+    method: str = "geometric",
+    mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Score:
     """Score B candidate poses (x mm, y mm, angle rad) in one compiled call.
 
@@ -159,7 +187,10 @@ def score(
     devices are present (GPUs, or hosts joined by ``jax.distributed``), the batch is split evenly
     across them with ``jax.sharding``; results are identical to a single device's. Returns a
     :class:`Score` whose leaves have a leading axis B; rank with ``jnp.argsort(-result.score)``.
+    ``method`` and ``mechanics`` (static) choose the deformation estimate, as for
+    :func:`score_pose`; with ``"mechanics"`` the equilibrium is solved only for fingers that touch.
     """
+    check_method(method)
     poses = jnp.asarray(poses, gripper.base_separation.dtype)
     b = poses.shape[0]
     mesh = _device_mesh()
@@ -170,7 +201,7 @@ def score(
     if mesh is not None:
         spec = jax.sharding.PartitionSpec("candidates")
         padded = jax.device_put(padded, jax.sharding.NamedSharding(mesh, spec))
-    out = _score_chunks(gripper, sdf, padded, weights, config, max(1, min(chunk_size, per_device)))
+    out = _score_chunks(gripper, sdf, padded, weights, config, mechanics, max(1, min(chunk_size, per_device)), method)
     return jax.tree_util.tree_map(lambda x: x.reshape((n_dev * per_device,) + x.shape[2:])[:b], out)
 
 
@@ -191,20 +222,21 @@ class Refined(eqx.Module):
     steps: Int[Array, ""]
 
 
-def _refine_one(gripper, sdf, pose, weights, config, max_steps, angle_scale):
+def _refine_one(gripper, sdf, pose, weights, config, mechanics, max_steps, angle_scale, method):
     scale = jnp.array([1.0, 1.0, angle_scale], pose.dtype)
+    score_at = lambda p: score_pose(gripper, sdf, p, weights, config, method=method, mechanics=mechanics)  # noqa: E731
 
     def objective(z, _):
-        s = score_pose(gripper, sdf, z * scale, weights, config)
+        s = score_at(z * scale)
         raw = jnp.where(s.valid, s.score, 0.0)
         # Leaving the valid set costs more than any score can gain.
         return -raw + 10.0 * (1.0 - s.valid.astype(pose.dtype))
 
-    start = score_pose(gripper, sdf, pose, weights, config)
+    start = score_at(pose)
     solution = optx.minimise(objective, optx.BFGS(rtol=1e-4, atol=1e-4), pose / scale, throw=False,
                              max_steps=max_steps)
     candidate = solution.value * scale
-    refined = score_pose(gripper, sdf, candidate, weights, config)
+    refined = score_at(candidate)
     better = refined.valid & (refined.score > start.score)
     keep = lambda new, old: jnp.where(better, new, old)
     return Refined(
@@ -218,9 +250,10 @@ def _refine_one(gripper, sdf, pose, weights, config, max_steps, angle_scale):
     )
 
 
-@partial(jax.jit, static_argnames=("max_steps",))
-def _refine_batch(gripper, sdf, poses, weights, config, max_steps, angle_scale):
-    return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, max_steps, angle_scale))(poses)
+@partial(jax.jit, static_argnames=("max_steps", "method"))
+def _refine_batch(gripper, sdf, poses, weights, config, mechanics, max_steps, angle_scale, method):
+    return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, mechanics, max_steps, angle_scale,
+                                          method))(poses)
 
 
 def refine(
@@ -232,15 +265,20 @@ def refine(
     *,
     max_steps: int = 40,
     angle_scale: float = 0.05,
+    method: str = "geometric",
+    mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Refined:
     """Improve one pose (3,) or a batch (B, 3) by gradient ascent of the score (optimistix BFGS).
 
     The result never gets worse: when the minimiser ends at a pose that scores lower or is not
     valid, the start pose is returned with ``status = NO_IMPROVEMENT``. ``angle_scale`` (rad per
-    unit of the minimiser's variable) balances millimetres against radians.
+    unit of the minimiser's variable) balances millimetres against radians. ``method`` and
+    ``mechanics`` (static) choose the deformation estimate, as for :func:`score_pose`; the
+    mechanics estimate's gradient in the pose comes from implicit differentiation.
     """
+    check_method(method)
     poses = jnp.asarray(pose, gripper.base_separation.dtype)
     single = poses.ndim == 1
-    out = _refine_batch(gripper, sdf, poses.reshape(-1, 3), weights, config, max_steps,
-                        jnp.asarray(angle_scale, poses.dtype))
+    out = _refine_batch(gripper, sdf, poses.reshape(-1, 3), weights, config, mechanics, max_steps,
+                        jnp.asarray(angle_scale, poses.dtype), method)
     return jax.tree_util.tree_map(lambda x: x[0], out) if single else out

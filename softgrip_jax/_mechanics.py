@@ -1,0 +1,430 @@
+"""The mechanics estimate: the N-link chain with spring joints at equilibrium (DESIGN section 7).
+
+Model. The finger is the chain of DESIGN section 4: base P_0, base direction psi, turning angles
+delta_k (link k, of length h = L/N, points at psi + sum_{j<k} delta_j + delta_k / 2). Link k is the
+chord of a short arc that turns by delta_k, so its curvature is delta_k / h and its bending energy
+k_k (delta_k - delta0)^2 / (2 h), with the rest turning delta0 = 2 Theta / N of the calibrated,
+untouched closure (eqs. 1-3): without an object the equilibrium *is* the PCC shape, whatever the
+stiffness. Energies are in units of mean(k) / L (dimensionless, as the observed-closure rod
+reports them):
+
+    E = sum_k k_k N (delta_k - delta0)^2 / 2  +  psi^2 / (2 c)  +  contact.
+
+The bending stiffness k_k = 2 / (rho + 1) (rho + (1 - rho) s_k / L), sampled at the link middles
+s_k = (k + 1/2) h, is linear along the finger, ``stiffness_ratio`` rho times stiffer at the base
+than at the tip, with mean 1. The base spring has compliance ``base_compliance`` c in units of the
+whole finger's bending compliance L / mean(k) (c = 1: the base turns as much under a moment as the
+whole finger bends); c = 0 clamps the base (psi = 0). These are the parametrisations of the
+observed-closure rod (``vision.synthetic.rod``), so a calibration against it can recover rho and c;
+both are ``FingerModel`` fields and the estimate is differentiable in them.
+
+Contact is frictionless and quasi-static: a penalty mu / 2 (max(0, r - d) / L)^2 on each of
+``stations_per_link`` centreline stations per link and the tip, with d the object's signed distance
+(mm) and r the half-thickness. A station then sinks about (contact force) L / mu into the finger's
+thickness: 0.005 to 0.03 mm at the default mu = 1e4.
+
+Solve. Least squares in the scaled variables z_k = sqrt(k_k N) (delta_k - delta0) and
+u = psi / sqrt(c + 1e-8) (the floor keeps a clamped base differentiable in c): residuals
+(z, u, sqrt(mu) max(0, r - d) / L), half of whose squared norm is E, and whose spring block has the
+identity as its Jacobian. A Gauss-Newton step then needs only the rows of the few stations in
+contact: with the K = ``active_rows`` least clear stations, the Woodbury identity turns the
+(N+1) x (N+1) system into a K x K one per candidate (exact while at most K stations touch; a convex
+object touches a clamped elastic chain at a few points). Around that core, the step keeps stations
+that touch in the model (within 0.05 mm) as "end on the surface", drops those the model would pull
+out of the object, stops short where a station outside the model would enter the object, halves a
+step that undoes the previous one, and turns no angle by more than ``max_turn``. It is an optimistix
+least-squares solver (:class:`ChainGaussNewton`), so ``optimistix.least_squares`` supplies the
+iteration budget (``max_steps``), a per-candidate result (``throw=False``: a candidate that misses
+its tolerances gets ``Status.MECHANICS_NOT_CONVERGED``) and derivatives by implicit
+differentiation of the optimality condition: the equilibrium's derivatives in Theta, L, r, rho, c,
+the base pose and the object never go through the iterations.
+
+The solve starts from the geometric estimate; where that estimate turns the base like a pin (cases
+b and c), from the shape at first touch (the closing sweep at its first contact s1, eqs. 5-8), the
+last shape on which both models agree. Where the finger does not touch the object at all, the
+equilibrium is the PCC shape and batched code skips the solve (:mod:`softgrip_jax._batch`).
+
+Beyond the paper: the paper's own first modelling approach, the spring-joint chain of its ref.
+[16], at equilibrium against the object with a stiffness profile and a base spring, in place of
+the geometric rules of eq. 9. Against a clamped elastic rod it lands within hundredths of a
+millimetre where eq. 9's cases (b) and (c) miss the tip by a millimetre or so.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
+
+from softgrip_jax._contact import Contact, ContactCase, ContactConfig, sweep_shape
+from softgrip_jax._errors import SoftgripError
+from softgrip_jax._frames import FingerFrame
+from softgrip_jax._kinematics import pcc_turning
+from softgrip_jax._model import FingerModel
+from softgrip_jax._sdf import AbstractSDF, unit_gradient
+
+#: The deformation estimates, by name (the ``method`` argument of the estimate functions).
+METHODS: tuple[str, ...] = ("geometric", "mechanics")
+
+#: Compliance floor: keeps psi = sqrt(c + floor) u differentiable at a clamped base (c = 0), where
+#: it lets the base turn by 1e-8 of the base moment (nanoradians).
+_COMPLIANCE_FLOOR = 1e-8
+
+#: mm: a station this close to the object keeps its row in the Newton step (see _newton_step).
+_GLUE_MM = 0.05
+
+
+def check_method(method: str, where: str = "method") -> None:
+    """Raise a :class:`SoftgripError` unless ``method`` names an estimate."""
+    if not isinstance(method, str) or method not in METHODS:
+        raise SoftgripError(f"{where} must be one of {', '.join(repr(m) for m in METHODS)}, got {method!r}")
+
+
+class MechanicsConfig(eqx.Module):
+    """Settings of the mechanics estimate's solver (all static: changing one recompiles).
+
+    Attributes:
+        max_steps: Gauss-Newton iterations at most. A candidate that has not met ``step_tol`` and
+            ``contact_tol`` by then gets ``Status.MECHANICS_NOT_CONVERGED``.
+        stations_per_link: centreline stations per link that may not enter the object (plus the
+            tip); the chain may cut a sharp corner between two stations by up to about
+            (L / (N stations_per_link))^2 / (8 r).
+        penalty: contact penalty weight mu (dimensionless; penetration in units of L). A station
+            sinks about force * L / mu mm into the finger's thickness.
+        active_rows: the least clear stations that enter each Newton step (K); the step is exact
+            while at most K stations touch at once.
+        contact_tol: mm. A station within r + contact_tol of the object is in contact (this decides
+            the case); an equilibrium deeper than contact_tol inside r is not converged.
+        step_tol: mm. Converged when the Gauss-Newton step (before it is shortened) moves no joint
+            by more than this (to first order).
+        max_turn: rad. A step changes no turning angle (or psi) by more than this.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import FingerModel, PolygonSDF, estimate, CASE_NAMES
+        >>> finger = FingerModel(52.0, 0.55, 4.0, 20, stiffness_ratio=2.0)
+        >>> disc = PolygonSDF.regular((24.0, 30.0), 10.0, 64)
+        >>> est = estimate(finger, disc, jnp.zeros(2), method="mechanics", mechanics=MechanicsConfig(max_steps=8))
+        >>> CASE_NAMES[int(est.case)], bool(est.valid)
+        ('other', True)
+    """
+
+    max_steps: int = eqx.field(static=True, default=12)
+    stations_per_link: int = eqx.field(static=True, default=3)
+    penalty: float = eqx.field(static=True, default=1e4)
+    active_rows: int = eqx.field(static=True, default=6)
+    contact_tol: float = eqx.field(static=True, default=0.05)
+    step_tol: float = eqx.field(static=True, default=0.01)
+    max_turn: float = eqx.field(static=True, default=0.3)
+
+    def __check_init__(self):
+        for name, low in (("max_steps", 1), ("stations_per_link", 1), ("active_rows", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise SoftgripError(f"MechanicsConfig.{name} must be an integer >= {low}, got {value!r}")
+        for name in ("penalty", "contact_tol", "step_tol", "max_turn"):
+            value = getattr(self, name)
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0 and value < float("inf")
+            if not ok:
+                raise SoftgripError(f"MechanicsConfig.{name} must be a finite number > 0, got {value!r}")
+
+
+# ---------------------------------------------------------------------------------------------
+# The model
+
+
+def link_stiffness(finger: FingerModel) -> Float[Array, " n"]:
+    """Bending stiffness of each link at its middle, in units of the mean: linear along the finger,
+    ``stiffness_ratio`` times stiffer at the base than at the tip, mean 1.
+
+    Example:
+        >>> from softgrip_jax import FingerModel
+        >>> [round(float(k), 3) for k in link_stiffness(FingerModel(52.0, 0.5, 4.0, 4, stiffness_ratio=3.0))]
+        [1.375, 1.125, 0.875, 0.625]
+    """
+    n, rho = finger.n_links, finger.stiffness_ratio
+    position = (jnp.arange(n, dtype=finger.length.dtype) + 0.5) / n
+    return 2.0 / (rho + 1.0) * (rho + (1.0 - rho) * position)
+
+
+class _Problem(eqx.Module):
+    """One finger's equilibrium problem, in its own frame (base at the origin)."""
+
+    finger: FingerModel
+    sdf: AbstractSDF
+    frame: FingerFrame
+    config: MechanicsConfig = eqx.field(static=True)
+
+    def distance(self, q):
+        return self.sdf.distance(self.frame.to_world(q))
+
+    def scales(self):
+        """(N,) d delta / d z and () d psi / d u."""
+        f = self.finger
+        per_link = jax.lax.rsqrt(link_stiffness(f) * f.n_links)
+        return per_link, jnp.sqrt(f.base_compliance + _COMPLIANCE_FLOOR)
+
+    def shape(self, y):
+        """``(psi, turning)`` of the variables y = (z_0 .. z_{N-1}, u)."""
+        f = self.finger
+        per_link, base = self.scales()
+        rest = pcc_turning(f.theta_entire, f.n_links)
+        return base * y[-1], rest + per_link * y[:-1]
+
+    def variables(self, psi, turning):
+        """Inverse of :meth:`shape`."""
+        f = self.finger
+        per_link, base = self.scales()
+        rest = pcc_turning(f.theta_entire, f.n_links)
+        return jnp.concatenate([(turning - rest) / per_link, (psi / base)[None]])
+
+    def stations(self, y):
+        """Joints (N+1, 2) and centreline stations (M, 2), M = N stations_per_link + 1, in mm.
+
+        The chain of DESIGN section 4 with running sums (``jnp.cumsum``): here, where the points
+        feed SDF lookups and their gradients, that compiles to faster code than
+        :func:`forward_kinematics`' triangular product.
+        """
+        psi, turning = self.shape(y)
+        f = self.finger
+        alpha = psi + jnp.cumsum(turning) - 0.5 * turning
+        h = f.length / f.n_links
+        zero = jnp.zeros((1,), turning.dtype)
+        jx = jnp.concatenate([zero, jnp.cumsum(h * jnp.sin(alpha))])
+        jy = jnp.concatenate([zero, jnp.cumsum(h * jnp.cos(alpha))])
+        per_link = self.config.stations_per_link
+        t = jnp.arange(per_link, dtype=turning.dtype) / per_link
+
+        def along(c):
+            inner = (c[:-1, None] + t[None, :] * (c[1:] - c[:-1])[:, None]).reshape(-1)
+            return jnp.concatenate([inner, c[-1:]])
+
+        joints = jnp.stack([jx, jy], axis=-1)
+        points = jnp.stack([along(jx), along(jy)], axis=-1)
+        return joints, points
+
+    def residuals(self, y, _args=None):
+        """(z, u, sqrt(mu) max(0, r - d) / L): half its squared norm is the energy."""
+        f = self.finger
+        _, points = self.stations(y)
+        weight = jnp.sqrt(jnp.asarray(self.config.penalty, y.dtype)) / f.length
+        contact = weight * jnp.maximum(f.half_thickness - self.distance(points), 0.0)
+        return jnp.concatenate([y, contact])
+
+
+def _residual_fn(y, problem: _Problem):
+    return problem.residuals(y)
+
+
+def _cross(a, b):
+    """a_x b_y - a_y b_x, broadcasting."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def _spd_solve(s: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k"]:
+    """Solve s x = b for a small symmetric positive-definite s, unrolled (fuses under vmap)."""
+    k = s.shape[0]
+    low = [[None] * k for _ in range(k)]
+    for j in range(k):
+        diag = s[j, j] - sum((low[j][p] ** 2 for p in range(j)), jnp.zeros((), s.dtype))
+        low[j][j] = jnp.sqrt(jnp.maximum(diag, 1e-12))
+        for i in range(j + 1, k):
+            off = s[i, j] - sum((low[i][p] * low[j][p] for p in range(j)), jnp.zeros((), s.dtype))
+            low[i][j] = off / low[j][j]
+    fwd = []
+    for i in range(k):
+        fwd.append((b[i] - sum((low[i][p] * fwd[p] for p in range(i)), jnp.zeros((), s.dtype))) / low[i][i])
+    x = [None] * k
+    for i in reversed(range(k)):
+        x[i] = (fwd[i] - sum((low[p][i] * x[p] for p in range(i + 1, k)), jnp.zeros((), s.dtype))) / low[i][i]
+    return jnp.stack(x)
+
+
+def _newton_step(problem: _Problem, y, previous):
+    """The Gauss-Newton step at y and diagnostics (see the module docstring).
+
+    Returns (step, moved, penetration): the step in y, the largest joint displacement the full
+    (unshortened) step makes (mm, to first order) and the deepest station inside r at y (mm, >= 0).
+    """
+    f, config = problem.finger, problem.config
+    n, per_link = f.n_links, config.stations_per_link
+    dtype = y.dtype
+    joints, points = problem.stations(y)
+    m = points.shape[0]
+    violation = f.half_thickness - problem.distance(points)
+    weight = jnp.sqrt(jnp.asarray(config.penalty, dtype)) / f.length
+
+    # The K least clear stations (the most penetrating first), their distance gradients, and their
+    # rows of the Jacobian of the contact residuals: moving delta_j turns everything past the
+    # middle M_j of link j by the same angle (link j itself by half of it, about its start); psi
+    # turns everything about the base. A point p then moves by (p - centre) turned by 90 degrees,
+    # and its distance by the cross product of the gradient with that.
+    k = min(config.active_rows, m)
+    depth, index = jax.lax.top_k(violation, k)
+    p = points[index]
+    g = jax.vmap(jax.grad(problem.distance))(p)
+    link = jnp.minimum(index // per_link, n - 1)
+    mids = 0.5 * (joints[:-1] + joints[1:])
+    j = jnp.arange(n)
+    own = 0.5 * _cross(g, p - joints[link])
+    past = _cross(g, p)[:, None] - _cross(g[:, None, :], mids[None, :, :])
+    rows = jnp.where(j[None, :] < link[:, None], past, jnp.where(j[None, :] == link[:, None], own[:, None], 0.0))
+    per_link_scale, base_scale = problem.scales()
+    a_k = -weight * jnp.concatenate([rows * per_link_scale[None, :], (_cross(g, p) * base_scale)[:, None]], axis=1)
+
+    # The Gauss-Newton step minimises |y + step|^2 + |c + A step|^2 over the rows of the stations
+    # that penetrate or touch (within _GLUE_MM outside): those touching enter with their signed
+    # distance, as the constraint "end on the surface"; otherwise the step would not see them and
+    # drive them straight in, and a contact rolling along the finger would advance one station per
+    # step. Its model residuals (the contact forces over the weight) solve the K x K system
+    # (I + A A^T) lam = c - A y, and step = -y - A^T lam (the Woodbury identity, in the form that
+    # does not cancel large terms in float32). Stations with lam < 0 would be pulled out of the
+    # object, which no contact can do: they are dropped and the step recomputed.
+    signed = weight * depth
+
+    def solve(rows_on):
+        a = jnp.where(rows_on[:, None], a_k, 0.0)
+        c = jnp.where(rows_on, signed, 0.0)
+        lam = _spd_solve(jnp.eye(k, dtype=dtype) + a @ a.T, c - a @ y)
+        return -y - a.T @ lam, lam
+
+    near = depth > -_GLUE_MM
+    _, lam = solve(near)
+    modelled = near & (lam >= 0)
+    step, _ = solve(modelled)
+
+    # Trust region on the angles.
+    turns = jnp.concatenate([step[:-1] * per_link_scale, (step[-1] * base_scale)[None]])
+    step = step * jnp.minimum(1.0, config.max_turn / jnp.maximum(jnp.max(jnp.abs(turns)), 1e-30))
+
+    # The step does not see the other stations and would drive them through the object and back:
+    # shorten it so that the first of them that it drives into the object stops on the surface
+    # (to first order), where the next step sees it. The candidates are the K least clear stations.
+    approach = (a_k @ step) / weight  # mm of penetration per unit step
+    free = ~modelled & (depth < 0) & (approach > 0)
+    entry = jnp.where(free, -depth / jnp.where(free, approach, 1.0), 1.0)
+    alpha = jnp.clip(jnp.min(entry), 0.0, 1.0)
+    # A step that undoes most of the previous one is an active set flipping between two states
+    # (a station glued, then dropped): halving it lets the pair settle between them.
+    reverses = jnp.dot(step, previous) < -0.5 * jnp.sqrt(jnp.dot(step, step) * jnp.dot(previous, previous))
+    alpha = jnp.where(reverses, 0.5, 1.0) * alpha
+    # How far the full step would move the joints, to first order (a turn d_j at link j moves
+    # joint i > j by d_j (P_i - M_j) turned by 90 degrees, d psi moves it by d psi P_i turned): the
+    # distance to the model's equilibrium, which a shortened step would understate.
+    turn = step[:-1] * per_link_scale
+    dpsi = step[-1] * base_scale
+    before = jnp.concatenate([jnp.zeros((1,), dtype), jnp.cumsum(turn)])  # sum_{j<i} d_j
+    moment = jnp.concatenate([jnp.zeros((1, 2), dtype), jnp.cumsum(turn[:, None] * mids, axis=0)])
+    lever = joints * (before + dpsi)[:, None] - moment  # (N+1, 2), turned by 90 degrees below
+    moved = jnp.sqrt(jnp.max(jnp.sum(lever**2, axis=-1)))
+    penetration = jnp.maximum(jnp.max(violation), 0.0)
+    return alpha * step, moved, penetration
+
+
+class _SolverState(eqx.Module):
+    previous: Float[Array, " n1"]
+    moved: Float[Array, ""]
+    penetration: Float[Array, ""]
+    steps: Int[Array, ""]
+
+
+class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
+    """Gauss-Newton for the spring chain's least squares (see the module docstring).
+
+    Specific to this problem: it reads the chain from ``args`` (a ``_Problem``) to build the step
+    from the structure of the residuals, while ``fn`` (the residuals) is what optimistix
+    differentiates implicitly.
+    """
+
+    rtol: float
+    atol: float
+    norm: Callable = optx.max_norm
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        inf = jnp.asarray(jnp.inf, y.dtype)
+        return _SolverState(previous=jnp.zeros_like(y), moved=inf, penetration=inf, steps=jnp.array(0))
+
+    def step(self, fn, y, args, options, state, tags):
+        step, moved, penetration = _newton_step(args, y, state.previous)
+        state = _SolverState(previous=step, moved=moved, penetration=penetration, steps=state.steps + 1)
+        return y + step, state, None
+
+    def terminate(self, fn, y, args, options, state, tags):
+        done = (state.moved <= self.atol) & (state.penetration <= self.rtol)
+        return done, optx.RESULTS.successful
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return y, aux, {}
+
+
+def mechanics_start(
+    finger: FingerModel,
+    contact: Contact,
+    psi: Float[Array, ""],
+    turning: Float[Array, " n"],
+    config: ContactConfig = ContactConfig(),
+) -> tuple[Float[Array, ""], Float[Array, " n"]]:
+    """The start of the solve: the geometric estimate ``(psi, turning)`` of ``contact``'s case,
+    except where it turns the base like a pin (cases b and c): there the shape at first touch
+    (the closing sweep at s1, eqs. 5-8), the last shape on which both models agree."""
+    pinned = (contact.case == ContactCase.TIP) | (contact.case == ContactCase.TIP_AND_OTHER)
+    touch_psi, touch_turning = sweep_shape(finger, contact.s1, config.sweep)
+    return jnp.where(pinned, touch_psi, psi), jnp.where(pinned, touch_turning, turning)
+
+
+class Equilibrium(eqx.Module):
+    """The spring chain at equilibrium, in the finger's frame."""
+
+    psi: Float[Array, ""]
+    turning: Float[Array, " n"]
+    case: Int[Array, ""]
+    converged: Bool[Array, ""]
+    penetration: Float[Array, ""]  #: deepest station inside r (mm)
+    tip_foot: Float[Array, "2"]  #: the tip moved onto the object surface (mm, finger frame)
+    steps: Int[Array, ""]
+
+
+def solve_equilibrium(
+    finger: FingerModel,
+    sdf: AbstractSDF,
+    frame: FingerFrame,
+    start_psi: Float[Array, ""],
+    start_turning: Float[Array, " n"],
+    mechanics: MechanicsConfig = MechanicsConfig(),
+    config: ContactConfig = ContactConfig(),
+) -> Equilibrium:
+    """Equilibrium of the spring chain placed by ``frame`` against ``sdf``, from a start shape.
+
+    ``start_psi, start_turning`` (finger frame) start the solve and carry no derivative: the
+    equilibrium's derivatives come from implicit differentiation. ``config`` supplies the tip
+    tolerance of the case. See :func:`mechanics_start` for the start the estimate uses.
+    """
+    problem = _Problem(finger=finger, sdf=sdf, frame=frame, config=mechanics)
+    y0 = jax.lax.stop_gradient(problem.variables(start_psi, start_turning))
+    solver = ChainGaussNewton(rtol=mechanics.contact_tol, atol=mechanics.step_tol)
+    solution = optx.least_squares(
+        _residual_fn, solver, y0, args=problem, max_steps=mechanics.max_steps, throw=False,
+    )
+    y = solution.value
+    psi, turning = problem.shape(y)
+    joints, points = problem.stations(y)
+    arc = jnp.linspace(0.0, 1.0, points.shape[0], dtype=points.dtype) * finger.length
+    d = problem.distance(points)
+    r, length, n = finger.half_thickness, finger.length, finger.n_links
+    touching = d <= r + mechanics.contact_tol
+    at_tip = arc >= length * (1.0 - config.tip_tolerance / n)
+    tip = jnp.any(touching & at_tip)
+    other = jnp.any(touching & ~at_tip)
+    case = jnp.where(tip, jnp.where(other, ContactCase.TIP_AND_OTHER, ContactCase.TIP),
+                     jnp.where(other, ContactCase.OTHER, ContactCase.NONE)).astype(jnp.int32)
+    tip_point = joints[-1]
+    tip_foot = tip_point - problem.distance(tip_point) * unit_gradient(problem.distance, tip_point)
+    penetration = jnp.maximum(jnp.max(r - d), 0.0)
+    return Equilibrium(
+        psi=psi, turning=turning, case=case, converged=solution.result == optx.RESULTS.successful,
+        penetration=penetration, tip_foot=tip_foot, steps=solution.stats["num_steps"],
+    )
