@@ -47,7 +47,7 @@ from calib.profile import CalibrationProfile
 from softgrip_jax import CASE_NAMES, FingerFrame, PolygonSDF, estimate_in_frame, joint_errors
 from vision.keypoints import resample_polyline
 from vision.synthetic.render import Scene, d405_intrinsics, render
-from vision.synthetic.rod import close_rod, free_arc_points, observed_joints
+from vision.synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
 from vision.synthetic.scenes import gripper_centrelines
 from vision.synthetic.shapes import shape
 
@@ -66,10 +66,12 @@ class Pair:
 
     observation: Observation
     truth: np.ndarray
+    rod_in_contact: tuple = ()  # each finger's rod nodes in contact (M+1,), for the rod's contact case
 
 
-def make_pair(index: int) -> Pair | None:
-    """Scene ``index``: render it open and closed (rod closures), or None if a closure fails."""
+def make_pair(index: int, n_links: int = N_LINKS, rod: RodMechanics = RodMechanics()) -> Pair | None:
+    """Scene ``index``: render it open and closed (rod closures with ``rod``'s stiffness profile and
+    base compliance), observed at ``n_links``; None if a closure fails."""
     rng = np.random.default_rng(500 + index)
     center = np.array([rng.uniform(-10.0, 10.0), rng.uniform(-48.0, -38.0)])
     name = OBJECTS[index % len(OBJECTS)]
@@ -78,7 +80,7 @@ def make_pair(index: int) -> Pair | None:
     polygon = resample_polyline(np.vstack([outline, outline[:1]]), N_VERTICES)[:-1]
     sdf = PolygonSDF(jnp.asarray(polygon))
     bases = center + np.array([[-SEPARATION / 2, 0.0], [SEPARATION / 2, 0.0]])
-    closures = [close_rod(base, THETA[side], LENGTH, HALF_THICKNESS, sdf, handedness=hand)
+    closures = [close_rod(base, THETA[side], LENGTH, HALF_THICKNESS, sdf, handedness=hand, mechanics=rod)
                 for side, base, hand in zip(SIDES, bases, (1.0, -1.0))]
     if not all(bool(c.converged) for c in closures):
         return None
@@ -86,19 +88,20 @@ def make_pair(index: int) -> Pair | None:
                    object_polygon=polygon, seed=2 * index)
     closed = Scene([np.asarray(c.points) for c in closures], half_thickness=HALF_THICKNESS,
                    object_polygon=polygon, seed=2 * index + 1)
-    observation = observations_from_frames(render(opened, INTRINSICS), render(closed, INTRINSICS), None, N_LINKS,
+    observation = observations_from_frames(render(opened, INTRINSICS), render(closed, INTRINSICS), None, n_links,
                                            f"scene {index} ({name})")
-    return Pair(observation, np.stack([np.asarray(observed_joints(c, N_LINKS)) for c in closures]))
+    return Pair(observation, np.stack([np.asarray(observed_joints(c, n_links)) for c in closures]),
+                tuple(np.asarray(c.in_contact) for c in closures))
 
 
-def one_frame_calibration() -> CalibrationProfile:
+def one_frame_calibration(n_links: int = N_LINKS) -> CalibrationProfile:
     """Eqs. 4-5 on rendered frames: the gripper closed without an object, and open."""
     arcs = {side: np.asarray(free_arc_points((0.0, 0.0), THETA[side], LENGTH, np.linspace(0.0, LENGTH, 257)))
             for side in SIDES}
     closed = Scene(gripper_centrelines((0.0, -40.0), SEPARATION, LENGTH, left_shape=arcs["left"],
                                        right_shape=arcs["right"]), half_thickness=HALF_THICKNESS, seed=9001)
     opened = Scene(gripper_centrelines((0.0, -40.0), SEPARATION, LENGTH), half_thickness=HALF_THICKNESS, seed=9002)
-    return one_frame_from_frames(render(closed, INTRINSICS), render(opened, INTRINSICS), N_LINKS,
+    return one_frame_from_frames(render(closed, INTRINSICS), render(opened, INTRINSICS), n_links,
                                  label="synthetic closed + open", camera_name="synthetic")
 
 

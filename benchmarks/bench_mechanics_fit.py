@@ -1,0 +1,134 @@
+"""Multi-frame calibration of the mechanics estimate, judged on held-out frames (issue 7).
+
+Run from the repository root:
+
+    .venv/bin/python benchmarks/bench_mechanics_fit.py            # uniform and profiled gripper
+    .venv/bin/python benchmarks/bench_mechanics_fit.py --quick    # tiny configuration (CI test)
+
+and paste the printed markdown into benchmarks/RESULTS.md.
+
+The scenes are those of ``bench_calibration.py`` (circles, squares and clovers around the gripper
+centre, rendered open and closed and run through the whole vision pipeline), at N = 20, for two
+grippers whose observed closure is the elastic rod (``vision.synthetic.rod``: 96 segments, its own
+solver): a uniform one, and one whose bending stiffness doubles from the tip to the base
+(``stiffness_ratio`` 2). For each gripper:
+
+* one-frame calibration (eqs. 4-5) on rendered frames closed without an object and open;
+* least squares on the training pairs, starting from the one-frame profile: Theta through the
+  geometric estimate (issue 4), and Theta plus the stiffness ratio through the mechanics estimate;
+* on the held-out pairs: eq. 10 at i = N/2 and i = N (mean over fingers) between the estimate from
+  the open frame and the rod's observed joints, and the share of fingers whose estimated contact
+  case is the rod's (the rod's case from where it touches, as in ``reproduce_paper.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+_HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(_HERE))
+sys.path.insert(1, str(_HERE.parent))
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import bench_calibration as bc  # noqa: E402
+from calib.fit import fit  # noqa: E402
+from calib.profile import CalibrationProfile  # noqa: E402
+from reproduce_paper import rod_case  # noqa: E402
+from softgrip_jax import FingerFrame, estimate_in_frame, joint_errors  # noqa: E402
+from vision.synthetic.rod import RodMechanics  # noqa: E402
+
+_estimate = eqx.filter_jit(estimate_in_frame)
+
+
+def held_out(profile: CalibrationProfile, pairs: list, method: str, n_links: int) -> dict:
+    """Mean eq. 10 error (mm) at i = N/2 and i = N and the contact-case agreement with the rod."""
+    mid, tip, agree = [], [], []
+    for pair in pairs:
+        bases = profile.corrected_bases(pair.observation.bases)
+        for k, (side, hand) in enumerate(zip(bc.SIDES, (1.0, -1.0))):
+            frame = FingerFrame(origin=jnp.asarray(bases[k], jnp.float32), angle=jnp.zeros(()),
+                                handedness=jnp.asarray(hand))
+            est = _estimate(profile.fingers[side].model(), pair.observation.sdf, frame, method=method)
+            errors = np.asarray(joint_errors(est.joints, jnp.asarray(pair.truth[k], jnp.float32)))
+            mid.append(errors[n_links // 2])
+            tip.append(errors[n_links])
+            agree.append(int(est.case) == rod_case(pair.rod_in_contact[k], n_links))
+    return {"mid": float(np.mean(mid)), "tip": float(np.mean(tip)), "agree": float(np.mean(agree)),
+            "fingers": len(agree)}
+
+
+def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int) -> list[str]:
+    rod = RodMechanics(stiffness_ratio=stiffness_ratio)
+    t0 = time.perf_counter()
+    pairs = [p for p in (bc.make_pair(i, n_links, rod) for i in range(n_train + n_test)) if p is not None]
+    train, test = pairs[:-n_test], pairs[-n_test:]
+    one_frame = bc.one_frame_calibration(n_links)
+    scenes_s = time.perf_counter() - t0
+
+    def least_squares(parameters, method):
+        t = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # skipped pairs are counted in the table
+            profile = fit([p.observation for p in train], one_frame, parameters, method=method, progress=False)
+        return profile, time.perf_counter() - t
+
+    geometric, geometric_s = least_squares(("theta_entire",), "geometric")
+    mechanics, mechanics_s = least_squares(("theta_entire", "stiffness_ratio"), "mechanics")
+    rows = [
+        ("one-frame calibration", one_frame, "geometric", None),
+        ("one-frame calibration", one_frame, "mechanics", None),
+        ("least squares: Theta", geometric, "geometric", geometric_s),
+        ("least squares: Theta + stiffness ratio", mechanics, "mechanics", mechanics_s),
+    ]
+    lines = [f"#### Rod stiffness ratio {stiffness_ratio:g} (true Theta 0.55 / 0.45 rad): {len(train)} training "
+             f"pairs, {len(test)} held out, N = {n_links}\n",
+             "| profile | estimate | Theta left / right (rad) | stiffness ratio left / right (SE) | pairs used "
+             "(skipped) | fit time (s) | held-out error i=N/2 (mm) | held-out error i=N (mm) | case agreement |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for name, profile, method, seconds in rows:
+        result = held_out(profile, test, method, n_links)
+        f = profile.fingers
+        se = profile.fit.standard_errors
+        ratio = f"{f['left'].stiffness_ratio:.2f} / {f['right'].stiffness_ratio:.2f}"
+        if "left.stiffness_ratio" in se:
+            ratio += f" ({se['left.stiffness_ratio']:.2f} / {se['right.stiffness_ratio']:.2f})"
+        used = f"{len(profile.fit.frames)} ({len(profile.fit.skipped)})"
+        lines.append(f"| {name} | {method} | {f['left'].theta_entire:.4f} / {f['right'].theta_entire:.4f} | {ratio} "
+                     f"| {used} | {'-' if seconds is None else f'{seconds:.0f}'} | {result['mid']:.2f} "
+                     f"| {result['tip']:.2f} | {100 * result['agree']:.0f} % of {result['fingers']} |")
+    lines.append(f"\n(scenes, rod closures and rendering: {scenes_s:.0f} s; fit times include compilation)\n")
+    return lines
+
+
+def main(argv: list[str] | None = None) -> str:
+    from _machine import describe
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="tiny configuration: N = 4, 3 + 2 pairs, one gripper")
+    args = parser.parse_args(argv)
+    if args.quick:
+        configs, n_links, n_train, n_test = (2.0,), 4, 3, 2
+    else:
+        configs, n_links, n_train, n_test = (1.0, 2.0), 20, 16, 10
+    t0 = time.perf_counter()
+    lines = ["Command (from the repository root):\n",
+             "    .venv/bin/python benchmarks/bench_mechanics_fit.py" + (" --quick" if args.quick else "") + "\n",
+             f"Machine: {describe()}\n"]
+    for ratio in configs:
+        lines += run_gripper(ratio, n_links, n_train, n_test)
+        print(f"gripper with stiffness ratio {ratio:g} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    lines.append(f"Whole run: {time.perf_counter() - t0:.0f} s.")
+    text = "\n".join(lines)
+    print(text)
+    return text
+
+
+if __name__ == "__main__":
+    main()
