@@ -7,12 +7,12 @@ A profile says everything the estimator needs about one gripper and how it was o
       "gripper": {"base_separation": 64.0},
       "fingers": {
         "left":  {"length": 52.0, "theta_entire": 0.55, "half_thickness": 4.0, "n_links": 10,
-                  "base_offset": [0.0, 0.0]},
+                  "base_offset": [0.0, 0.0], "stiffness_ratio": 1.0, "base_compliance": 0.0},
         "right": {...}
       },
       "segmentation": {...},
       "camera": {"name": "synthetic", "intrinsics": {"width": 640, ...}},
-      "fit": {"method": "least-squares", "frames": [...], "residual_rms_mm": 0.41,
+      "fit": {"method": "least-squares", "estimate_method": "mechanics", "frames": [...], "residual_rms_mm": 0.41,
               "frame_residual_rms_mm": [...], "standard_errors": {"left.theta_entire": 0.002, ...},
               "skipped": [{"frame": "...", "reason": "..."}]}
     }
@@ -20,6 +20,11 @@ A profile says everything the estimator needs about one gripper and how it was o
 Each finger's entry uses the field names of :class:`softgrip_jax.FingerModel` (mm, rad), plus an
 optional ``base_offset`` [dx, dy] (mm, image axes: x right, y down): the correction a least-squares
 fit found between the finger base seen in an open frame and the base the estimate should use.
+``stiffness_ratio`` (base-to-tip bending stiffness, > 0, default 1) and ``base_compliance`` (>= 0,
+in units of the finger's bending compliance, default 0: clamped) are optional too; only the
+mechanics estimate uses them. ``fit.estimate_method`` (optional) is the estimate a least-squares
+fit went through, ``"geometric"`` or ``"mechanics"``; the commands estimate with it unless told
+otherwise (absent: the profile says nothing, e.g. a one-frame calibration, which uses no estimate).
 ``segmentation`` holds :class:`vision.segmentation.SegmentationSettings` fields (``{}``: defaults);
 ``camera`` names the camera (serial number, ``"synthetic"``, or ``"unspecified"``) and its
 intrinsics (pyrealsense2 names, or null).
@@ -53,6 +58,8 @@ PROFILE_VERSION = 1
 SIDES: tuple[str, str] = ("left", "right")
 Method = Literal["one-frame", "least-squares"]
 METHODS: tuple[str, ...] = ("one-frame", "least-squares")
+#: The estimates a least-squares fit can go through (``fit.estimate_method``; softgrip_jax.METHODS).
+ESTIMATE_METHODS: tuple[str, ...] = ("geometric", "mechanics")
 
 
 class ProfileError(SoftgripError):
@@ -69,6 +76,11 @@ class FingerEntry:
         half_thickness: half the finger thickness r, mm, >= 0.
         n_links: number of links N, >= 1.
         base_offset: (dx, dy) mm in image axes, added to a base detected in an open frame.
+        stiffness_ratio: bending stiffness at the base over that at the tip (dimensionless, > 0;
+            1: uniform). Only the mechanics estimate uses it.
+        base_compliance: compliance of the base's rotational spring in units of the whole finger's
+            bending compliance L / mean(k) (dimensionless, >= 0; 0: clamped base). Only the
+            mechanics estimate uses it.
     """
 
     length: float
@@ -76,11 +88,14 @@ class FingerEntry:
     half_thickness: float
     n_links: int
     base_offset: tuple[float, float] = (0.0, 0.0)
+    stiffness_ratio: float = 1.0
+    base_compliance: float = 0.0
 
     def model(self) -> FingerModel:
         """The core's finger model (float32 by default, as every core input)."""
         return FingerModel(length=self.length, theta_entire=self.theta_entire,
-                           half_thickness=self.half_thickness, n_links=self.n_links)
+                           half_thickness=self.half_thickness, n_links=self.n_links,
+                           stiffness_ratio=self.stiffness_ratio, base_compliance=self.base_compliance)
 
 
 @dataclass(frozen=True)
@@ -91,6 +106,9 @@ class FitEntry:
         method: ``"one-frame"`` (eqs. 4-5 from one closed and one open frame) or
             ``"least-squares"`` (several open/closed frame pairs).
         frames: labels of the frame pairs used (e.g. ``"OPEN + CLOSED"`` folder names).
+        estimate_method: the estimate a least-squares fit went through (``"geometric"`` or
+            ``"mechanics"``), which the commands then estimate with by default; None when not
+            recorded (a one-frame calibration, or a profile written before it was recorded).
         residual_rms_mm: RMS over the used frames of the joint distances |estimated - observed|, mm;
             None when nothing was compared.
         frame_residual_rms_mm: the same per used frame, in the order of ``frames``.
@@ -105,6 +123,7 @@ class FitEntry:
     frame_residual_rms_mm: list[float] = field(default_factory=list)
     standard_errors: dict[str, float | list[float]] = field(default_factory=dict)
     skipped: list[dict[str, str]] = field(default_factory=list)
+    estimate_method: str | None = None
 
 
 @dataclass(frozen=True)
@@ -136,11 +155,14 @@ class CalibrationProfile:
             "gripper": {"base_separation": self.base_separation},
             "fingers": {side: {"length": f.length, "theta_entire": f.theta_entire,
                                "half_thickness": f.half_thickness, "n_links": f.n_links,
-                               "base_offset": list(f.base_offset)}
+                               "base_offset": list(f.base_offset), "stiffness_ratio": f.stiffness_ratio,
+                               "base_compliance": f.base_compliance}
                         for side, f in self.fingers.items()},
             "segmentation": dict(self.segmentation),
             "camera": dict(self.camera),
-            "fit": {"method": self.fit.method, "frames": list(self.fit.frames),
+            "fit": {"method": self.fit.method,
+                    **({} if self.fit.estimate_method is None else {"estimate_method": self.fit.estimate_method}),
+                    "frames": list(self.fit.frames),
                     "residual_rms_mm": self.fit.residual_rms_mm,
                     "frame_residual_rms_mm": list(self.fit.frame_residual_rms_mm),
                     "standard_errors": dict(self.fit.standard_errors),
@@ -305,7 +327,8 @@ def _parse(data: Any, source: str) -> CalibrationProfile:
 
 
 def _parse_finger(r: _Reader, value: Any, path: str) -> FingerEntry:
-    f = r.obj(value, path, ("length", "theta_entire", "half_thickness", "n_links"), ("base_offset",))
+    f = r.obj(value, path, ("length", "theta_entire", "half_thickness", "n_links"),
+              ("base_offset", "stiffness_ratio", "base_compliance"))
     offset = r.array(f.get("base_offset", [0.0, 0.0]), f"{path}.base_offset")
     if len(offset) != 2:
         raise r.fail(f"{path}.base_offset", "[dx, dy] in mm (two numbers)", offset)
@@ -318,13 +341,20 @@ def _parse_finger(r: _Reader, value: Any, path: str) -> FingerEntry:
         n_links=r.integer(f["n_links"], f"{path}.n_links", 1),
         base_offset=tuple(r.number(v, f"{path}.base_offset[{i}]", lambda _: True, "a finite number of mm")
                           for i, v in enumerate(offset)),
+        stiffness_ratio=r.number(f.get("stiffness_ratio", 1.0), f"{path}.stiffness_ratio", lambda v: v > 0,
+                                 "a base-to-tip stiffness ratio > 0 (1: uniform)"),
+        base_compliance=r.number(f.get("base_compliance", 0.0), f"{path}.base_compliance", lambda v: v >= 0,
+                                 "a base compliance >= 0 (0: clamped base)"),
     )
 
 
 def _parse_fit(r: _Reader, value: Any) -> FitEntry:
     f = r.obj(value, "fit", ("method", "frames"),
-              ("residual_rms_mm", "frame_residual_rms_mm", "standard_errors", "skipped"))
+              ("estimate_method", "residual_rms_mm", "frame_residual_rms_mm", "standard_errors", "skipped"))
     method = r.text(f["method"], "fit.method", METHODS)
+    estimate_method = f.get("estimate_method")
+    if estimate_method is not None:
+        estimate_method = r.text(estimate_method, "fit.estimate_method", ESTIMATE_METHODS)
     frames = [r.text(v, f"fit.frames[{i}]") for i, v in enumerate(r.array(f["frames"], "fit.frames"))]
     non_negative = (lambda v: v >= 0, "a number >= 0")
     rms = f.get("residual_rms_mm")
@@ -351,7 +381,7 @@ def _parse_fit(r: _Reader, value: Any) -> FitEntry:
         skipped.append({"frame": r.text(entry["frame"], f"fit.skipped[{i}].frame"),
                         "reason": r.text(entry["reason"], f"fit.skipped[{i}].reason")})
     return FitEntry(method=method, frames=frames, residual_rms_mm=rms, frame_residual_rms_mm=per_frame,
-                    standard_errors=errors, skipped=skipped)
+                    standard_errors=errors, skipped=skipped, estimate_method=estimate_method)
 
 
 def _show(value: Any) -> str:

@@ -21,15 +21,17 @@ from vision.synthetic.render import d405_intrinsics
 def make_profile() -> CalibrationProfile:
     """A profile with every optional field filled in."""
     return CalibrationProfile(
-        fingers={"left": FingerEntry(52.1, 0.55, 3.9, 10, (0.25, -0.5)),
+        fingers={"left": FingerEntry(52.1, 0.55, 3.9, 10, (0.25, -0.5), stiffness_ratio=2.0, base_compliance=0.25),
                  "right": FingerEntry(51.8, 0.45, 4.1, 10, (-0.25, -0.5))},
         base_separation=64.2,
         segmentation=SegmentationSettings(roi=(10, 20, 600, 400)).to_dict(),
         camera={"name": "123456789012", "intrinsics": d405_intrinsics().to_dict()},
         fit=FitEntry(method="least-squares", frames=["open_0 + closed_0", "open_1 + closed_1"], residual_rms_mm=0.4,
                      frame_residual_rms_mm=[0.3, 0.5],
-                     standard_errors={"left.theta_entire": 0.002, "left.base_offset": [0.1, 0.12]},
-                     skipped=[{"frame": "open_2 + closed_2", "reason": "no gripper found"}]),
+                     standard_errors={"left.theta_entire": 0.002, "left.base_offset": [0.1, 0.12],
+                                      "left.stiffness_ratio": 0.05},
+                     skipped=[{"frame": "open_2 + closed_2", "reason": "no gripper found"}],
+                     estimate_method="mechanics"),
     )
 
 
@@ -46,21 +48,56 @@ def test_finger_entries_use_the_finger_model_names(tmp_path: Path) -> None:
     data = json.loads(save_profile(make_profile(), tmp_path / "p.json").read_text())
     assert set(data) == {"version", "gripper", "fingers", "segmentation", "camera", "fit"}
     assert data["version"] == PROFILE_VERSION
-    assert set(data["fingers"]["left"]) == {"length", "theta_entire", "half_thickness", "n_links", "base_offset"}
+    assert set(data["fingers"]["left"]) == {"length", "theta_entire", "half_thickness", "n_links", "base_offset",
+                                            "stiffness_ratio", "base_compliance"}
     assert data["gripper"] == {"base_separation": 64.2}
+
+
+def test_stiffness_fields_and_the_estimate_method_round_trip(tmp_path: Path) -> None:
+    path = save_profile(make_profile(), tmp_path / "p.json")
+    data = json.loads(path.read_text())
+    assert data["fingers"]["left"]["stiffness_ratio"] == 2.0 and data["fingers"]["left"]["base_compliance"] == 0.25
+    assert data["fingers"]["right"]["stiffness_ratio"] == 1.0 and data["fingers"]["right"]["base_compliance"] == 0.0
+    assert data["fit"]["estimate_method"] == "mechanics"
+    loaded = load_profile(path)
+    assert (loaded.fingers["left"].stiffness_ratio, loaded.fingers["left"].base_compliance) == (2.0, 0.25)
+    assert loaded.fit.estimate_method == "mechanics"
+    assert loaded.fit.standard_errors["left.stiffness_ratio"] == 0.05
+    # ... and the core's finger model gets them.
+    left = to_gripper(loaded).left
+    assert float(left.stiffness_ratio) == 2.0 and float(left.base_compliance) == pytest.approx(0.25)
+
+
+def test_a_profile_without_the_stiffness_fields_loads_with_defaults() -> None:
+    """Profiles written before the mechanics estimate (data/sample_profile.json is one) still load:
+    a uniform finger with a clamped base, and no recorded estimate method."""
+    sample = Path(__file__).resolve().parents[2] / "data" / "sample_profile.json"
+    data = json.loads(sample.read_text())
+    assert "stiffness_ratio" not in data["fingers"]["left"] and "estimate_method" not in data["fit"]
+    profile = load_profile(sample)
+    for side in ("left", "right"):
+        assert profile.fingers[side].stiffness_ratio == 1.0 and profile.fingers[side].base_compliance == 0.0
+    assert profile.fit.estimate_method is None
+    assert "estimate_method" not in profile.to_dict()["fit"]  # not written when not known
+    gripper = to_gripper(profile)
+    assert float(gripper.right.stiffness_ratio) == 1.0 and float(gripper.right.base_compliance) == 0.0
 
 
 def test_optional_fields_take_their_defaults(tmp_path: Path) -> None:
     data = make_profile().to_dict()
     for side in ("left", "right"):
         del data["fingers"][side]["base_offset"]
-    for key in ("residual_rms_mm", "frame_residual_rms_mm", "standard_errors", "skipped"):
+    for side in ("left", "right"):
+        del data["fingers"][side]["stiffness_ratio"]
+        del data["fingers"][side]["base_compliance"]
+    for key in ("residual_rms_mm", "frame_residual_rms_mm", "standard_errors", "skipped", "estimate_method"):
         del data["fit"][key]
     data["segmentation"] = {}
     data["camera"]["intrinsics"] = None
     profile = CalibrationProfile.from_dict(data)
     assert profile.fingers["left"].base_offset == (0.0, 0.0)
-    assert profile.fit.skipped == [] and profile.fit.residual_rms_mm is None
+    assert (profile.fingers["left"].stiffness_ratio, profile.fingers["left"].base_compliance) == (1.0, 0.0)
+    assert profile.fit.skipped == [] and profile.fit.residual_rms_mm is None and profile.fit.estimate_method is None
     assert profile.segmentation_settings() == SegmentationSettings()
 
 
@@ -128,6 +165,13 @@ BAD_VALUES = [
     (("fingers", "left", "base_offset"), [1.0], "fingers.left.base_offset", "two numbers"),
     (("fingers", "left", "base_offset"), "x", "fingers.left.base_offset", "a JSON array"),
     (("fingers", "left", "base_offset", 1), "a", "fingers.left.base_offset[1]", "a finite number of mm"),
+    (("fingers", "left", "stiffness_ratio"), 0.0, "fingers.left.stiffness_ratio",
+     "a base-to-tip stiffness ratio > 0 (1: uniform), got 0.0"),
+    (("fingers", "right", "stiffness_ratio"), -2.0, "fingers.right.stiffness_ratio", "a base-to-tip stiffness ratio > 0"),
+    (("fingers", "left", "stiffness_ratio"), "2", "fingers.left.stiffness_ratio", 'got "2"'),
+    (("fingers", "left", "base_compliance"), -0.1, "fingers.left.base_compliance",
+     "a base compliance >= 0 (0: clamped base), got -0.1"),
+    (("fingers", "right", "base_compliance"), None, "fingers.right.base_compliance", "got null"),
     (("fingers", "left", "lenght"), 52.0, "fingers.left.lenght", "unknown field"),
     (("fingers", "middle"), {}, "fingers.middle", "unknown field"),
     (("segmentation",), "x", "segmentation", "a JSON object of segmentation settings"),
@@ -138,6 +182,7 @@ BAD_VALUES = [
     (("camera", "intrinsics"), {"width": 640}, "camera.intrinsics", "fx"),
     (("camera", "lens"), "x", "camera.lens", "unknown field"),
     (("fit", "method"), "magic", "fit.method", 'one of "one-frame", "least-squares", got "magic"'),
+    (("fit", "estimate_method"), "spring", "fit.estimate_method", 'one of "geometric", "mechanics", got "spring"'),
     (("fit", "frames"), "x", "fit.frames", "a JSON array"),
     (("fit", "frames", 0), 3, "fit.frames[0]", "a non-empty string"),
     (("fit", "residual_rms_mm"), -1.0, "fit.residual_rms_mm", "a number >= 0"),
@@ -173,6 +218,15 @@ def test_non_finite_numbers_are_refused(tmp_path: Path) -> None:
     file = tmp_path / "p.json"
     file.write_text(text)
     with pytest.raises(ProfileError, match=r"fingers\.left\.theta_entire: expected a number in \[0, pi/2\), got NaN"):
+        load_profile(file)
+
+
+def test_non_finite_stiffness_is_refused(tmp_path: Path) -> None:
+    text = json.dumps(make_profile().to_dict()).replace('"stiffness_ratio": 2.0', '"stiffness_ratio": Infinity')
+    file = tmp_path / "p.json"
+    file.write_text(text)
+    with pytest.raises(ProfileError, match=r"fingers\.left\.stiffness_ratio: expected a base-to-tip stiffness ratio "
+                                           r"> 0 \(1: uniform\), got Infinity"):
         load_profile(file)
 
 
