@@ -13,8 +13,27 @@ deformation (forward mode). ``rho`` is a robust loss on each joint's distance (H
 scale about 1 mm), written as the residual ``sqrt(2 rho(|r|)) r / |r|`` so that a least-squares
 solver minimises it: a badly segmented frame pulls with a bounded force instead of a quadratic one.
 
+The estimate is chosen by ``method``: ``"geometric"`` (the paper's eq. 9, the default) or
+``"mechanics"`` (the spring-joint chain at equilibrium, :mod:`softgrip_jax._mechanics`, with the
+solver settings ``mechanics``); the residuals, Jacobian and standard errors are those of the chosen
+estimate, differentiated through the mechanics solve by implicit differentiation.
+
 Parameters are named per finger (``"left.theta_entire"``, ``"right.base_offset"``); the registry
-:data:`PARAMETERS` lists what can be fitted, each with the number of frame pairs it needs. Internally
+:data:`PARAMETERS` lists what can be fitted, each with the number of frame pairs it needs, the
+estimates it affects, and how the solver's unknown maps to it:
+
+- ``theta_entire`` (rad) and ``base_offset`` ([mm, mm]) are fitted as they are;
+- ``stiffness_ratio`` (base-to-tip bending stiffness, > 0) is fitted as its logarithm u, ratio =
+  exp(u): it stays positive, and a factor of two is the same step whether toward stiffer or softer;
+- ``base_compliance`` (>= 0, in units of the finger's bending compliance) is fitted as its square
+  root v, compliance = v^2: it stays >= 0, and the clamped base (compliance 0) is the ordinary point
+  v = 0, where d(compliance)/dv = 2 v is finite (a logarithm would put it at minus infinity, and a
+  logarithm with a floor would make the floor a tuning constant). Because v = 0 is a stationary
+  point of anything that depends on v^2 only, a fit of the compliance that starts from exactly 0
+  starts from :data:`COMPLIANCE_START` instead.
+
+Both stiffness parameters only change the mechanics estimate (the geometric one ignores them), so
+asking for them with ``method="geometric"`` is an error. Internally
 the solver's unknown is a PyTree ``{side: {parameter: value}}`` of every registered parameter, and
 those not being fitted are held at their start values (their Jacobian columns are zero, which the
 damped solve handles), so every choice of fitted parameters reuses one compilation. Frames are
@@ -24,9 +43,11 @@ two CPU cores); a later fit of 20 frame pairs with objects takes about 2 s.
 
 After the solve: the standard error of each fitted parameter, ``sqrt(diag(sigma^2 (J^T J)^-1))``
 with J the Jacobian of the robust residuals at the solution (the solver's own linearisation, so the
-robust loss weights it: an outlying joint counts less) and ``sigma^2 = sum r_rho^2 / (m - p)`` (m
-scalar residuals of the used frames, p fitted parameters); and the residual RMS (mm, of the raw
-joint distances) per frame and overall.
+robust loss weights it: an outlying joint counts less) with respect to the parameters in their own
+units (the solver's columns divided by the derivative of each transform above: the delta method,
+so the stiffness ratio's standard error is in units of the ratio, not of its logarithm) and
+``sigma^2 = sum r_rho^2 / (m - p)`` (m scalar residuals of the used frames, p fitted parameters);
+and the residual RMS (mm, of the raw joint distances) per frame and overall.
 """
 
 from __future__ import annotations
@@ -53,15 +74,23 @@ from tqdm import tqdm
 
 from calib.one_frame import frame_keypoints
 from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
-from softgrip_jax import AbstractSDF, ContactConfig, FingerFrame, FingerModel, SoftgripError, Status, estimate_in_frame
+from softgrip_jax import (METHODS, AbstractSDF, ContactConfig, FingerFrame, FingerModel, MechanicsConfig, SoftgripError,
+                          Status, estimate_in_frame)
 from vision.frames import Frame, load_frame
 from vision.object_sdf import object_sdf
 from vision.segmentation import SegmentationSettings
 
 Loss = Literal["huber", "cauchy"]
+EstimateMethod = Literal["geometric", "mechanics"]
 
 #: Theta (rad) a fit starts from when nothing better is known.
 NOMINAL_THETA = 0.5
+
+#: Base compliance (units of the finger's bending compliance L / mean(k)) a fit of
+#: ``base_compliance`` starts from when the start profile has 0 (a clamped base): the solver's
+#: unknown is sqrt(compliance), whose derivative vanishes at 0, so the fit could not leave it. At
+#: 0.01 the base turns by a hundredth of what the whole finger bends under the same moment.
+COMPLIANCE_START = 0.01
 
 #: Frames are padded (with masked copies) to a multiple of this, so that fits over similar numbers
 #: of frame pairs share one compilation.
@@ -89,22 +118,54 @@ class Parameter:
         shape: its shape (``()`` for a number, ``(2,)`` for [dx, dy]).
         min_frames: frame pairs needed before the fit can tell it from one pair's own noise.
         why: the reason for ``min_frames``, for the error message.
+        transform: how the solver's unknown y maps to the value: ``"identity"`` (y), ``"log"``
+            (exp(y): stays > 0) or ``"sqrt"`` (y^2: stays >= 0).
+        methods: the estimates (``method`` of :func:`fit`) the value affects.
     """
 
     name: str
     shape: tuple[int, ...]
     min_frames: int
     why: str = ""
+    transform: Literal["identity", "log", "sqrt"] = "identity"
+    methods: tuple[str, ...] = METHODS
 
 
-#: Everything the fit can adjust, by name. Issue 7's stiffness parameters are added here.
+_STIFFNESS_WHY = ("a single pair's closure can be matched by trading Theta against the stiffness; pairs with the "
+                  "object at different places along the fingers tell them apart")
+
+#: Everything the fit can adjust, by name.
 PARAMETERS: dict[str, Parameter] = {
     p.name: p for p in (
         Parameter("theta_entire", (), 1),
         Parameter("base_offset", (2,), 2, "from a single pair a base offset absorbs that pair's own keypoint "
                                           "error instead of a bias shared by all frames"),
+        Parameter("stiffness_ratio", (), 2, _STIFFNESS_WHY, transform="log", methods=("mechanics",)),
+        Parameter("base_compliance", (), 2, _STIFFNESS_WHY, transform="sqrt", methods=("mechanics",)),
     )
 }
+
+
+def _to_unknown(p: Parameter, value):
+    """The solver's unknown of a parameter value (numpy, float64)."""
+    value = np.asarray(value, np.float64)
+    if p.transform == "log":
+        return np.log(value)
+    return np.sqrt(value) if p.transform == "sqrt" else value
+
+
+def _from_unknown(p: Parameter, y, xp=jnp):
+    """The parameter value of the solver's unknown (``xp``: jax.numpy, or numpy on the host)."""
+    if p.transform == "log":
+        return xp.exp(y)
+    return y * y if p.transform == "sqrt" else y
+
+
+def _transform_derivative(p: Parameter, y: np.ndarray) -> np.ndarray:
+    """d(value)/d(unknown) at y (numpy)."""
+    if p.transform == "log":
+        return np.exp(y)
+    return 2.0 * y if p.transform == "sqrt" else np.ones_like(y)
 
 
 @dataclass(frozen=True, eq=False)
@@ -147,6 +208,8 @@ def fit(
     loss: Loss = "huber",
     loss_scale_mm: float = 1.0,
     config: ContactConfig = ContactConfig(),
+    method: EstimateMethod = "geometric",
+    mechanics: MechanicsConfig = MechanicsConfig(),
     max_steps: int = 100,
     skipped: Sequence[dict[str, str]] = (),
     progress: bool = True,
@@ -158,28 +221,34 @@ def fit(
         start: starting values, and everything that is not fitted (L, r, N, W, segmentation,
             camera). Both fingers must have the same ``n_links`` N, and every observation N+1
             joints per finger.
-        parameters: names from :data:`PARAMETERS`, fitted for both fingers.
+        parameters: names from :data:`PARAMETERS`, fitted for both fingers. ``stiffness_ratio``
+            and ``base_compliance`` need ``method="mechanics"``.
         loss: ``"huber"`` (quadratic up to the scale, linear beyond) or ``"cauchy"`` (logarithmic
             beyond: ignores gross outliers more, but is not convex).
         loss_scale_mm: the scale c of the loss, mm (> 0); a very large value is plain least squares.
         config: the contact sweep's discretisation (as for the estimate).
+        method: the estimate the residuals go through: ``"geometric"`` (eq. 9) or
+            ``"mechanics"`` (the spring chain at equilibrium).
+        mechanics: the mechanics estimate's solver settings (used with ``method="mechanics"``).
         max_steps: Levenberg-Marquardt iteration cap.
         skipped: pairs already left out upstream (``{"frame", "reason"}``), carried into the report.
         progress: show a progress bar on stderr.
 
     Returns:
         ``start`` with the fitted values and ``fit`` describing the fit: method ``"least-squares"``,
-        the frames used, residual RMS (mm) per frame and overall, standard errors, skipped frames.
+        the estimate ``method`` (``fit.estimate_method``), the frames used, residual RMS (mm) per frame and overall, standard errors, skipped frames.
         Pairs that cannot be used (non-finite input, or an invalid estimate at the start values:
         the open finger overlaps the object, its base lies outside the SDF grid, ...) are skipped
         with a :class:`SkippedFrameWarning`.
 
     Raises:
-        FitError: unknown parameters or bad settings, no usable frame pair, fewer usable pairs than
-            a parameter needs (under-determined: the message names it), mismatched N, no convergence,
-            or a fitted Theta outside [0, pi/2).
+        FitError: unknown parameters or bad settings (including a stiffness parameter with
+            ``method="geometric"``), no usable frame pair, fewer usable pairs than a parameter needs
+            (under-determined: the message names it), a parameter the frames do not constrain at all
+            (e.g. the stiffness when no finger touches an object), mismatched N, no convergence, or a
+            fitted Theta outside [0, pi/2).
     """
-    names = _check_settings(parameters, loss, loss_scale_mm, max_steps)
+    names = _check_settings(parameters, loss, loss_scale_mm, max_steps, method, mechanics)
     n_links = _common_n_links(start, observations)
     skipped = [dict(s) for s in skipped]
     total = len(observations) + len(skipped)
@@ -198,7 +267,7 @@ def fit(
         y0, fixed, free = _unknowns(start, names)
         groups, index = _stack(candidates)
         out = _solve(y0, free, fixed, groups, jnp.asarray(loss_scale_mm, jnp.float64), n_links=n_links,
-                     config=config, loss=loss, max_steps=max_steps)
+                     config=config, method=method, mechanics=mechanics, loss=loss, max_steps=max_steps)
         flat, result, start_status, residuals, robust, jacobian = jax.tree.map(np.asarray, out)
 
     start_ok = (_per_frame(start_status, index) == Status.OK).all(axis=1)
@@ -211,7 +280,7 @@ def fit(
         raise FitError(f"the least-squares fit did not converge within {max_steps} steps (optimistix result "
                        f"{int(result)}); raise max_steps, or start closer (e.g. from a one-frame calibration)")
     return _report(start, names, flat, _per_frame(residuals, index)[start_ok], robust, jacobian, y0,
-                   [o.label for o in used], skipped)
+                   [o.label for o in used], skipped, method)
 
 
 def observations_from_frames(
@@ -293,12 +362,23 @@ def start_from_open_frame(
 # Checks on the host
 
 
-def _check_settings(parameters: Sequence[str], loss: str, scale: float, max_steps: int) -> list[str]:
+def _check_settings(parameters: Sequence[str], loss: str, scale: float, max_steps: int, method: str,
+                    mechanics: MechanicsConfig) -> list[str]:
     names = list(dict.fromkeys(parameters))
     unknown = [n for n in names if n not in PARAMETERS]
     if not names or unknown:
         raise FitError(f"unknown parameter(s) {', '.join(map(repr, unknown)) or '(none given)'}; the fit can "
                        f"adjust: {', '.join(PARAMETERS)}")
+    if not isinstance(method, str) or method not in METHODS:
+        raise FitError(f"method must be one of {', '.join(map(repr, METHODS))} (the estimate the residuals go "
+                       f"through), got {method!r}")
+    if not isinstance(mechanics, MechanicsConfig):
+        raise FitError(f"mechanics must be a softgrip_jax.MechanicsConfig, got {type(mechanics).__name__}")
+    unused = [n for n in names if method not in PARAMETERS[n].methods]
+    if unused:
+        raise FitError(f"{', '.join(unused)} only affect(s) the mechanics estimate, so method={method!r} cannot fit "
+                       f"them: fit with method='mechanics' (softgrip calibrate --fit ... --method mechanics), or "
+                       f"leave them out")
     if loss not in ("huber", "cauchy"):
         raise FitError(f"loss must be 'huber' or 'cauchy', got {loss!r}")
     if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
@@ -364,8 +444,13 @@ def _unknowns(start: CalibrationProfile, names: Sequence[str]):
     numbers = np.hstack([np.ravel(v) for side in SIDES for v in dataclasses.astuple(start.fingers[side])])
     if not np.isfinite(numbers.astype(np.float64)).all():
         raise FitError("the start profile has non-finite finger values")
-    y0 = {side: {p.name: jnp.asarray(getattr(start.fingers[side], p.name), jnp.float64).reshape(p.shape)
-                 for p in PARAMETERS.values()} for side in SIDES}
+    def start_value(side, p):
+        value = getattr(start.fingers[side], p.name)
+        if p.transform == "sqrt" and p.name in names and value == 0.0:
+            value = COMPLIANCE_START  # sqrt(0) is a stationary point of the fit (see the module docstring)
+        return jnp.asarray(_to_unknown(p, value)).reshape(p.shape)
+
+    y0 = {side: {p.name: start_value(side, p) for p in PARAMETERS.values()} for side in SIDES}
     fixed = {side: {name: jnp.asarray(getattr(start.fingers[side], name), jnp.float64)
                     for name in ("length", "half_thickness")} for side in SIDES}
     free = {side: {p.name: jnp.full(p.shape, p.name in names) for p in PARAMETERS.values()} for side in SIDES}
@@ -415,16 +500,20 @@ def _per_frame(per_group: Sequence[np.ndarray], index: Sequence[tuple[int, int]]
 # The compiled solve
 
 
-def _finger_residuals(values, fixed, frames: _Frames, n_links: int, config: ContactConfig):
-    """Estimated minus observed joints (F, 2, J, 2) mm and estimate statuses (F, 2) of one group."""
-    fingers = jax.tree.map(lambda *v: jnp.stack(v), *({**values[side], **fixed[side]} for side in SIDES))
+def _finger_residuals(values, fixed, frames: _Frames, n_links: int, config: ContactConfig, method: str,
+                      mechanics: MechanicsConfig):
+    """Estimated minus observed joints (F, 2, J, 2) mm and estimate statuses (F, 2) of one group.
+    ``values`` are the solver's unknowns (see :data:`PARAMETERS` for their transforms)."""
+    natural = {side: {name: _from_unknown(PARAMETERS[name], v) for name, v in values[side].items()} for side in SIDES}
+    fingers = jax.tree.map(lambda *v: jnp.stack(v), *({**natural[side], **fixed[side]} for side in SIDES))
     handedness = jnp.array([1.0, -1.0])
 
     def one_finger(p, hand, sdf, base, observed):
         finger = FingerModel(length=p["length"], theta_entire=p["theta_entire"], half_thickness=p["half_thickness"],
-                             n_links=n_links)
+                             n_links=n_links, stiffness_ratio=p["stiffness_ratio"],
+                             base_compliance=p["base_compliance"])
         frame = FingerFrame(origin=base + p["base_offset"], angle=jnp.zeros_like(hand), handedness=hand)
-        est = estimate_in_frame(finger, sdf, frame, config)
+        est = estimate_in_frame(finger, sdf, frame, config, method=method, mechanics=mechanics)
         return est.joints - observed, est.status
 
     def one_frame(sdf, bases, observed):
@@ -474,17 +563,19 @@ def _reporting_to(bar: tqdm) -> Iterator[None]:
         _ACTIVE_BARS.remove(bar)
 
 
-@partial(jax.jit, static_argnames=("n_links", "config"))
-def _evaluate(values, fixed, groups: list[_Frames], n_links: int, config: ContactConfig):
+@partial(jax.jit, static_argnames=("n_links", "config", "method", "mechanics"))
+def _evaluate(values, fixed, groups: list[_Frames], n_links: int, config: ContactConfig, method: str,
+              mechanics: MechanicsConfig):
     """Raw residuals (F, 2, J, 2) and statuses (F, 2) of every group. Jitted on its own so that the
     solve's several traces of it (start check, Jacobian) reuse one trace."""
-    out = [_finger_residuals(values, fixed, g, n_links, config) for g in groups]
+    out = [_finger_residuals(values, fixed, g, n_links, config, method, mechanics) for g in groups]
     return [r for r, _ in out], [s for _, s in out]
 
 
-@partial(jax.jit, static_argnames=("n_links", "config", "loss", "max_steps"), compiler_options=_COMPILER_OPTIONS)
-def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, config: ContactConfig, loss: Loss,
-           max_steps: int):
+@partial(jax.jit, static_argnames=("n_links", "config", "method", "mechanics", "loss", "max_steps"),
+         compiler_options=_COMPILER_OPTIONS)
+def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, config: ContactConfig, method: str,
+           mechanics: MechanicsConfig, loss: Loss, max_steps: int):
     """Robust Levenberg-Marquardt from ``y0`` over the frames whose estimates are valid at ``y0``.
 
     Returns (flattened solution, optimistix result code, estimate statuses at the start (per group,
@@ -496,7 +587,7 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
 
     @jax.custom_jvp
     def residuals(y):
-        return _evaluate(y, fixed, groups, n_links, config)[0]
+        return _evaluate(y, fixed, groups, n_links, config, method, mechanics)[0]
 
     @residuals.defjvp
     def residuals_jvp(primals, tangents):
@@ -508,7 +599,7 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
         return r, [sum(jnp.tensordot(j, d, axes=d.ndim) for j, d in zip(jax.tree.leaves(jg), dy_leaves))
                    for jg in jac]
 
-    start_status = _evaluate(y0, fixed, groups, n_links, config)[1]
+    start_status = _evaluate(y0, fixed, groups, n_links, config, method, mechanics)[1]
     usable = [g.real & jnp.all(s == Status.OK, axis=-1) for g, s in zip(groups, start_status)]
 
     def objective(y, args):
@@ -543,20 +634,34 @@ def _columns(y0) -> list[tuple[str, str]]:
 
 def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, residuals: np.ndarray,
             robust: np.ndarray, jacobian: np.ndarray, y0, labels: list[str],
-            skipped: list[dict[str, str]]) -> CalibrationProfile:
+            skipped: list[dict[str, str]], method: str) -> CalibrationProfile:
     """The fitted profile: values, residual RMS per frame and overall, standard errors.
 
     ``residuals`` (F, 2, J, 2) are the raw residuals of the F used frames; ``robust`` (M,) and
-    ``jacobian`` (M, P) the solver's residuals (zero for unused frames) and their Jacobian.
+    ``jacobian`` (M, P) the solver's residuals (zero for unused frames) and their Jacobian with
+    respect to the solver's unknowns ``flat`` (P,).
     """
     columns = _columns(y0)
     fitted = [k for k, (_, name) in enumerate(columns) if name in names]
     values: dict[tuple[str, str], list[float]] = {}
     for (side, name), v in zip(columns, flat.tolist()):
-        values.setdefault((side, name), []).append(v)
+        values.setdefault((side, name), []).append(float(_from_unknown(PARAMETERS[name], v, np)))
 
     distances = np.sqrt(np.sum(residuals**2, axis=-1))  # (F, 2, J) mm
-    jac = jacobian[:, fitted]
+    # The Jacobian with respect to the values in their own units (chain rule through each transform).
+    derivative = np.array([_transform_derivative(PARAMETERS[columns[k][1]], flat[k]) for k in fitted])
+    # (A derivative of exactly 0, the square-root unknown landing exactly on 0, does not happen from
+    # COMPLIANCE_START in floating point; its column would then read as unconstrained below.)
+    jac = jacobian[:, fitted] / np.where(derivative == 0.0, 1.0, derivative)
+    norms = np.linalg.norm(jacobian[:, fitted], axis=0)
+    flat_columns = [columns[k] for k, norm in zip(fitted, norms) if not norm > 0.0]
+    if flat_columns:
+        what = ", ".join(sorted({f"{side}.{name}" for side, name in flat_columns}))
+        hint = (" (the stiffness only shows where a finger touches an object: add pairs whose closed fingers "
+                "wrap an object)" if any(name in ("stiffness_ratio", "base_compliance") for _, name in flat_columns)
+                else "")
+        raise FitError(f"the frame pairs do not constrain {what}: the residuals do not change with it{hint}; "
+                       f"add frame pairs, or do not fit it")
     sigma2 = np.sum(robust**2) / (residuals.size - len(fitted))
     covariance = sigma2 * np.linalg.inv(jac.T @ jac)
     errors: dict[tuple[str, str], list[float]] = {}
@@ -577,6 +682,6 @@ def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, r
     standard_errors = {f"{side}.{name}": (se[0] if PARAMETERS[name].shape == () else se)
                        for (side, name), se in errors.items()}
     return dataclasses.replace(start, fingers=fingers, fit=FitEntry(
-        method="least-squares", frames=labels, residual_rms_mm=float(np.sqrt(np.mean(distances**2))),
+        method="least-squares", estimate_method=method, frames=labels, residual_rms_mm=float(np.sqrt(np.mean(distances**2))),
         frame_residual_rms_mm=np.sqrt(np.mean(distances**2, axis=(1, 2))).tolist(),
         standard_errors=standard_errors, skipped=skipped))
