@@ -12,3 +12,31 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
+
+
+#: The estimate the commands use when neither ``--method`` nor the profile (``fit.estimate_method``,
+#: the estimate it was fitted through) says which. The one place to change the project's default.
+DEFAULT_METHOD = "geometric"
+
+#: The choices of ``--method`` (softgrip_jax.METHODS).
+METHOD_CHOICES = ("geometric", "mechanics")
+
+
+def add_method_argument(parser: argparse.ArgumentParser, from_profile: bool = True,
+                        profile_text: str = "the profile") -> None:
+    """Add ``--method geometric|mechanics`` (default None: decided by :func:`resolve_method`).
+    ``from_profile``: the command reads a profile (``profile_text`` in the help) whose recorded
+    estimate is the default."""
+    default = (f"the estimate {profile_text} was fitted with (its fit.estimate_method), else {DEFAULT_METHOD}"
+               if from_profile else DEFAULT_METHOD)
+    parser.add_argument("--method", choices=METHOD_CHOICES, default=None,
+                        help="the deformation estimate: geometric (the paper's eq. 9) or mechanics (the "
+                             f"spring-joint chain at equilibrium); default: {default}")
+
+
+def resolve_method(method: str | None, profile=None) -> str:
+    """``--method`` if given, else the estimate ``profile`` was fitted through, else DEFAULT_METHOD."""
+    if method is not None:
+        return method
+    recorded = getattr(getattr(profile, "fit", None), "estimate_method", None)
+    return recorded or DEFAULT_METHOD

@@ -243,12 +243,13 @@ def estimate_grasp_jit():
     return _ESTIMATE
 
 
-def estimate_scene(scene: FrameScene):
-    """Both fingers' estimates at the frame's own pose, as numpy (a ``GraspEstimate``)."""
+def estimate_scene(scene: FrameScene, method: str = "geometric"):
+    """Both fingers' estimates at the frame's own pose, as numpy (a ``GraspEstimate``), with the
+    deformation estimate ``method`` (``"geometric"`` or ``"mechanics"``)."""
     import jax.numpy as jnp
 
     dtype = scene.gripper.base_separation.dtype
-    return to_numpy(estimate_grasp_jit()(scene.gripper, scene.sdf, jnp.asarray(scene.pose, dtype)))
+    return to_numpy(estimate_grasp_jit()(scene.gripper, scene.sdf, jnp.asarray(scene.pose, dtype), method=method))
 
 
 def to_numpy(tree):
@@ -314,9 +315,10 @@ def fingers_json(grasp, gripper, camera) -> list[dict]:
     return [finger_json(side, getattr(grasp, side), getattr(gripper, side), camera) for side in SIDES]
 
 
-def frame_json(scene: FrameScene, grasp) -> dict:
-    """``{"frame", "n_links", "fingers"}``: one line of ``softgrip estimate --json``."""
-    return {"frame": scene.path, "n_links": scene.n_links,
+def frame_json(scene: FrameScene, grasp, method: str) -> dict:
+    """``{"frame", "method", "n_links", "fingers"}``: one line of ``softgrip estimate --json``
+    (``method``: the deformation estimate used)."""
+    return {"frame": scene.path, "method": method, "n_links": scene.n_links,
             "fingers": fingers_json(grasp, scene.gripper, scene.camera)}
 
 

@@ -9,7 +9,7 @@ import warnings
 from pathlib import Path
 
 from softgrip_jax import SoftgripError
-from softgrip_cli._args import positive_int
+from softgrip_cli._args import add_method_argument, positive_int, resolve_method
 
 DEFAULT_N_LINKS = 10
 
@@ -25,11 +25,18 @@ examples:
       --json -o fitted.json
       start from a profile (its N, L, r, segmentation), also fit a base offset per finger, and print
       the report as JSON
+  softgrip calibrate --fit open_1 closed_1 open_2 closed_2 open_3 closed_3 --method mechanics \
+      --stiffness --base-compliance -o fitted.json
+      fit through the mechanics estimate (the spring-joint chain at equilibrium): Theta, the
+      base-to-tip stiffness ratio and the base compliance of each finger; the pairs need objects
+      that the closed fingers wrap, at different places along the fingers
 
 Frame arguments are frame folders (color.png, depth.png, intrinsics.json; see `softgrip capture`).
 In a fit, a pair that cannot be used (segmentation fails, the open finger already overlaps the
 object, ...) is skipped with a warning and listed in the profile's fit.skipped. The first fit in a
-process compiles for tens of seconds; progress goes to stderr.
+process compiles for tens of seconds (longer with --method mechanics); progress goes to stderr.
+The profile records the estimate a fit went through (fit.estimate_method); `softgrip estimate`,
+`score` and `demo` use it unless given --method.
 """
 
 
@@ -40,8 +47,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="make a calibration profile from frames (one pair, or least squares over several)",
         description="Calibrate the deformation model: Theta of each finger from a frame of the closed "
                     "gripper without an object and L from a frame of the open gripper (the paper's eqs. "
-                    "4-5), or fit Theta (and optionally a base offset) to several open/closed frame "
-                    "pairs by robust least squares through the estimator.",
+                    "4-5), or fit Theta (and optionally a base offset; through the mechanics estimate "
+                    "also the stiffness ratio and base compliance) to several open/closed frame pairs by "
+                    "robust least squares through the estimator.",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -57,6 +65,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help=f"number of links of the model (default: the --profile's, else {DEFAULT_N_LINKS})")
     parser.add_argument("--base-offset", action="store_true",
                         help="with --fit, also fit a base offset per finger (needs 2 or more pairs)")
+    add_method_argument(parser, profile_text="the --profile")
+    parser.add_argument("--stiffness", action="store_true",
+                        help="with --fit --method mechanics, also fit each finger's base-to-tip stiffness ratio "
+                             "(needs 2 or more pairs whose fingers touch an object)")
+    parser.add_argument("--base-compliance", action="store_true",
+                        help="with --fit --method mechanics, also fit each finger's base compliance (needs 2 or "
+                             "more pairs whose fingers touch an object)")
     parser.add_argument("--loss", choices=("huber", "cauchy"), default="huber",
                         help="robust loss of the fit (default: huber)")
     parser.add_argument("--loss-scale", type=float, default=1.0, metavar="MM",
@@ -96,7 +111,8 @@ def _one_frame(args: argparse.Namespace):
     if args.closed is None or args.open_frame is None:
         raise SoftgripError("give CLOSED_FRAME and --open OPEN_FRAME for a one-frame calibration, or --fit OPEN "
                             "CLOSED [...] for least squares (see softgrip calibrate --help)")
-    fit_only = [f"--{name.replace('_', '-')}" for name in ("profile", "base_offset")
+    fit_only = [f"--{name.replace('_', '-')}" for name in ("profile", "base_offset", "method", "stiffness",
+                                                           "base_compliance")
                 if getattr(args, name) not in (None, False)]
     if fit_only:
         raise SoftgripError(f"{', '.join(fit_only)} only apply to --fit")
@@ -131,9 +147,18 @@ def _fit(args: argparse.Namespace):
         n_links = args.n_links or DEFAULT_N_LINKS
         start = start_from_open_frame(load_frame(pairs[0][0]), n_links, camera_name=args.camera or "unspecified")
         settings = None
+    method = resolve_method(args.method, start if args.profile is not None else None)
+    mechanics_only = [flag for flag, on in (("--stiffness", args.stiffness), ("--base-compliance", args.base_compliance))
+                      if on]
+    if mechanics_only and method != "mechanics":
+        raise SoftgripError(f"{' and '.join(mechanics_only)} only change the mechanics estimate; add --method "
+                            f"mechanics (the fit is going through the {method} estimate)")
+    parameters = ["theta_entire"] + [name for name, on in (("base_offset", args.base_offset),
+                                                            ("stiffness_ratio", args.stiffness),
+                                                            ("base_compliance", args.base_compliance)) if on]
     observations, skipped = load_observations(pairs, settings, n_links, progress=True)
-    parameters = ["theta_entire", "base_offset"] if args.base_offset else ["theta_entire"]
-    return fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, skipped=skipped)
+    return fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, method=method,
+               skipped=skipped)
 
 
 def _print_summary(profile, output: Path) -> None:
@@ -144,12 +169,17 @@ def _print_summary(profile, output: Path) -> None:
         offset = ""
         if f"{side}.base_offset" in errors:
             offset = ", base offset ({:+.2f}, {:+.2f}) mm".format(*f.base_offset)
+        mechanics = ""
+        for name, label in (("stiffness_ratio", "stiffness ratio"), ("base_compliance", "base compliance")):
+            if f"{side}.{name}" in errors:
+                mechanics += f", {label} {getattr(f, name):.3f} +/- {errors[f'{side}.{name}']:.3f}"
         print(f"{side:<5} Theta {f.theta_entire:.4f}{spread} rad, L {f.length:.2f} mm, r {f.half_thickness:.2f} mm, "
-              f"N {f.n_links}{offset}")
+              f"N {f.n_links}{offset}{mechanics}")
     fit = profile.fit
     skipped = f", {len(fit.skipped)} skipped" if fit.skipped else ""
+    through = f" ({fit.estimate_method} estimate)" if fit.estimate_method else ""
     print(f"base separation {profile.base_separation:.2f} mm; {fit.method}: residual RMS {fit.residual_rms_mm:.3f} mm "
-          f"over {len(fit.frames)} frame pair(s){skipped}")
+          f"over {len(fit.frames)} frame pair(s){through}{skipped}")
     print(f"wrote {output}")
 
 

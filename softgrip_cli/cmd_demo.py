@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from softgrip_cli import _pipeline as pipe
+from softgrip_cli._args import add_method_argument, resolve_method
 from softgrip_jax import SoftgripError
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
@@ -48,6 +49,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--data", default=None, metavar="DIR",
                         help=f"sample frames (default: the repository's data/, {DATA_DIR})")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
+    add_method_argument(parser, from_profile=False)  # its one-frame profile records no estimate
     parser.set_defaults(func=run)
 
 
@@ -62,30 +64,31 @@ def run(args: argparse.Namespace) -> int:
 
     t = time.perf_counter()
     profile, calibration = _calibrate(data, out)
+    method = resolve_method(args.method, profile)
     written.append("profile.json")
     timings["calibrate"] = time.perf_counter() - t
 
     t = time.perf_counter()
     scene_results, scene_objects = [], {}
     for name in scenes:
-        result, scene = _estimate_scene(data, name, profile, out)
+        result, scene = _estimate_scene(data, name, profile, out, method)
         scene_results.append(result)
         scene_objects[name] = scene
         written.append(result["overlay"])
     timings["estimate"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    scored = _score_scene(scene_objects[scenes[0]], out)
+    scored = _score_scene(scene_objects[scenes[0]], out, method)
     written.append(scored["heatmap"])
     timings["score"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    refined = _refine(scene_objects[scenes[0]], scored, out)
+    refined = _refine(scene_objects[scenes[0]], scored, out, method)
     written.append(refined["overlay"])
     timings["refine"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
 
-    summary = {"data": str(data), "out": str(out), "calibration": calibration, "scenes": scene_results,
+    summary = {"data": str(data), "out": str(out), "method": method, "calibration": calibration, "scenes": scene_results,
                "score": scored, "refine": refined, "timings_s": {k: round(v, 2) for k, v in timings.items()},
                "files": written + ["summary.json"]}
     _write_json(out / "summary.json", summary)
@@ -154,13 +157,14 @@ def _calibrate(data: Path, out: Path):
                      "residual_rms_mm": None if residual is None else round(residual, 4)}
 
 
-def _estimate_scene(data: Path, name: str, profile, out: Path):
-    """Estimate one scene at its frame's pose; compare with its observed closure when present."""
+def _estimate_scene(data: Path, name: str, profile, out: Path, method: str):
+    """Estimate one scene at its frame's pose with the estimate ``method``; compare with its
+    observed closure when present."""
     from vision.overlay import save_png
 
     scene = pipe.frame_scene(data / f"{name}_open", profile)
-    grasp = pipe.estimate_scene(scene)
-    record = pipe.frame_json(scene, grasp)
+    grasp = pipe.estimate_scene(scene, method)
+    record = pipe.frame_json(scene, grasp, method)
     result = {"scene": name, "frame": record["frame"], "pose": pipe.pose_json(scene.pose),
               "valid": bool(grasp.valid), "n_links": record["n_links"], "fingers": record["fingers"]}
     observed_px, errors = [], None
@@ -201,14 +205,14 @@ def _observed(path: Path, profile, n_links: int) -> list[np.ndarray]:
     return [k.observed_mm(n_links) for k in keypoints]
 
 
-def _score_scene(scene: pipe.FrameScene, out: Path) -> dict:
-    """Score the default grid on ``scene`` and write its heat map."""
+def _score_scene(scene: pipe.FrameScene, out: Path, method: str) -> dict:
+    """Score the default grid on ``scene`` with the estimate ``method`` and write its heat map."""
     from softgrip_cli import cmd_score
     from vision.overlay import save_png
 
     grid = cmd_score.default_grid(scene)
     poses = cmd_score.grid_poses(*grid)
-    result, elapsed = cmd_score.score_poses(scene, poses)
+    result, elapsed = cmd_score.score_poses(scene, poses, method)
     order = cmd_score.rank(result)
     best = int(order[0])
     name = scene.name[:-len("_open")] if scene.name.endswith("_open") else scene.name
@@ -227,8 +231,8 @@ def _score_scene(scene: pipe.FrameScene, out: Path) -> dict:
     }
 
 
-def _refine(scene: pipe.FrameScene, scored: dict, out: Path) -> dict:
-    """Refine the best grid pose by gradient (softgrip_jax.refine) and draw the result."""
+def _refine(scene: pipe.FrameScene, scored: dict, out: Path, method: str) -> dict:
+    """Refine the best grid pose by gradient (softgrip_jax.refine, estimate ``method``) and draw the result."""
     import jax.numpy as jnp
 
     from softgrip_jax import RefineStatus, refine
@@ -237,7 +241,7 @@ def _refine(scene: pipe.FrameScene, scored: dict, out: Path) -> dict:
     best = scored["best"]["pose"]
     start_pose = np.array([best["x_mm"], best["y_mm"], best["angle_rad"]])
     refined = pipe.to_numpy(refine(scene.gripper, scene.sdf,
-                                   jnp.asarray(start_pose, scene.gripper.base_separation.dtype)))
+                                   jnp.asarray(start_pose, scene.gripper.base_separation.dtype), method=method))
     pose = np.asarray(refined.pose, np.float64)
     status = RefineStatus(int(refined.status)).name.lower()
     candidate = pipe.candidate_json(pose, refined.score, scene.gripper, scene.camera)
@@ -275,7 +279,8 @@ def _table(summary: dict) -> str:
     cal = summary["calibration"]
     left, right = cal["fingers"]["left"], cal["fingers"]["right"]
     lines = [
-        f"softgrip demo: {len(summary['scenes'])} scenes from {summary['data']}, output in {summary['out']}/",
+        f"softgrip demo: {len(summary['scenes'])} scenes from {summary['data']}, output in {summary['out']}/, "
+        f"{summary['method']} estimate",
         f"calibration (one frame pair, eqs. 4-5): Theta {left['theta_entire']:.3f} / {right['theta_entire']:.3f} rad, "
         f"L {left['length_mm']:.1f} / {right['length_mm']:.1f} mm, W {cal['base_separation_mm']:.1f} mm, "
         f"N = {cal['n_links']}, residual {_fmt(cal['residual_rms_mm'])} mm",
@@ -291,9 +296,12 @@ def _table(summary: dict) -> str:
                          f"{_fmt(errors.get('mid_mm')) + ' mm':>12} {_fmt(errors.get('tip_mm')) + ' mm':>12}")
     score, ref = summary["score"], summary["refine"]
     best = score["best"]
+    if summary["method"] == "geometric":
+        lines += ["(errors: eq. 10, estimate vs the observed closure of the closed frame; the paper's cases (b) "
+                  "and (c)", " pivot the finger about its base, so they miss a clamped finger's tip by millimetres)"]
+    else:
+        lines += ["(errors: eq. 10, estimate vs the observed closure of the closed frame)"]
     lines += [
-        "(errors: eq. 10, estimate vs the observed closure of the closed frame; the paper's cases (b) and (c)",
-        " pivot the finger about its base, so they miss a clamped finger's tip by millimetres)",
         "",
         f"score ({score['scene']}): {score['n_candidates']} poses in {score['seconds']:.2f} s, {score['n_valid']} valid; "
         f"best x {best['pose']['x_mm']:.1f} mm, y {best['pose']['y_mm']:.1f} mm, "

@@ -8,6 +8,7 @@ import sys
 import time
 
 from softgrip_cli import _pipeline as pipe
+from softgrip_cli._args import add_method_argument, resolve_method
 from softgrip_jax import Status
 
 EPILOG = """examples:
@@ -20,7 +21,7 @@ object between the fingers. The gripper's pose is read from the frame (the midpo
 bases); the estimate says what the fingers will do when the gripper closes there.
 
 With --json, stdout has one JSON object per frame, one per line, in the order given:
-  {"frame": PATH, "n_links": N, "fingers": [{"side": "left"|"right",
+  {"frame": PATH, "method": "geometric"|"mechanics", "n_links": N, "fingers": [{"side": "left"|"right",
    "case": "none"|"tip"|"tip_and_other"|"other", "theta_entire": rad,
    "joints_px": [[u, v], ...], "joints_mm": [[x, y], ...],
    "contacts_px": [[u, v], ...], "contacts_mm": [[x, y], ...]}, {...right...}]}
@@ -51,6 +52,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--overlay-dir", metavar="DIR", help="write DIR/<frame-name>.png overlays")
     parser.add_argument("--length-from-frame", action="store_true",
                         help="use each finger's length measured in the frame instead of the profile's")
+    add_method_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -61,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     pipe.enable_compilation_cache()
     profile = pipe.load_profile(args.profile)
+    method = resolve_method(args.method, profile)
     settings = pipe.segmentation_settings(profile)
     overlay_dir = pipe.ensure_dir(args.overlay_dir, "overlay folder") if args.overlay_dir else None
     names = pipe.unique_png_names(args.frames)
@@ -69,13 +72,13 @@ def run(args: argparse.Namespace) -> int:
               leave=False) as bar:
         for path, name in zip(args.frames, names):
             scene = pipe.frame_scene(path, profile, length_from_frame=args.length_from_frame, settings=settings)
-            grasp = pipe.estimate_scene(scene)
+            grasp = pipe.estimate_scene(scene, method)
             for side in pipe.SIDES:
                 estimate = getattr(grasp, side)
                 if not bool(estimate.valid):
                     pipe.warn(f"{path}: the {side} finger's estimate is not valid: "
                               f"{_STATUS_TEXT.get(int(estimate.status), pipe.status_name(estimate.status))}")
-            record = pipe.frame_json(scene, grasp)
+            record = pipe.frame_json(scene, grasp, method)
             text = json.dumps(record, allow_nan=False) if args.json else _table(scene, record)
             tqdm.write(text, file=sys.stdout)
             sys.stdout.flush()
@@ -91,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _table(scene: pipe.FrameScene, record: dict) -> str:
     x, y, angle = scene.pose
-    lines = [f"{scene.path}: N = {record['n_links']}, gripper at x {x:.1f} mm, y {y:.1f} mm, "
+    lines = [f"{scene.path}: {record['method']} estimate, N = {record['n_links']}, gripper at x {x:.1f} mm, y {y:.1f} mm, "
              f"angle {angle:.3f} rad"]
     for finger in record["fingers"]:
         tip = finger["joints_mm"][-1]

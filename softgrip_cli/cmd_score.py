@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from softgrip_cli import _pipeline as pipe
+from softgrip_cli._args import add_method_argument, resolve_method
 from softgrip_jax import SoftgripError
 
 EPILOG = """examples:
@@ -35,7 +36,7 @@ Poses:
               or this command's own --json output; FILE.csv: rows x_mm,y_mm[,angle_rad], optional
               header naming the columns; angle 0 when left out
 
-With --json, stdout is {"frame", "n_links", "n_candidates", "n_valid", "candidates": [...]}, the
+With --json, stdout is {"frame", "method", "n_links", "n_candidates", "n_valid", "candidates": [...]}, the
 candidates ranked best first (--top K of them, 0 for all), each {"pose": {"x_mm", "y_mm",
 "angle_rad"}, "score" (null when not valid), "components", "valid", "status", "fingers": [left,
 right]} with the fingers' fields as in `softgrip estimate --json`.
@@ -73,6 +74,7 @@ def add_parser(subparsers) -> None:
                         help="how many of the best candidates to print (default 10; 0 for all)")
     parser.add_argument("--length-from-frame", action="store_true",
                         help="use each finger's length measured in the frame instead of the profile's")
+    add_method_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -83,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
         raise SoftgripError(f"--top must be >= 0 (0 prints every candidate), got {args.top}")
     pipe.enable_compilation_cache()
     profile = pipe.load_profile(args.profile)
+    method = resolve_method(args.method, profile)
     grid = None
     if args.poses:
         poses = read_poses(args.poses)  # before the frame: a bad file fails fast
@@ -97,10 +100,10 @@ def run(args: argparse.Namespace) -> int:
     if not scene.has_object:
         pipe.warn(f"{args.frame}: no object found; every candidate closes on nothing (case none)")
 
-    result, elapsed = score_poses(scene, poses)
+    result, elapsed = score_poses(scene, poses, method)
     order = rank(result)
     n_valid = int(np.sum(result.valid))
-    print(f"scored {len(poses)} candidate poses in {elapsed:.1f} s (including compilation the first "
+    print(f"scored {len(poses)} candidate poses ({method} estimate) in {elapsed:.1f} s (including compilation the first "
           f"time); {n_valid} valid", file=sys.stderr)
 
     shown = order if args.top == 0 else order[:args.top]
@@ -108,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         image = heatmap_image(scene, poses, result, grid, int(order[0]))
         save_png(args.heatmap, image)
     if args.json:
-        out = {"frame": scene.path, "n_links": scene.n_links, "n_candidates": len(poses), "n_valid": n_valid,
+        out = {"frame": scene.path, "method": method, "n_links": scene.n_links, "n_candidates": len(poses), "n_valid": n_valid,
                "candidates": [pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera)
                               for i in shown]}
         json.dump(out, sys.stdout, allow_nan=False)
@@ -317,8 +320,9 @@ def _pad(poses: np.ndarray) -> np.ndarray:
     return np.concatenate([poses, np.repeat(poses[:1], size - len(poses), axis=0)])
 
 
-def score_poses(scene: pipe.FrameScene, poses: np.ndarray):
-    """Score (B, 3) poses on ``scene`` in one compiled call (``softgrip_jax.score``).
+def score_poses(scene: pipe.FrameScene, poses: np.ndarray, method: str = "geometric"):
+    """Score (B, 3) poses on ``scene`` in one compiled call (``softgrip_jax.score``), with the
+    deformation estimate ``method`` (``"geometric"`` or ``"mechanics"``).
 
     Returns:
         The ``Score`` with numpy leaves of leading axis B, and the seconds it took (compilation
@@ -331,7 +335,7 @@ def score_poses(scene: pipe.FrameScene, poses: np.ndarray):
 
     start = time.perf_counter()
     padded = jnp.asarray(_pad(poses), scene.gripper.base_separation.dtype)
-    result = pipe.to_numpy(jax.block_until_ready(score(scene.gripper, scene.sdf, padded)))
+    result = pipe.to_numpy(jax.block_until_ready(score(scene.gripper, scene.sdf, padded, method=method)))
     result = jax.tree_util.tree_map(lambda x: x[:len(poses)], result)
     return result, time.perf_counter() - start
 

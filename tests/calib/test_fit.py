@@ -7,6 +7,7 @@ whole file compiles the fit once (about half a minute on two cores).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import warnings
@@ -98,7 +99,7 @@ def five_frame_fit():
 def test_theta_is_recovered_from_five_noisy_frames(five_frame_fit) -> None:
     observations, fitted = five_frame_fit
     np.testing.assert_allclose(thetas(fitted), [TRUE["left"], TRUE["right"]], atol=0.005)
-    assert fitted.fit.method == "least-squares"
+    assert fitted.fit.method == "least-squares" and fitted.fit.estimate_method == "geometric"
     assert fitted.fit.frames == [o.label for o in observations]
     assert fitted.fit.skipped == []
     # Noise of 0.2 mm per coordinate is 0.28 mm per joint.
@@ -447,7 +448,9 @@ def test_cli_fit_starts_from_the_first_open_frame(frames, tmp_path: Path, capsys
     output = tmp_path / "fitted.json"
     argv = ["--fit", *(str(p) for pair in frames["pairs"][:2] for p in pair), "--n-links", str(N), "-o", str(output)]
     assert run_cli(argv) == 0
-    assert "least-squares: residual RMS" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "least-squares: residual RMS" in out and "(geometric estimate)" in out
+    assert load_profile(output).fit.estimate_method == "geometric"
     profile = load_profile(output)
     np.testing.assert_allclose(thetas(profile), [TRUE["left"], TRUE["right"]], atol=0.01)
     assert profile.fingers["left"].length == pytest.approx(LENGTH, rel=0.01)  # eq. 5 on the first open frame
@@ -460,7 +463,47 @@ def test_cli_fit_starts_from_the_first_open_frame(frames, tmp_path: Path, capsys
     (["closed", "-o", "p.json"], "give CLOSED_FRAME and --open OPEN_FRAME"),
     (["closed", "--open", "open", "--base-offset", "-o", "p.json"], "--base-offset only apply to --fit"),
     (["closed", "--fit", "a", "b", "-o", "p.json"], "with --fit give the frames as pairs"),
+    (["closed", "--open", "open", "--stiffness", "-o", "p.json"], "--stiffness only apply to --fit"),
+    (["closed", "--open", "open", "--method", "mechanics", "--base-compliance", "-o", "p.json"],
+     "--method, --base-compliance only apply to --fit"),
 ])
 def test_cli_usage_errors(argv, message) -> None:
     with pytest.raises(SoftgripError, match=message):
         run_cli(argv)
+
+
+def test_cli_stiffness_flags_need_the_mechanics_estimate(frames, tmp_path: Path) -> None:
+    pairs = [str(p) for p in frames["pairs"][0]]
+    for flags, named in ((["--stiffness"], "--stiffness"), (["--base-compliance", "--stiffness"],
+                                                              "--stiffness and --base-compliance")):
+        with pytest.raises(SoftgripError, match=f"{named} only change the mechanics estimate; add --method "
+                                                f"mechanics \\(the fit is going through the geometric estimate\\)"):
+            run_cli(["--fit", *pairs, "--n-links", str(N), *flags, "-o", str(tmp_path / "p.json")])
+
+
+@pytest.mark.parametrize("argv, parameters, method", [
+    (["--method", "mechanics"], ["theta_entire"], "mechanics"),
+    (["--method", "mechanics", "--stiffness"], ["theta_entire", "stiffness_ratio"], "mechanics"),
+    (["--method", "mechanics", "--base-compliance", "--base-offset", "--stiffness"],
+     ["theta_entire", "base_offset", "stiffness_ratio", "base_compliance"], "mechanics"),
+    ([], ["theta_entire"], "geometric"),
+])
+def test_cli_fit_passes_the_method_and_parameters(frames, tmp_path: Path, monkeypatch, capsys, argv, parameters,
+                                                  method) -> None:
+    """The command's wiring to calib.fit.fit (the mechanics fit itself is tested in test_fit_mechanics)."""
+    import calib.fit
+
+    calls = []
+
+    def fake_fit(observations, start, parameters, **kwargs):
+        calls.append((list(parameters), kwargs["method"]))
+        return dataclasses.replace(start, fit=FitEntry("least-squares", [o.label for o in observations],
+                                                       residual_rms_mm=0.0, estimate_method=kwargs["method"]))
+
+    monkeypatch.setattr(calib.fit, "fit", fake_fit)
+    output = tmp_path / "p.json"
+    pairs = [str(p) for pair in frames["pairs"][:2] for p in pair]
+    assert run_cli(["--fit", *pairs, "--n-links", str(N), *argv, "-o", str(output)]) == 0
+    assert calls == [(parameters, method)]
+    assert load_profile(output).fit.estimate_method == method
+    assert f"({method} estimate)" in capsys.readouterr().out

@@ -87,7 +87,8 @@ def test_estimate_prints_one_json_object_per_frame_in_order(estimated):
     n_links = profile_data()["fingers"]["left"]["n_links"]
     assert [r["frame"] for r in records] == FRAMES
     for record in records:
-        assert set(record) == {"frame", "n_links", "fingers"}
+        assert set(record) == {"frame", "method", "n_links", "fingers"}
+        assert record["method"] == "geometric"  # the sample profile records no fitted estimate
         assert record["n_links"] == n_links
         assert [f["side"] for f in record["fingers"]] == ["left", "right"]
         for finger in record["fingers"]:
@@ -125,7 +126,45 @@ def test_estimate_writes_one_overlay_per_frame(estimated):
 def test_estimate_table_without_json():
     code, out, _ = run_cli(["estimate", FRAMES[0], "--profile", str(PROFILE)])
     assert code == 0
-    assert "left" in out and "right" in out and FRAMES[0] in out
+    assert "left" in out and "right" in out and FRAMES[0] in out and "geometric estimate" in out
+
+
+def test_estimate_method_mechanics_and_the_profiles_recorded_method(estimated, tmp_path):
+    """--method mechanics is the spring chain at equilibrium; without --method, a profile fitted
+    through the mechanics estimate (fit.estimate_method) estimates with it; --method overrides it."""
+    records, _ = estimated
+    code, out, err = run_cli(["estimate", FRAMES[0], "--profile", str(PROFILE), "--json", "--method", "mechanics"])
+    assert code == 0, err
+    mechanics = json.loads(out)
+    assert mechanics["method"] == "mechanics"
+    n_links = profile_data()["fingers"]["left"]["n_links"]
+    for finger, geometric in zip(mechanics["fingers"], records[0]["fingers"]):
+        check_finger(finger, finger["side"], n_links)
+        assert finger["case"] != "none"
+        # The same base and link lengths; a different deformation model wherever the finger touches.
+        assert finger["joints_mm"][0] == pytest.approx(geometric["joints_mm"][0], abs=1e-3)
+        assert np.abs(np.subtract(finger["joints_mm"], geometric["joints_mm"])).max() > 1e-3
+
+    data = profile_data()
+    data["fit"]["estimate_method"] = "mechanics"
+    recorded = tmp_path / "mechanics_profile.json"
+    recorded.write_text(json.dumps(data))
+    code, out, err = run_cli(["estimate", FRAMES[0], "--profile", str(recorded), "--json"])
+    assert code == 0, err
+    assert json.loads(out) == mechanics
+    code, out, err = run_cli(["estimate", FRAMES[0], "--profile", str(recorded), "--json", "--method", "geometric"])
+    assert code == 0, err
+    assert json.loads(out) == records[0]
+
+
+@pytest.mark.parametrize("command", [["estimate", FRAMES[0]], ["score", FRAMES[0]], ["demo"]])
+def test_an_unknown_method_is_a_usage_error(command, capsys):
+    extra = ["--profile", str(PROFILE)] if command[0] != "demo" else []
+    with pytest.raises(SystemExit) as info:
+        main([*command, *extra, "--method", "spring"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --method: invalid choice: 'spring'" in err and "Traceback" not in err
 
 
 # --- score ------------------------------------------------------------------------------------
@@ -144,6 +183,7 @@ def test_score_json_is_ranked_best_first(scored):
     out, _ = scored
     n_links = profile_data()["fingers"]["left"]["n_links"]
     candidates = out["candidates"]
+    assert out["method"] == "geometric"
     assert out["n_candidates"] >= len(candidates) == TOP and out["n_valid"] > 0
     for c in candidates:
         assert set(c) == CANDIDATE_KEYS
@@ -216,6 +256,7 @@ def demo(tmp_path_factory):
 
 def test_demo_writes_its_outputs(demo):
     summary, out_dir = demo
+    assert summary["method"] == "geometric"
     assert {s["scene"] for s in summary["scenes"]} == set(SCENES)
     for name in summary["files"]:
         assert (out_dir / name).is_file(), name
