@@ -236,7 +236,8 @@ def fit(
 
     Returns:
         ``start`` with the fitted values and ``fit`` describing the fit: method ``"least-squares"``,
-        the estimate ``method`` (``fit.estimate_method``), the frames used, residual RMS (mm) per frame and overall, standard errors, skipped frames.
+        the estimate ``method`` (``fit.estimate_method``), the frames used, residual RMS (mm) per
+        frame and overall, standard errors, skipped frames.
         Pairs that cannot be used (non-finite input, or an invalid estimate at the start values:
         the open finger overlaps the object, its base lies outside the SDF grid, ...) are skipped
         with a :class:`SkippedFrameWarning`.
@@ -682,6 +683,7 @@ def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, r
     standard_errors = {f"{side}.{name}": (se[0] if PARAMETERS[name].shape == () else se)
                        for (side, name), se in errors.items()}
     return dataclasses.replace(start, fingers=fingers, fit=FitEntry(
-        method="least-squares", estimate_method=method, frames=labels, residual_rms_mm=float(np.sqrt(np.mean(distances**2))),
+        method="least-squares", estimate_method=method, frames=labels,
+        residual_rms_mm=float(np.sqrt(np.mean(distances**2))),
         frame_residual_rms_mm=np.sqrt(np.mean(distances**2, axis=(1, 2))).tolist(),
         standard_errors=standard_errors, skipped=skipped))

@@ -148,8 +148,8 @@ def _fit(args: argparse.Namespace):
         start = start_from_open_frame(load_frame(pairs[0][0]), n_links, camera_name=args.camera or "unspecified")
         settings = None
     method = resolve_method(args.method, start if args.profile is not None else None)
-    mechanics_only = [flag for flag, on in (("--stiffness", args.stiffness), ("--base-compliance", args.base_compliance))
-                      if on]
+    mechanics_only = [flag for flag, on in (("--stiffness", args.stiffness),
+                                            ("--base-compliance", args.base_compliance)) if on]
     if mechanics_only and method != "mechanics":
         raise SoftgripError(f"{' and '.join(mechanics_only)} only change the mechanics estimate; add --method "
                             f"mechanics (the fit is going through the {method} estimate)")

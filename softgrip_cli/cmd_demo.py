@@ -88,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
     timings["refine"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
 
-    summary = {"data": str(data), "out": str(out), "method": method, "calibration": calibration, "scenes": scene_results,
+    summary = {"data": str(data), "out": str(out), "method": method, "calibration": calibration,
+               "scenes": scene_results,
                "score": scored, "refine": refined, "timings_s": {k: round(v, 2) for k, v in timings.items()},
                "files": written + ["summary.json"]}
     _write_json(out / "summary.json", summary)

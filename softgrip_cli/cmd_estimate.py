@@ -94,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _table(scene: pipe.FrameScene, record: dict) -> str:
     x, y, angle = scene.pose
-    lines = [f"{scene.path}: {record['method']} estimate, N = {record['n_links']}, gripper at x {x:.1f} mm, y {y:.1f} mm, "
+    lines = [f"{scene.path}: {record['method']} estimate, N = {record['n_links']}, "
+             f"gripper at x {x:.1f} mm, y {y:.1f} mm, "
              f"angle {angle:.3f} rad"]
     for finger in record["fingers"]:
         tip = finger["joints_mm"][-1]

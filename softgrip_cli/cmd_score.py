@@ -103,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
     result, elapsed = score_poses(scene, poses, method)
     order = rank(result)
     n_valid = int(np.sum(result.valid))
-    print(f"scored {len(poses)} candidate poses ({method} estimate) in {elapsed:.1f} s (including compilation the first "
+    print(f"scored {len(poses)} candidate poses ({method} estimate) in {elapsed:.1f} s "
+          f"(including compilation the first "
           f"time); {n_valid} valid", file=sys.stderr)
 
     shown = order if args.top == 0 else order[:args.top]
