@@ -2,6 +2,8 @@
 
 import argparse
 
+import softgrip_jax
+
 
 def positive_int(text: str) -> int:
     """An argparse type: a whole number >= 1."""
@@ -15,11 +17,11 @@ def positive_int(text: str) -> int:
 
 
 #: The estimate the commands use when neither ``--method`` nor the profile (``fit.estimate_method``,
-#: the estimate it was fitted through) says which. The one place to change the project's default.
-DEFAULT_METHOD = "geometric"
+#: the estimate it was fitted through) says which: the core's default, set in one place.
+DEFAULT_METHOD = softgrip_jax.DEFAULT_METHOD
 
-#: The choices of ``--method`` (softgrip_jax.METHODS).
-METHOD_CHOICES = ("geometric", "mechanics")
+#: The choices of ``--method``.
+METHOD_CHOICES = softgrip_jax.METHODS
 
 
 def add_method_argument(parser: argparse.ArgumentParser, from_profile: bool = True,

@@ -33,7 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from softgrip_jax import CASE_NAMES, ContactCase, SoftgripError, Status
+from softgrip_jax import CASE_NAMES, DEFAULT_METHOD, ContactCase, SoftgripError, Status
 
 SIDES: tuple[str, str] = ("left", "right")
 #: Warn when the frame's bases are this much closer or farther apart than the profile says (mm).
@@ -243,7 +243,7 @@ def estimate_grasp_jit():
     return _ESTIMATE
 
 
-def estimate_scene(scene: FrameScene, method: str = "geometric"):
+def estimate_scene(scene: FrameScene, method: str = DEFAULT_METHOD):
     """Both fingers' estimates at the frame's own pose, as numpy (a ``GraspEstimate``), with the
     deformation estimate ``method`` (``"geometric"`` or ``"mechanics"``)."""
     import jax.numpy as jnp

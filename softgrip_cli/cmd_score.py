@@ -17,7 +17,7 @@ import numpy as np
 
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_method
-from softgrip_jax import SoftgripError
+from softgrip_jax import DEFAULT_METHOD, SoftgripError
 
 EPILOG = """examples:
   softgrip score data/circle_open --profile data/sample_profile.json --heatmap heat.png
@@ -321,7 +321,7 @@ def _pad(poses: np.ndarray) -> np.ndarray:
     return np.concatenate([poses, np.repeat(poses[:1], size - len(poses), axis=0)])
 
 
-def score_poses(scene: pipe.FrameScene, poses: np.ndarray, method: str = "geometric"):
+def score_poses(scene: pipe.FrameScene, poses: np.ndarray, method: str = DEFAULT_METHOD):
     """Score (B, 3) poses on ``scene`` in one compiled call (``softgrip_jax.score``), with the
     deformation estimate ``method`` (``"geometric"`` or ``"mechanics"``).
 

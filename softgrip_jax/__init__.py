@@ -24,7 +24,7 @@ from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, link_angles, pcc_joints, pcc_turning
-from softgrip_jax._mechanics import METHODS, MechanicsConfig, link_stiffness
+from softgrip_jax._mechanics import DEFAULT_METHOD, METHODS, MechanicsConfig, link_stiffness
 from softgrip_jax._metrics import joint_errors
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._score import (RefineStatus, Refined, Score, ScoreComponents, ScoreWeights, refine, score,
@@ -36,6 +36,6 @@ __all__ = [
     "FingerModel", "GraspEstimate", "Gripper", "PolygonSDF", "SDFGrid", "SoftgripError",
     "Status", "case_shapes", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
     "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",
-    "joint_errors", "link_angles", "link_stiffness", "METHODS", "MechanicsConfig", "RefineStatus", "Refined", "Score", "ScoreComponents", "ScoreWeights",
+    "joint_errors", "link_angles", "link_stiffness", "DEFAULT_METHOD", "METHODS", "MechanicsConfig", "RefineStatus", "Refined", "Score", "ScoreComponents", "ScoreWeights",
     "refine", "score", "score_pose", "pcc_joints", "pcc_turning", "predict_contact", "predict_contact_local", "sweep_shape",
 ]

@@ -19,7 +19,7 @@ from softgrip_jax._contact import ContactConfig
 from softgrip_jax._deformation import Estimate, estimate, finish, geometric_stage, mechanics_of, needs_mechanics
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
-from softgrip_jax._mechanics import MechanicsConfig, check_method
+from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 
@@ -117,7 +117,7 @@ def estimate_batch(
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = DEFAULT_CHUNK,
-    method: str = "geometric",
+    method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Estimate:
     """:func:`estimate` for B finger bases (mm), compiled once per shape, ``chunk_size`` at a time.
@@ -139,7 +139,7 @@ def estimate_grasp_batch(
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = DEFAULT_CHUNK,
-    method: str = "geometric",
+    method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> GraspEstimate:
     """:func:`estimate_grasp` for B poses (x mm, y mm, angle rad), ``chunk_size`` at a time.

@@ -31,7 +31,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from softgrip_jax._contact import Contact, ContactCase, ContactConfig, predict_contact_local
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics, pcc_turning
-from softgrip_jax._mechanics import Equilibrium, MechanicsConfig, check_method, mechanics_start, solve_equilibrium
+from softgrip_jax._mechanics import DEFAULT_METHOD, Equilibrium, MechanicsConfig, check_method, mechanics_start, solve_equilibrium
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
@@ -197,7 +197,7 @@ def estimate_in_frame(
     frame: FingerFrame,
     config: ContactConfig = ContactConfig(),
     *,
-    method: str = "geometric",
+    method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Estimate:
     """Estimate one finger placed by ``frame`` (base, gripper angle, handedness); image-plane output.
@@ -219,7 +219,7 @@ def estimate(
     base: Float[ArrayLike, "2"],
     config: ContactConfig = ContactConfig(),
     *,
-    method: str = "geometric",
+    method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Estimate:
     """Estimate the deformation of a finger hanging from ``base`` (mm) and curling toward +x.

@@ -16,7 +16,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._deformation import Estimate, estimate_in_frame
 from softgrip_jax._frames import FingerFrame
-from softgrip_jax._mechanics import MechanicsConfig, check_method
+from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
 from softgrip_jax._model import Gripper
 from softgrip_jax._safe import unit_direction
 from softgrip_jax._sdf import AbstractSDF
@@ -51,7 +51,7 @@ def estimate_grasp(
     pose: Float[ArrayLike, "3"],
     config: ContactConfig = ContactConfig(),
     *,
-    method: str = "geometric",
+    method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> GraspEstimate:
     """Estimate both fingers of ``gripper`` at ``pose`` = (x mm, y mm, angle rad) against ``sdf``.

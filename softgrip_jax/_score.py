@@ -38,7 +38,7 @@ from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._deformation import Estimate
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
 from softgrip_jax._kinematics import chain_stations
-from softgrip_jax._mechanics import MechanicsConfig, check_method
+from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._safe import safe_divide, safe_norm
 from softgrip_jax._sdf import AbstractSDF
@@ -101,7 +101,7 @@ def score_pose(
     weights: ScoreWeights = ScoreWeights(),
     config: ContactConfig = ContactConfig(),
     *,
-    method: str = "geometric",
+    method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Score:
     """Score one pose (x mm, y mm, angle rad). Pure; jit-, vmap- and grad-compatible.
@@ -178,7 +178,7 @@ def score(
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = 2048,
-    method: str = "geometric",
+    method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Score:
     """Score B candidate poses (x mm, y mm, angle rad) in one compiled call.
@@ -265,7 +265,7 @@ def refine(
     *,
     max_steps: int = 40,
     angle_scale: float = 0.05,
-    method: str = "geometric",
+    method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
 ) -> Refined:
     """Improve one pose (3,) or a batch (B, 3) by gradient ascent of the score (optimistix BFGS).
