@@ -224,11 +224,12 @@ def estimate(
 ) -> Estimate:
     """Estimate the deformation of a finger hanging from ``base`` (mm) and curling toward +x.
 
-    This is the paper's whole pipeline for one finger: contact prediction (eqs. 5-8) and the
-    deformation of the predicted case (eq. 9). Pure and jit-, vmap- and grad-compatible; a NaN or
-    out-of-grid ``base`` gives ``valid=False`` and NaN joints without affecting other batch elements.
-    ``method="mechanics"`` (static) replaces eq. 9 by the spring chain at equilibrium
-    (:mod:`softgrip_jax._mechanics`, settings ``mechanics``).
+    The whole pipeline for one finger: contact prediction (eqs. 5-8), then the deformation chosen by
+    ``method`` (static): ``"mechanics"`` (the default, :data:`DEFAULT_METHOD`), the spring chain at
+    equilibrium against the object (:mod:`softgrip_jax._mechanics`, settings ``mechanics``), or
+    ``"geometric"``, the paper's deformation of the predicted case (eq. 9). Pure and jit-, vmap- and
+    grad-compatible; a NaN or out-of-grid ``base`` gives ``valid=False`` and NaN joints without
+    affecting other batch elements.
 
     Example:
         >>> import jax.numpy as jnp

@@ -72,7 +72,7 @@ METHODS: tuple[str, ...] = ("geometric", "mechanics")
 
 #: The estimate every function and command uses when ``method`` is not given: the one the accuracy
 #: harness shows is more accurate at an acceptable speed (benchmarks/RESULTS.md, issue 7).
-DEFAULT_METHOD: str = "geometric"
+DEFAULT_METHOD: str = "mechanics"
 
 #: Compliance floor: keeps psi = sqrt(c + floor) u differentiable at a clamped base (c = 0), where
 #: it lets the base turn by 1e-8 of the base moment (nanoradians).

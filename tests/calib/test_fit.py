@@ -24,7 +24,7 @@ from calib.fit import (FRAME_BUCKET, FitError, Observation, SkippedFrameWarning,
 from calib.one_frame import free_closure_joints, one_frame_from_frames, one_frame_profile
 from calib.profile import CalibrationProfile, FingerEntry, FitEntry, load_profile
 from softgrip_cli import cmd_calibrate
-from softgrip_jax import FAR_MM, SDFGrid, SoftgripError
+from softgrip_jax import DEFAULT_METHOD, FAR_MM, SDFGrid, SoftgripError
 from vision.frames import save_frame
 from vision.geometry import PlaneCamera
 from vision.synthetic.render import Scene, d405_intrinsics, render
@@ -449,8 +449,8 @@ def test_cli_fit_starts_from_the_first_open_frame(frames, tmp_path: Path, capsys
     argv = ["--fit", *(str(p) for pair in frames["pairs"][:2] for p in pair), "--n-links", str(N), "-o", str(output)]
     assert run_cli(argv) == 0
     out = capsys.readouterr().out
-    assert "least-squares: residual RMS" in out and "(geometric estimate)" in out
-    assert load_profile(output).fit.estimate_method == "geometric"
+    assert "least-squares: residual RMS" in out and f"({DEFAULT_METHOD} estimate)" in out
+    assert load_profile(output).fit.estimate_method == DEFAULT_METHOD
     profile = load_profile(output)
     np.testing.assert_allclose(thetas(profile), [TRUE["left"], TRUE["right"]], atol=0.01)
     assert profile.fingers["left"].length == pytest.approx(LENGTH, rel=0.01)  # eq. 5 on the first open frame
@@ -478,7 +478,7 @@ def test_cli_stiffness_flags_need_the_mechanics_estimate(frames, tmp_path: Path)
                                                               "--stiffness and --base-compliance")):
         with pytest.raises(SoftgripError, match=f"{named} only change the mechanics estimate; add --method "
                                                 f"mechanics \\(the fit is going through the geometric estimate\\)"):
-            run_cli(["--fit", *pairs, "--n-links", str(N), *flags, "-o", str(tmp_path / "p.json")])
+            run_cli(["--fit", *pairs, "--n-links", str(N), "--method", "geometric", *flags, "-o", str(tmp_path / "p.json")])
 
 
 @pytest.mark.parametrize("argv, parameters, method", [
@@ -486,7 +486,8 @@ def test_cli_stiffness_flags_need_the_mechanics_estimate(frames, tmp_path: Path)
     (["--method", "mechanics", "--stiffness"], ["theta_entire", "stiffness_ratio"], "mechanics"),
     (["--method", "mechanics", "--base-compliance", "--base-offset", "--stiffness"],
      ["theta_entire", "base_offset", "stiffness_ratio", "base_compliance"], "mechanics"),
-    ([], ["theta_entire"], "geometric"),
+    ([], ["theta_entire"], DEFAULT_METHOD),
+    (["--method", "geometric"], ["theta_entire"], "geometric"),
 ])
 def test_cli_fit_passes_the_method_and_parameters(frames, tmp_path: Path, monkeypatch, capsys, argv, parameters,
                                                   method) -> None:

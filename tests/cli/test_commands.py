@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from softgrip_cli import main
-from softgrip_jax import CASE_NAMES, SoftgripError
+from softgrip_jax import CASE_NAMES, DEFAULT_METHOD, SoftgripError
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "data"
@@ -88,7 +88,7 @@ def test_estimate_prints_one_json_object_per_frame_in_order(estimated):
     assert [r["frame"] for r in records] == FRAMES
     for record in records:
         assert set(record) == {"frame", "method", "n_links", "fingers"}
-        assert record["method"] == "geometric"  # the sample profile records no fitted estimate
+        assert record["method"] == DEFAULT_METHOD  # the sample profile records no fitted estimate
         assert record["n_links"] == n_links
         assert [f["side"] for f in record["fingers"]] == ["left", "right"]
         for finger in record["fingers"]:
@@ -126,13 +126,16 @@ def test_estimate_writes_one_overlay_per_frame(estimated):
 def test_estimate_table_without_json():
     code, out, _ = run_cli(["estimate", FRAMES[0], "--profile", str(PROFILE)])
     assert code == 0
-    assert "left" in out and "right" in out and FRAMES[0] in out and "geometric estimate" in out
+    assert "left" in out and "right" in out and FRAMES[0] in out and f"{DEFAULT_METHOD} estimate" in out
 
 
 def test_estimate_method_mechanics_and_the_profiles_recorded_method(estimated, tmp_path):
     """--method mechanics is the spring chain at equilibrium; without --method, a profile fitted
     through the mechanics estimate (fit.estimate_method) estimates with it; --method overrides it."""
-    records, _ = estimated
+    code, out, err = run_cli(["estimate", FRAMES[0], "--profile", str(PROFILE), "--json", "--method", "geometric"])
+    assert code == 0, err
+    records = [json.loads(out)]
+    assert records[0]["method"] == "geometric"
     code, out, err = run_cli(["estimate", FRAMES[0], "--profile", str(PROFILE), "--json", "--method", "mechanics"])
     assert code == 0, err
     mechanics = json.loads(out)
@@ -183,7 +186,7 @@ def test_score_json_is_ranked_best_first(scored):
     out, _ = scored
     n_links = profile_data()["fingers"]["left"]["n_links"]
     candidates = out["candidates"]
-    assert out["method"] == "geometric"
+    assert out["method"] == DEFAULT_METHOD
     assert out["n_candidates"] >= len(candidates) == TOP and out["n_valid"] > 0
     for c in candidates:
         assert set(c) == CANDIDATE_KEYS
@@ -256,7 +259,7 @@ def demo(tmp_path_factory):
 
 def test_demo_writes_its_outputs(demo):
     summary, out_dir = demo
-    assert summary["method"] == "geometric"
+    assert summary["method"] == DEFAULT_METHOD
     assert {s["scene"] for s in summary["scenes"]} == set(SCENES)
     for name in summary["files"]:
         assert (out_dir / name).is_file(), name

@@ -1,5 +1,7 @@
 """Batches: one compilation per shape, bad candidates isolated, 100k candidates in one call."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -8,6 +10,9 @@ import pytest
 from softgrip_jax import (CASE_NAMES, FingerModel, Gripper, PolygonSDF, SDFGrid, Status, estimate,
                           estimate_batch, estimate_grasp_batch)
 from softgrip_jax._batch import _estimate_batch
+
+#: The paper's estimate: these tests check its batching (the mechanics one has its own tests).
+geometric = functools.partial(estimate, method="geometric")
 
 FINGER = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
 CIRCLE = PolygonSDF.regular((30.0, 40.0), 8.0, 128)
@@ -21,8 +26,8 @@ def bases(n, seed, x_max=40.0):
 
 def test_batch_compiles_once_per_shape():
     before = _estimate_batch._cache_size()
-    first = estimate_batch(FINGER, GRID, bases(64, 0), chunk_size=16)
-    second = estimate_batch(FINGER, GRID, bases(64, 1), chunk_size=16)
+    first = estimate_batch(FINGER, GRID, bases(64, 0), chunk_size=16, method="geometric")
+    second = estimate_batch(FINGER, GRID, bases(64, 1), chunk_size=16, method="geometric")
     assert _estimate_batch._cache_size() == before + 1
     assert not np.allclose(first.joints, second.joints)  # the second call really used new inputs
     assert set(np.unique(first.case)) > {0}  # the scene produces contacts, not just case (a)
@@ -33,8 +38,8 @@ def test_bad_candidates_are_flagged_and_isolated():
     batch = good.copy()
     batch[2] = [np.nan, 0.0]  # NaN
     batch[5] = [500.0, 0.0]  # far outside the SDF grid (outside the image)
-    out = estimate_batch(FINGER, GRID, batch)
-    clean = estimate_batch(FINGER, GRID, good)
+    out = estimate_batch(FINGER, GRID, batch, method="geometric")
+    clean = estimate_batch(FINGER, GRID, good, method="geometric")
     assert out.valid.tolist() == [True, True, False, True, True, False, True, True]
     assert int(out.status[2]) == Status.NON_FINITE_INPUT and int(out.status[5]) == Status.BASE_OUTSIDE_SDF
     assert np.all(np.isnan(out.joints[2])) and np.all(np.isnan(out.joints[5]))
@@ -48,7 +53,7 @@ def test_bad_candidates_do_not_poison_gradients():
 
     def loss(theta):
         f = FingerModel(length=50.0, theta_entire=theta, half_thickness=3.0, n_links=10)
-        est = jax.vmap(estimate, in_axes=(None, None, 0))(f, GRID, batch)
+        est = jax.vmap(geometric, in_axes=(None, None, 0))(f, GRID, batch)
         return jnp.sum(jnp.where(est.valid[:, None, None], est.joints, 0.0))
 
     assert np.isfinite(jax.jit(jax.grad(loss))(jnp.float32(0.5)))
@@ -57,7 +62,7 @@ def test_bad_candidates_do_not_poison_gradients():
 @pytest.mark.slow
 def test_vmap_over_100k_bases_matches_chunked_batch():
     many = bases(100_000, 4)
-    vmapped = jax.jit(jax.vmap(estimate, in_axes=(None, None, 0)))(FINGER, GRID, many)
+    vmapped = jax.jit(jax.vmap(geometric, in_axes=(None, None, 0)))(FINGER, GRID, many)
     assert vmapped.joints.shape == (100_000, 11, 2)
     # Invalid exactly where the open (straight) finger already overlaps the circle (+ r).
     foot_y = np.clip(40.0 - many[:, 1], 0.0, 50.0)
@@ -67,7 +72,7 @@ def test_vmap_over_100k_bases_matches_chunked_batch():
     np.testing.assert_array_equal(
         np.asarray(vmapped.status)[clear], np.where(gap[clear] > 0, Status.OK, Status.INITIAL_OVERLAP))
     assert np.all(np.isfinite(vmapped.joints))
-    chunked = estimate_batch(FINGER, GRID, many[:1000], chunk_size=256)
+    chunked = estimate_batch(FINGER, GRID, many[:1000], chunk_size=256, method="geometric")
     np.testing.assert_allclose(vmapped.joints[:1000], chunked.joints, atol=1e-4)
     counts = np.bincount(np.asarray(vmapped.case), minlength=4)
     assert all(c > 0 for c in counts), dict(zip(CASE_NAMES, counts))  # every case occurs
@@ -78,7 +83,7 @@ def test_grasp_batch_is_mirror_symmetric():
     gripper = Gripper(left=f, right=f, base_separation=50.0)
     sdf = PolygonSDF.regular((0.0, 35.0), 9.0, 128)  # symmetric about x = 0
     poses = np.array([[0.0, 0.0, 0.0], [0.0, 5.0, 0.0]], np.float32)
-    est = estimate_grasp_batch(gripper, sdf, poses)
+    est = estimate_grasp_batch(gripper, sdf, poses, method="geometric")
     mirrored = np.asarray(est.right.joints) * np.array([-1.0, 1.0])
     np.testing.assert_allclose(est.left.joints, mirrored, atol=1e-4)
     np.testing.assert_array_equal(est.left.case, est.right.case)
@@ -93,7 +98,7 @@ def test_rotated_gripper_is_the_rotated_scene():
     # whose axes are (cos a, -sin a) across and (sin a, cos a) down.
     rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
     verts = np.asarray(PolygonSDF.regular((5.0, 35.0), 9.0, 128).vertices)
-    upright = estimate_grasp_batch(gripper, PolygonSDF(jnp.asarray(verts)), np.zeros((1, 3), np.float32))
-    turned = estimate_grasp_batch(gripper, PolygonSDF(jnp.asarray(verts @ rot)), np.array([[0, 0, angle]], np.float32))
+    upright = estimate_grasp_batch(gripper, PolygonSDF(jnp.asarray(verts)), np.zeros((1, 3), np.float32), method="geometric")
+    turned = estimate_grasp_batch(gripper, PolygonSDF(jnp.asarray(verts @ rot)), np.array([[0, 0, angle]], np.float32), method="geometric")
     np.testing.assert_allclose(np.asarray(turned.left.joints[0]), np.asarray(upright.left.joints[0]) @ rot, atol=1e-3)
     np.testing.assert_array_equal(turned.right.case, upright.right.case)

@@ -27,7 +27,7 @@ def chain(psi, turning):
 
 def run(theta, center, radius):
     finger = FingerModel(length=L, theta_entire=theta, half_thickness=R_FINGER, n_links=N)
-    est = estimate(finger, PolygonSDF.regular(center, radius, n_vertices=720), jnp.zeros(2))
+    est = estimate(finger, PolygonSDF.regular(center, radius, n_vertices=720), jnp.zeros(2), method="geometric")
     assert int(est.status) == Status.OK and bool(est.valid)
     return est, est.contact
 

@@ -23,7 +23,7 @@ def test_ranking_sanity():
         [0.0, -15.0, 0.0],  # both fingertips land on the disc's upper edge
         [-5.0, 5.0, 0.0],   # off-centre: the left finger lands tip-first
     ], np.float32)
-    s = score(GRIPPER, DISC, poses)
+    s = score(GRIPPER, DISC, poses, method="geometric")
     cases = [(CASE_NAMES[int(a)], CASE_NAMES[int(b)]) for a, b in zip(s.grasp.left.case, s.grasp.right.case)]
     assert cases[0] == ("other", "other") and cases[1] == ("none", "none")
     assert cases[2] == ("tip", "tip") and cases[3][0] == "tip"
@@ -37,7 +37,7 @@ def test_ranking_sanity():
 
 def test_invalid_candidates_rank_last_and_do_not_poison_the_batch():
     poses = np.array([[0.0, 10.0, 0.0], [np.nan, 0.0, 0.0], [28.0, 20.0, 0.0], [0.0, 10.0, 0.0]], np.float32)
-    s = score(GRIPPER, DISC, poses)
+    s = score(GRIPPER, DISC, poses, method="geometric")
     assert s.valid.tolist() == [True, False, False, True]  # a NaN pose; the left finger starts inside the disc
     assert np.isneginf(s.score[1]) and np.isneginf(s.score[2])
     assert float(s.score[0]) == float(s.score[3])
@@ -46,15 +46,15 @@ def test_invalid_candidates_rank_last_and_do_not_poison_the_batch():
 @pytest.mark.slow
 def test_refine_improves_an_off_centre_pose_and_keeps_it_valid():
     start = jnp.array([-6.0, 4.0, 0.05])
-    before = score(GRIPPER, DISC, start[None])
-    result = refine(GRIPPER, DISC, start, max_steps=24)
+    before = score(GRIPPER, DISC, start[None], method="geometric")
+    result = refine(GRIPPER, DISC, start, max_steps=24, method="geometric")
     assert bool(before.valid[0])
     assert int(result.status) == RefineStatus.IMPROVED
     assert bool(result.score.valid)
     assert float(result.score.score) > float(before.score[0]) + 0.1
     assert float(result.start_score) == pytest.approx(float(before.score[0]), abs=1e-5)
     # The reported score is the refined pose's own.
-    again = score(GRIPPER, DISC, result.pose[None])
+    again = score(GRIPPER, DISC, result.pose[None], method="geometric")
     assert float(again.score[0]) == pytest.approx(float(result.score.score), abs=1e-4)
 
 
@@ -68,9 +68,9 @@ SHARDED = textwrap.dedent("""
     disc = PolygonSDF.regular((0.0, 38.0), 15.0, 128)
     rng = np.random.default_rng(0)
     poses = rng.uniform([-20, -20, -0.2], [20, 20, 0.2], (101, 3)).astype(np.float32)
-    sharded = score(g, disc, poses, chunk_size=16)
+    sharded = score(g, disc, poses, chunk_size=16, method="geometric")
     assert len(sharded.score.sharding.device_set) == 2  # the batch really was split
-    single = jax.jit(jax.vmap(lambda p: score_pose(g, disc, p)), device=jax.devices()[0])(poses)
+    single = jax.jit(jax.vmap(lambda p: score_pose(g, disc, p, method="geometric")), device=jax.devices()[0])(poses)
     np.testing.assert_array_equal(np.asarray(sharded.valid), np.asarray(single.valid))
     ok = np.asarray(single.valid)
     np.testing.assert_allclose(np.asarray(sharded.score)[ok], np.asarray(single.score)[ok], atol=1e-5)
