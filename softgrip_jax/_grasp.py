@@ -56,17 +56,21 @@ def estimate_grasp(
 ) -> GraspEstimate:
     """Estimate both fingers of ``gripper`` at ``pose`` = (x mm, y mm, angle rad) against ``sdf``.
 
-    ``method`` (static): ``"geometric"`` (the paper's eq. 9) or ``"mechanics"`` (the spring chain
-    at equilibrium, solver settings ``mechanics``), as for :func:`estimate_in_frame`.
+    ``method`` (static): ``"mechanics"`` (the default: the spring chain at equilibrium, solver
+    settings ``mechanics``) or ``"geometric"`` (the paper's eq. 9), as for :func:`estimate_in_frame`.
 
     Example:
         >>> import jax.numpy as jnp
         >>> from softgrip_jax import FingerModel, Gripper, PolygonSDF, CASE_NAMES
         >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
         >>> g = Gripper(left=f, right=f, base_separation=50.0)
-        >>> est = estimate_grasp(g, PolygonSDF.regular((0.0, 35.0), 9.0), jnp.array([0.0, 0.0, 0.0]))
+        >>> disc = PolygonSDF.regular((0.0, 35.0), 9.0)
+        >>> est = estimate_grasp(g, disc, jnp.array([0.0, 0.0, 0.0]), method="geometric")
         >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
         ['other', 'other']
+        >>> est = estimate_grasp(g, disc, jnp.array([0.0, 0.0, 0.0]))  # the default: mechanics
+        >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
+        ['tip_and_other', 'tip_and_other']
     """
     check_method(method)
     left_frame, right_frame = finger_frames(gripper, pose)
