@@ -117,7 +117,7 @@ def held_out_errors(profile: CalibrationProfile, pairs: list[Pair]) -> tuple[np.
         for k, (side, hand) in enumerate(zip(SIDES, (1.0, -1.0))):
             frame = FingerFrame(origin=jnp.asarray(bases[k], jnp.float32), angle=jnp.zeros(()),
                                 handedness=jnp.asarray(hand))
-            est = _estimate(profile.fingers[side].model(), pair.observation.sdf, frame)
+            est = _estimate(profile.fingers[side].model(), pair.observation.sdf, frame, method="geometric")
             errors.append(np.asarray(joint_errors(est.joints, jnp.asarray(pair.truth[k], jnp.float32)))[1:])
             cases.append(int(est.case))
     return np.array(errors), np.array(cases)
