@@ -91,7 +91,8 @@ def _base_frames(bases):
 @partial(jax.jit, static_argnames=("chunk_size", "method"))
 def _estimate_batch(finger, sdf, bases, config, mechanics, chunk_size, method):
     if method == "geometric":
-        return jax.lax.map(lambda b: estimate(finger, sdf, b, config), bases, batch_size=chunk_size)
+        return jax.lax.map(lambda b: estimate(finger, sdf, b, config, method="geometric"), bases,
+                           batch_size=chunk_size)
     return map_chunks(lambda chunk: finger_chunk(finger, sdf, _base_frames(chunk), config, mechanics),
                        bases, chunk_size)
 
@@ -106,7 +107,8 @@ def grasp_chunk(gripper, sdf, poses, config, mechanics):
 @partial(jax.jit, static_argnames=("chunk_size", "method"))
 def _estimate_grasp_batch(gripper, sdf, poses, config, mechanics, chunk_size, method):
     if method == "geometric":
-        return jax.lax.map(lambda p: estimate_grasp(gripper, sdf, p, config), poses, batch_size=chunk_size)
+        return jax.lax.map(lambda p: estimate_grasp(gripper, sdf, p, config, method="geometric"), poses,
+                           batch_size=chunk_size)
     return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, mechanics), poses, chunk_size)
 
 

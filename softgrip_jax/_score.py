@@ -166,7 +166,7 @@ def _score_chunks(gripper, sdf, poses, weights, config, mechanics, chunk_size, m
         if poses.shape[0] == 1:
             return jax.tree_util.tree_map(lambda x: x[None], per_share(poses[0]))
         return jax.vmap(per_share)(poses)
-    one = lambda p: score_pose(gripper, sdf, p, weights, config)  # noqa: E731
+    one = lambda p: score_pose(gripper, sdf, p, weights, config, method="geometric")  # noqa: E731
     return jax.vmap(lambda share: jax.lax.map(one, share, batch_size=chunk_size))(poses)
 
 
