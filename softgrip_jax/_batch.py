@@ -82,19 +82,13 @@ def map_chunks(fn, xs, chunk_size):
     return jax.tree_util.tree_map(lambda x: x.reshape((n_chunks * chunk_size,) + x.shape[2:])[:b], out)
 
 
-def _base_frames(bases):
-    """Frames (batched) of fingers hanging from ``bases`` (B, 2) and curling toward +x."""
-    one = lambda b: FingerFrame(origin=b, angle=jnp.zeros((), b.dtype), handedness=jnp.ones((), b.dtype))  # noqa: E731
-    return jax.vmap(one)(bases)
-
-
 @partial(jax.jit, static_argnames=("chunk_size", "method"))
 def _estimate_batch(finger, sdf, bases, config, mechanics, chunk_size, method):
     if method == "geometric":
         return jax.lax.map(lambda b: estimate(finger, sdf, b, config, method="geometric"), bases,
                            batch_size=chunk_size)
-    return map_chunks(lambda chunk: finger_chunk(finger, sdf, _base_frames(chunk), config, mechanics),
-                       bases, chunk_size)
+    frames = jax.vmap(FingerFrame.hanging_from)
+    return map_chunks(lambda chunk: finger_chunk(finger, sdf, frames(chunk), config, mechanics), bases, chunk_size)
 
 
 def grasp_chunk(gripper, sdf, poses, config, mechanics):

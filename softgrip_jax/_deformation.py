@@ -239,8 +239,5 @@ def estimate(
         >>> CASE_NAMES[int(est.case)], est.joints.shape
         ('none', (11, 2))
     """
-    dtype = finger.length.dtype
-    frame = FingerFrame(
-        origin=jnp.asarray(base, dtype), angle=jnp.zeros((), dtype), handedness=jnp.ones((), dtype)
-    )
+    frame = FingerFrame.hanging_from(jnp.asarray(base, finger.length.dtype))
     return estimate_in_frame(finger, sdf, frame, config, method=method, mechanics=mechanics)

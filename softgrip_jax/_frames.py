@@ -30,6 +30,11 @@ class FingerFrame(eqx.Module):
     angle: Float[Array, ""]
     handedness: Float[Array, ""]
 
+    @classmethod
+    def hanging_from(cls, base: Float[Array, "2"]) -> "FingerFrame":
+        """The frame of a left finger hanging straight down from ``base`` (mm): no gripper rotation."""
+        return cls(origin=base, angle=jnp.zeros((), base.dtype), handedness=jnp.ones((), base.dtype))
+
     def _axes(self):
         down = unit_direction(self.angle)
         across = jnp.stack([down[1], -down[0]])  # "down" turned by +90 deg: the closing direction
