@@ -163,8 +163,23 @@ def _parabola_vertices(
 
 
 def _chain_clearance(distances: Float[Array, "*batch m"], spacing, r: Float[Array, ""]) -> Float[Array, "*batch"]:
-    """g: the smallest centreline clearance (mm), refined between stations ``spacing`` mm apart."""
-    return jnp.min(_parabola_vertices(distances, spacing)[0], axis=-1) - r
+    """g: the smallest centreline clearance (mm), refined between stations ``spacing`` mm apart.
+
+    Equal to the minimum of :func:`_parabola_vertices` over the stations, computed on slices (the end
+    stations keep their own value) so that no shifted copy of ``distances`` is built: the bracket
+    evaluates this on n_sweep x stations values per candidate.
+    """
+    d = distances
+    if d.shape[-1] < 3:
+        return jnp.min(d, axis=-1) - r
+    d_prev, d_mid, d_next = d[..., :-2], d[..., 1:-1], d[..., 2:]
+    slope = 0.5 * (d_next - d_prev)
+    curvature = d_prev - 2.0 * d_mid + d_next
+    convex = curvature > 0
+    offset = jnp.where(convex, jnp.clip(-slope / jnp.where(convex, curvature, 1.0), -0.5, 0.5), 0.0)
+    value = jnp.maximum(d_mid + slope * offset + 0.5 * curvature * offset**2, d_mid - 0.5 * spacing)
+    ends = jnp.minimum(d[..., 0], d[..., -1])
+    return jnp.minimum(jnp.min(value, axis=-1), ends) - r
 
 
 def _station_spacing(finger, config):
@@ -281,9 +296,8 @@ def predict_contact_local(
     spacing = _station_spacing(finger, config)
     s_grid = theta * jnp.linspace(0.0, 1.0, config.n_sweep, dtype=dtype)
     points = jax.vmap(lambda s: _stations(finger, base, s, config)[0])(s_grid)
-    vertex = _parabola_vertices(dist(points), spacing)[0] - r  # (n_sweep, stations)
-    g_grid = jnp.min(vertex, axis=-1)
-    hit = g_grid <= 0
+    d_grid = dist(points)  # (n_sweep, stations)
+    hit = _chain_clearance(d_grid, spacing, r) <= 0
     touches = jnp.any(hit)
     j = jnp.argmax(hit)
     initial_overlap = hit[0]
@@ -293,10 +307,10 @@ def predict_contact_local(
 
     # Which station touches first inside the bracket: the earliest linear crossing. The root
     # finder then watches only a window around it, starting from that crossing.
-    v_lo, v_hi = vertex[jnp.maximum(j - 1, 0)], vertex[j]
+    v_lo, v_hi = _parabola_vertices(d_grid[jnp.stack([jnp.maximum(j - 1, 0), j])], spacing)[0] - r
     crossing = jnp.where(v_hi <= 0, jnp.clip(safe_divide(v_lo, v_lo - v_hi, 0.0), 0.0, 1.0), jnp.inf)
     centre = jnp.argmin(crossing)
-    n_stations = vertex.shape[-1]
+    n_stations = d_grid.shape[-1]
     first = jnp.clip(centre - _ROOT_WINDOW // 2, 0, max(n_stations - _ROOT_WINDOW, 0))
     # (The fraction is made finite before use: an inf in the discarded branch would still turn
     # the gradient into NaN.)
