@@ -1,0 +1,85 @@
+"""Where the geometric estimate's time goes: XLA:CPU kernels by name, from a ``jax.profiler`` trace.
+
+Run from the repository root:
+
+    .venv/bin/python benchmarks/profile_estimate.py            # 8,192 bases, N = 20, top 30 kernels
+    .venv/bin/python benchmarks/profile_estimate.py --batch 2048 --n 10 --top 50
+
+Same scene as bench_estimate.py. Prints the throughput of the traced configuration, then each kernel's
+total time over the traced call, how often it ran, its output shape and the JAX operation it came
+from (kernel names are XLA's fusion names, e.g. ``bitcast_gather_fusion.26``). Kernel times are
+summed over XLA's worker threads, so they add up to more than the wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+# Profile this checkout's package, not whichever one the interpreter has installed.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batch", type=int, default=8192)
+    parser.add_argument("--n", type=int, default=20, help="links per finger")
+    parser.add_argument("--chunk", type=int, default=2048)
+    parser.add_argument("--top", type=int, default=30, help="kernels to list")
+    args = parser.parse_args()
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax.profiler import ProfileData
+
+    from softgrip_jax import FingerModel, SDFGrid, estimate_batch
+
+    spacing = 120.0 / 385.0
+    grid = SDFGrid.sample(lambda p: jnp.linalg.norm(p, axis=-1) - 15.0, origin=(-320 * spacing, -240 * spacing),
+                          spacing=(spacing, spacing), shape=(480, 640))
+    finger = FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0, n_links=args.n)
+    bases = jnp.asarray(np.random.default_rng(0).uniform([-60.0, -70.0], [20.0, -10.0], (args.batch, 2)),
+                        dtype=jnp.float32)
+
+    def run(b):
+        return estimate_batch(finger, grid, b, chunk_size=args.chunk, method="geometric")
+
+    jax.block_until_ready(run(bases))
+    best = np.inf
+    for _ in range(3):
+        t0 = time.perf_counter()
+        jax.block_until_ready(run(bases))
+        best = min(best, time.perf_counter() - t0)
+    print(f"{args.batch / best:,.0f} candidate-fingers/s (N = {args.n}, batch {args.batch}, best of 3)")
+
+    with tempfile.TemporaryDirectory() as folder:
+        with jax.profiler.trace(folder):
+            jax.block_until_ready(run(bases))
+        trace = next(Path(folder).rglob("*.xplane.pb"))
+        profile = ProfileData.from_file(str(trace))
+    total, count = collections.Counter(), collections.Counter()
+    for plane in profile.planes:
+        for line in plane.lines:
+            if not line.name.startswith("tf_XLAEigen"):  # XLA:CPU's worker threads
+                continue
+            for event in line.events:
+                if not event.name.startswith(("ThunkExecutor", "while")):
+                    total[event.name] += event.duration_ns
+                    count[event.name] += 1
+    hlo = jax.jit(run).lower(bases).compile().as_text()
+    print(f"kernels: {sum(total.values()) / 1e6:.1f} ms summed over threads\n")
+    print(f"{'ms':>8} {'runs':>5}  {'kernel':40s} {'output':30s} operation")
+    for name, ns in total.most_common(args.top):
+        found = re.search(r"%" + re.escape(name) + r" = (.*?) fusion\(.*?op_name=\"([^\"]*)\"", hlo)
+        shape, op = (re.sub(r"\{[^}]*\}", "", found.group(1)), found.group(2).split("/")[-1]) if found else ("?", "?")
+        print(f"{ns / 1e6:8.2f} {count[name]:5d}  {name:40s} {shape:30s} {op}")
+
+
+if __name__ == "__main__":
+    main()
