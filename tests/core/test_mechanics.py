@@ -2,7 +2,7 @@
 
 Checked against eqs. 1-3 without an object, against the independent observed-closure rod
 (vision.synthetic.rod) on circles and squares touched at the tip and at another area, for
-non-penetration, for implicit gradients against finite differences (float64), and through the
+non-penetration, for the contact case (areas that carry force, not grazes), for implicit gradients against finite differences (float64), and through the
 batch, grasp, score and refine functions.
 
 Compilations dominate the time: the rod closures share one compilation (64-vertex polygons), the
