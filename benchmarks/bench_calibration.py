@@ -147,7 +147,7 @@ def main() -> None:
     def run_fit(pairs_, parameters=("theta_entire",)):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # skipped pairs are counted in the table
-            return fit([p.observation for p in pairs_], one_frame, parameters, progress=False)
+            return fit([p.observation for p in pairs_], one_frame, parameters, method="geometric", progress=False)
 
     t = time.perf_counter()
     fitted_all = run_fit(train)

@@ -128,7 +128,7 @@ def accuracy(budgets: list[int], ratios: list[float]) -> list[dict]:
         config = MechanicsConfig(max_steps=s)
         estimates[s] = jax.jit(lambda f, sdf, c=config: estimate(f, sdf, jnp.zeros(2), method="mechanics",
                                                                  mechanics=c))
-    geometric = jax.jit(lambda f, sdf: estimate(f, sdf, jnp.zeros(2)))
+    geometric = jax.jit(lambda f, sdf: estimate(f, sdf, jnp.zeros(2), method="geometric"))
     rows = []
     for ratio in ratios:
         for name, spec in SCENES.items():

@@ -13,10 +13,11 @@ deformation (forward mode). ``rho`` is a robust loss on each joint's distance (H
 scale about 1 mm), written as the residual ``sqrt(2 rho(|r|)) r / |r|`` so that a least-squares
 solver minimises it: a badly segmented frame pulls with a bounded force instead of a quadratic one.
 
-The estimate is chosen by ``method``: ``"geometric"`` (the paper's eq. 9, the default) or
-``"mechanics"`` (the spring-joint chain at equilibrium, :mod:`softgrip_jax._mechanics`, with the
-solver settings ``mechanics``); the residuals, Jacobian and standard errors are those of the chosen
-estimate, differentiated through the mechanics solve by implicit differentiation.
+The estimate is chosen by ``method``: ``"geometric"`` (the paper's eq. 9) or ``"mechanics"`` (the
+spring-joint chain at equilibrium, :mod:`softgrip_jax._mechanics`, with the solver settings
+``mechanics``), by default ``softgrip_jax.DEFAULT_METHOD`` as everywhere else; the residuals,
+Jacobian and standard errors are those of the chosen estimate, differentiated through the
+mechanics solve by implicit differentiation.
 
 Parameters are named per finger (``"left.theta_entire"``, ``"right.base_offset"``); the registry
 :data:`PARAMETERS` lists what can be fitted, each with the number of frame pairs it needs, the
@@ -74,7 +75,7 @@ from tqdm import tqdm
 
 from calib.one_frame import frame_keypoints
 from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
-from softgrip_jax import (METHODS, AbstractSDF, ContactConfig, FingerFrame, FingerModel, MechanicsConfig, SoftgripError,
+from softgrip_jax import (DEFAULT_METHOD, METHODS, AbstractSDF, ContactConfig, FingerFrame, FingerModel, MechanicsConfig, SoftgripError,
                           Status, estimate_in_frame)
 from vision.frames import Frame, load_frame
 from vision.object_sdf import object_sdf
@@ -208,7 +209,7 @@ def fit(
     loss: Loss = "huber",
     loss_scale_mm: float = 1.0,
     config: ContactConfig = ContactConfig(),
-    method: EstimateMethod = "geometric",
+    method: EstimateMethod = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
     max_steps: int = 100,
     skipped: Sequence[dict[str, str]] = (),
@@ -228,7 +229,7 @@ def fit(
         loss_scale_mm: the scale c of the loss, mm (> 0); a very large value is plain least squares.
         config: the contact sweep's discretisation (as for the estimate).
         method: the estimate the residuals go through: ``"geometric"`` (eq. 9) or
-            ``"mechanics"`` (the spring chain at equilibrium).
+            ``"mechanics"`` (the spring chain at equilibrium); by default ``softgrip_jax.DEFAULT_METHOD``.
         mechanics: the mechanics estimate's solver settings (used with ``method="mechanics"``).
         max_steps: Levenberg-Marquardt iteration cap.
         skipped: pairs already left out upstream (``{"frame", "reason"}``), carried into the report.

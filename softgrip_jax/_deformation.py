@@ -56,8 +56,9 @@ class Estimate(eqx.Module):
         psi: base rotation of the estimated shape (rad, in the finger's frame).
         turning: (N,) turning angles of the estimated shape (rad).
         case: the :class:`ContactCase` value. For ``method="mechanics"``, read from the
-            equilibrium: which centreline stations touch (within ``MechanicsConfig.contact_tol``),
-            the tip (within ``ContactConfig.tip_tolerance`` links of it), another area, both or none.
+            equilibrium: which contact areas carry force (runs of centreline stations within
+            ``MechanicsConfig.contact_tol``; see :func:`solve_equilibrium`), the tip's (reaching
+            within ``ContactConfig.tip_tolerance`` links of it), another, both or none.
         contact: the :class:`Contact` prediction, with its points in image-plane mm and its
             angles in the finger's frame. Its first touch (``s1``, ``p_g1``, ``p_o1``, ``l_g1``,
             ``n_g1``, ``theta_o1``) holds for both methods: the finger closes freely until then.

@@ -101,8 +101,10 @@ class MechanicsConfig(eqx.Module):
             sinks about force * L / mu mm into the finger's thickness.
         active_rows: the least clear stations that enter each Newton step (K); the step is exact
             while at most K stations touch at once.
-        contact_tol: mm. A station within r + contact_tol of the object is in contact (this decides
-            the case); an equilibrium deeper than contact_tol inside r is not converged.
+        contact_tol: mm. Stations within r + contact_tol of the object form the contact areas
+            (runs of consecutive stations); an area touches when one of its stations carries
+            contact force, and the case says which areas touch (see :func:`solve_equilibrium`).
+            An equilibrium deeper than contact_tol inside r is not converged.
         step_tol: mm. Converged when the Gauss-Newton step (before it is shortened) moves no joint
             by more than this (to first order).
         max_turn: rad. A step changes no turning angle (or psi) by more than this.
@@ -165,6 +167,11 @@ class _Problem(eqx.Module):
 
     def distance(self, q):
         return self.sdf.distance(self.frame.to_world(q))
+
+    @property
+    def n_stations(self) -> int:
+        """M = N stations_per_link + 1 centreline stations (see :meth:`stations`)."""
+        return self.finger.n_links * self.config.stations_per_link + 1
 
     def scales(self):
         """(N,) d delta / d z and () d psi / d u."""
@@ -251,8 +258,10 @@ def _spd_solve(s: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " 
 def _newton_step(problem: _Problem, y, previous):
     """The Gauss-Newton step at y and diagnostics (see the module docstring).
 
-    Returns (step, moved, penetration): the step in y, the largest joint displacement the full
-    (unshortened) step makes (mm, to first order) and the deepest station inside r at y (mm, >= 0).
+    Returns (step, moved, penetration, pushed): the step in y, the largest joint displacement the
+    full (unshortened) step makes (mm, to first order), the deepest station inside r at y (mm, >= 0)
+    and which stations (M,) carry contact force in the model after the full step (a positive
+    multiplier: the chain pushes them into the object).
     """
     f, config = problem.finger, problem.config
     n, per_link = f.n_links, config.stations_per_link
@@ -299,7 +308,10 @@ def _newton_step(problem: _Problem, y, previous):
     near = depth > -_GLUE_MM
     _, lam = solve(near)
     modelled = near & (lam >= 0)
-    step, _ = solve(modelled)
+    step, lam = solve(modelled)
+    # The stations that carry contact force after the step (the model's residuals, positive: pushed
+    # by the object), for the contact case (see solve_equilibrium).
+    pushed = jnp.any((index[:, None] == jnp.arange(m)[None, :]) & (modelled & (lam > 0))[:, None], axis=0)
 
     # Trust region on the angles.
     turns = jnp.concatenate([step[:-1] * per_link_scale, (step[-1] * base_scale)[None]])
@@ -326,13 +338,14 @@ def _newton_step(problem: _Problem, y, previous):
     lever = joints * (before + dpsi)[:, None] - moment  # (N+1, 2), turned by 90 degrees below
     moved = jnp.sqrt(jnp.max(jnp.sum(lever**2, axis=-1)))
     penetration = jnp.maximum(jnp.max(violation), 0.0)
-    return alpha * step, moved, penetration
+    return alpha * step, moved, penetration, pushed
 
 
 class _SolverState(eqx.Module):
     previous: Float[Array, " n1"]
     moved: Float[Array, ""]
     penetration: Float[Array, ""]
+    pushed: Bool[Array, " m"]
     steps: Int[Array, ""]
 
 
@@ -350,11 +363,14 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         inf = jnp.asarray(jnp.inf, y.dtype)
-        return _SolverState(previous=jnp.zeros_like(y), moved=inf, penetration=inf, steps=jnp.array(0))
+        pushed = jnp.zeros(args.n_stations, bool)
+        return _SolverState(previous=jnp.zeros_like(y), moved=inf, penetration=inf, pushed=pushed,
+                            steps=jnp.array(0))
 
     def step(self, fn, y, args, options, state, tags):
-        step, moved, penetration = _newton_step(args, y, state.previous)
-        state = _SolverState(previous=step, moved=moved, penetration=penetration, steps=state.steps + 1)
+        step, moved, penetration, pushed = _newton_step(args, y, state.previous)
+        state = _SolverState(previous=step, moved=moved, penetration=penetration, pushed=pushed,
+                             steps=state.steps + 1)
         return y + step, state, None
 
     def terminate(self, fn, y, args, options, state, tags):
@@ -404,8 +420,16 @@ def solve_equilibrium(
     """Equilibrium of the spring chain placed by ``frame`` against ``sdf``, from a start shape.
 
     ``start_psi, start_turning`` (finger frame) start the solve and carry no derivative: the
-    equilibrium's derivatives come from implicit differentiation. ``config`` supplies the tip
-    tolerance of the case. See :func:`mechanics_start` for the start the estimate uses.
+    equilibrium's derivatives come from implicit differentiation. See :func:`mechanics_start` for
+    the start the estimate uses.
+
+    The case says where the equilibrium carries contact force: a station carries force where it
+    lies inside r (the penalty pushes it) or the solver's last step modelled a positive multiplier
+    for it (the chain pushes it into the object); a station merely within ``contact_tol`` of the
+    object does not. Each force belongs to a contact area, the run of consecutive stations within
+    ``contact_tol`` around it: the tip's when that run reaches the last ``config.tip_tolerance``
+    links, another area's otherwise. So a graze is no contact, and a single area that straddles
+    the edge of the tip zone is a tip contact, as the observed-closure rod's case counts areas.
     """
     problem = _Problem(finger=finger, sdf=sdf, frame=frame, config=mechanics)
     y0 = jax.lax.stop_gradient(problem.variables(start_psi, start_turning))
@@ -419,10 +443,16 @@ def solve_equilibrium(
     arc = jnp.linspace(0.0, 1.0, points.shape[0], dtype=points.dtype) * finger.length
     d = problem.distance(points)
     r, length, n = finger.half_thickness, finger.length, finger.n_links
-    touching = d <= r + mechanics.contact_tol
+    # The case (see the docstring): stations that carry force, by the contact area they lie in.
+    pressed = solution.state.pushed | (d < r)
+    touching = (d <= r + mechanics.contact_tol) | pressed
     at_tip = arc >= length * (1.0 - config.tip_tolerance / n)
-    tip = jnp.any(touching & at_tip)
-    other = jnp.any(touching & ~at_tip)
+    station = jnp.arange(d.shape[0])
+    first_tip = jnp.argmax(at_tip)  # the tip zone is the tail of the stations
+    next_gap = jax.lax.cummin(jnp.where(touching, d.shape[0], station), reverse=True)
+    tip_area = touching & (next_gap > first_tip)
+    tip = jnp.any(pressed & tip_area)
+    other = jnp.any(pressed & ~tip_area)
     case = jnp.where(tip, jnp.where(other, ContactCase.TIP_AND_OTHER, ContactCase.TIP),
                      jnp.where(other, ContactCase.OTHER, ContactCase.NONE)).astype(jnp.int32)
     tip_point = joints[-1]

@@ -80,8 +80,9 @@ def thetas(profile: CalibrationProfile) -> np.ndarray:
     return np.array([profile.fingers[side].theta_entire for side in ("left", "right")])
 
 
-def quiet_fit(*args, **kwargs) -> CalibrationProfile:
-    return fit(*args, progress=False, **kwargs)
+def quiet_fit(*args, method="geometric", **kwargs) -> CalibrationProfile:
+    """The paper's geometric fit unless ``method`` says otherwise, without a progress bar."""
+    return fit(*args, progress=False, method=method, **kwargs)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -64,7 +64,7 @@ def test_stiffness_parameters_need_the_mechanics_estimate(parameters) -> None:
     with pytest.raises(FitError, match=r"only affect\(s\) the mechanics estimate, so method='geometric' cannot fit "
                                        r"them: fit with method='mechanics' \(softgrip calibrate --fit \.\.\. --method "
                                        r"mechanics\)"):
-        fit(pairs, start_profile(), parameters, progress=False)  # method defaults to "geometric"
+        fit(pairs, start_profile(), parameters, method="geometric", progress=False)
     with pytest.raises(FitError, match="method must be one of 'geometric', 'mechanics'"):
         fit(pairs, start_profile(), ["theta_entire"], method="spring", progress=False)
 

@@ -2,7 +2,7 @@
 
 Checked against eqs. 1-3 without an object, against the independent observed-closure rod
 (vision.synthetic.rod) on circles and squares touched at the tip and at another area, for
-non-penetration, for implicit gradients against finite differences (float64), and through the
+non-penetration, for the contact case (areas that carry force, not grazes), for implicit gradients against finite differences (float64), and through the
 batch, grasp, score and refine functions.
 
 Compilations dominate the time: the rod closures share one compilation (64-vertex polygons), the
@@ -23,7 +23,8 @@ from softgrip_jax import (CASE_NAMES, METHODS, ContactCase, ContactConfig, Finge
                           pcc_joints, refine, score, score_pose)
 from softgrip_jax._batch import where_needed
 from softgrip_jax._deformation import finish, geometric_stage, mechanics_of
-from softgrip_jax._mechanics import solve_equilibrium
+from softgrip_jax._mechanics import _Problem, solve_equilibrium
+from softgrip_jax._sdf import AbstractSDF
 from vision.synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
 
 LENGTH, THETA, HALF_THICKNESS, N = 52.0, 0.55, 4.0, 20
@@ -238,6 +239,77 @@ def test_base_compliance_matches_the_rod():
     assert error.max() < ROD_TOLERANCE_MM and float(mech.psi) < -0.03  # the base turns away
     clamped = rod_joints("circle_other", 1.0, 0.0)
     assert np.linalg.norm(observed[-1] - clamped[-1]) > 10 * error[-1]  # compliance visibly matters
+
+
+# ---------------------------------------------------------------------------------------------
+# The contact case: where the equilibrium carries force, by contact area
+
+
+class Union(AbstractSDF):
+    """Two objects (the smaller of their signed distances: exact outside both)."""
+
+    first: AbstractSDF
+    second: AbstractSDF
+
+    def distance(self, points):
+        return jnp.minimum(self.first.distance(points), self.second.distance(points))
+
+
+def station_clearance(finger_, sdf, eq):
+    """Each centreline station's distance to the object minus r (mm), base to tip, at ``eq``."""
+    problem = _Problem(finger=finger_, sdf=sdf, frame=FingerFrame(jnp.zeros(2), jnp.zeros(()), jnp.ones(())),
+                       config=MechanicsConfig())
+    _, points = problem.stations(problem.variables(eq.psi, eq.turning))
+    return np.asarray(problem.distance(points)) - HALF_THICKNESS
+
+
+def in_tip_zone(n_stations):
+    """Stations within ContactConfig.tip_tolerance links of the tip."""
+    return np.arange(n_stations) / (n_stations - 1) >= 1.0 - ContactConfig().tip_tolerance / N
+
+
+@pytest.mark.parametrize("gap, case", [(0.02, ContactCase.TIP), (-0.2, ContactCase.TIP_AND_OTHER)])
+def test_a_second_area_counts_when_it_carries_force_not_when_it_grazes(gap, case):
+    f = finger()
+    tip_object = placed(*SCENES["circle_tip"])
+    _, alone, _ = both_estimates(f, tip_object, jnp.zeros(2))
+    assert int(alone.case) == ContactCase.TIP
+    # A disc at mid-finger (joint 10, station 30), on the inner side of that equilibrium, ``gap`` mm
+    # from the finger's thickness: 0.02 mm (within contact_tol, but it pushes nothing) or pressed
+    # 0.2 mm into it (the chain bends around it and the tip stays on the first object).
+    joints = np.asarray(alone.joints)
+    along = (joints[11] - joints[9]) / np.linalg.norm(joints[11] - joints[9])
+    inward = np.array([along[1], -along[0]])
+    sdf = Union(tip_object, circle(joints[10] + inward * (HALF_THICKNESS + 3.0 + gap), 3.0))
+    eq = solve_from(f, sdf, jnp.zeros(2), alone.psi, alone.turning)
+    clear = station_clearance(f, sdf, eq)
+    assert bool(eq.converged)
+    assert clear[30] < CONTACT_TOL and clear[40:58].min() > CONTACT_TOL  # two areas, apart
+    assert int(eq.case) == case, CASE_NAMES[int(eq.case)]
+
+
+def test_one_area_across_the_edge_of_the_tip_zone_is_a_tip_contact():
+    # A wide disc pressed just short of the tip: the finger lies on it over several stations, from
+    # before the tip zone into it, with force on stations outside the zone. One contact area that
+    # reaches the tip zone, as the rod's case counts it (benchmarks/reproduce_paper.rod_case): TIP,
+    # not TIP_AND_OTHER.
+    f = finger()
+    sdf = placed("circle", 0.97, 20.0, 1.0, 0.0)
+    _, mech, _ = both_estimates(f, sdf, jnp.zeros(2))
+    eq = solve_from(f, sdf, jnp.zeros(2), mech.psi, mech.turning)
+    clear = station_clearance(f, sdf, eq)
+    tip_zone = in_tip_zone(clear.size)
+    assert bool(eq.converged)
+    assert (clear[~tip_zone] < 0).any() and (clear[tip_zone] < CONTACT_TOL).any()
+    touching = np.flatnonzero(clear < CONTACT_TOL)
+    assert np.all(np.diff(touching) == 1), touching  # one area
+    assert int(eq.case) == ContactCase.TIP, CASE_NAMES[int(eq.case)]
+    assert int(mech.case) == ContactCase.TIP
+    closure = close_rod((0.0, 0.0), THETA, LENGTH, HALF_THICKNESS, sdf)
+    rod = np.asarray(closure.in_contact)
+    rod_tip_zone = np.arange(rod.size) / (rod.size - 1) >= 1.0 - 0.5 / N
+    assert bool(closure.converged) and rod[rod_tip_zone].any() and rod[~rod_tip_zone].any()
+    assert np.all(np.diff(np.flatnonzero(rod)) == 1)  # the rod's contact: one area, into the tip zone
 
 
 # ---------------------------------------------------------------------------------------------
