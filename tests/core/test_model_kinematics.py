@@ -20,7 +20,7 @@ def eq2_joints(length, theta, n):
     """
     i = np.arange(n + 1)
     chord_angle = theta * i / n
-    if theta == 0:
+    if np.sin(theta / n) == 0:  # Theta = 0, or so small (subnormal) that the sine underflows
         chord = length * i / n
     else:
         chord = (length / n) * np.sin(theta * i / n) / np.sin(theta / n)
