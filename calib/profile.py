@@ -50,6 +50,7 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from softgrip_jax import FingerModel, Gripper, SoftgripError
+from vision import user_json
 from vision.frames import FrameError, Intrinsics
 from vision.segmentation import SegmentationError, SegmentationSettings
 
@@ -240,7 +241,7 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
     except (OSError, UnicodeDecodeError) as err:
         raise ProfileError(f"{path}: cannot read the profile ({err})") from None
     try:
-        data = json.loads(text)
+        data = user_json.loads(text)
     except json.JSONDecodeError as err:
         raise ProfileError(f"{path}: not valid JSON ({err.msg} at line {err.lineno}, column {err.colno})") from None
     return _parse(data, str(path))

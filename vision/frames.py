@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from softgrip_jax._errors import SoftgripError
+from vision import user_json
 
 COLOR_FILE = "color.png"
 DEPTH_FILE = "depth.png"
@@ -239,7 +240,7 @@ def _read_png(path: Path) -> np.ndarray:
 
 def _read_json(path: Path) -> Any:
     try:
-        return json.loads(_read_file(path).decode("utf-8"))
+        return user_json.loads(_read_file(path).decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise FrameError(f"{path} is not valid JSON ({err}): it must be an object with keys "
                          f"{', '.join(_FIELDS)}") from None

@@ -254,7 +254,7 @@ def background_cutoff_mm(frame: Frame, settings: SegmentationSettings) -> float:
         return math.inf
     threshold, _ = cv2.threshold(readings.reshape(-1, 1), 0, 65535, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
     near, far = readings[readings <= threshold], readings[readings > threshold]
-    if far.size == 0 or far.mean() < 1.25 * near.mean():
+    if near.size == 0 or far.size == 0 or far.mean() < 1.25 * near.mean():  # one depth: no split
         return math.inf
     return 0.5 * float(np.percentile(near, 99) + np.percentile(far, 1)) * mm_per_unit
 
