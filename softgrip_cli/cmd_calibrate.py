@@ -61,7 +61,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="least squares over pairs OPEN CLOSED [OPEN CLOSED ...]")
     parser.add_argument("--profile", type=Path, metavar="START",
                         help="starting values for --fit (default: the first open frame, Theta 0.5 rad)")
-    parser.add_argument("--n-links", type=positive_int, metavar="N",
+    parser.add_argument("--n-links", type=_n_links, metavar="N",
                         help=f"number of links of the model (default: the --profile's, else {DEFAULT_N_LINKS})")
     parser.add_argument("--base-offset", action="store_true",
                         help="with --fit, also fit a base offset per finger (needs 2 or more pairs)")
@@ -86,10 +86,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return parser
 
 
+def _n_links(text: str) -> int:
+    """An argparse type: a number of links from 1 to the profile format's MAX_N_LINKS."""
+    from calib.profile import MAX_N_LINKS
+
+    value = positive_int(text)
+    if value > MAX_N_LINKS:
+        raise argparse.ArgumentTypeError(f"at most {MAX_N_LINKS} links, got {value}")
+    return value
+
+
 def run(args: argparse.Namespace) -> int:
     """Calibrate as ``args`` says, write the profile, print a report; 0 on success."""
     from calib.fit import SkippedFrameWarning
+    from softgrip_cli._pipeline import check_output_file
 
+    check_output_file(args.output, "-o")  # before a fit that may take minutes
     with warnings.catch_warnings():
         warnings.simplefilter("always", SkippedFrameWarning)
         warnings.showwarning = _print_warning

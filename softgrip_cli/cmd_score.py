@@ -94,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
         grid = parse_grid(args.grid)
     if args.heatmap:
         pipe.ensure_dir(Path(args.heatmap).parent, "heat map's folder")
+        pipe.check_output_file(args.heatmap, "--heatmap")
     scene = pipe.frame_scene(args.frame, profile, length_from_frame=args.length_from_frame)
     if not args.poses:
         grid = grid or default_grid(scene)
