@@ -130,7 +130,8 @@ def _one_frame(args: argparse.Namespace):
         raise SoftgripError(f"{', '.join(fit_only)} only apply to --fit")
     return one_frame_from_frames(load_frame(args.closed), load_frame(args.open_frame),
                                  args.n_links or DEFAULT_N_LINKS, label=f"{args.open_frame} + {args.closed}",
-                                 camera_name=args.camera or "unspecified")
+                                 camera_name=args.camera or "unspecified",
+                                 names=(str(args.closed), str(args.open_frame)))
 
 
 def _fit(args: argparse.Namespace):

@@ -215,7 +215,7 @@ def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
         key = next((k for k in ("poses", "candidates") if isinstance(data.get(k), list)), None)
         if key is None:
             raise PoseInputError(f'{file}, line 1: expected a list of poses, or an object with a "poses" list, '
-                                 f'got an object with keys {", ".join(sorted(data)) or "(none)"}')
+                                 f'got an object with keys {", ".join(map(json.dumps, sorted(data))) or "(none)"}')
         items = data[key]
     elif isinstance(data, list):
         items = data
