@@ -13,8 +13,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
-from softgrip_jax import FingerModel, Gripper, PolygonSDF, SDFGrid, Status, estimate_batch, score
+from softgrip_jax import FingerModel, Gripper, PolygonSDF, SDFGrid, SoftgripError, Status, estimate_batch, score
+from softgrip_jax._batch import as_candidates
 
 FINGER = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=4)
 GRIPPER = Gripper(left=FINGER, right=FINGER, base_separation=40.0)
@@ -71,6 +73,7 @@ def test_estimate_batch_flags_poisoned_bases_and_isolates_the_others(drawn):
     valid, status = np.asarray(out.valid), np.asarray(out.status)
     assert not valid[poisoned].any()
     assert set(status[poisoned]) <= {Status.NON_FINITE_INPUT, Status.BASE_OUTSIDE_SDF}
+    assert np.isnan(np.asarray(out.joints)[poisoned]).all()
     for i in touching_first(~poisoned, out.case)[:3]:  # three per example keep it quick
         alone = estimate_batch(FINGER, GRID, np.repeat(bases[i:i + 1], B, axis=0), method="geometric")
         assert_same_candidate(out, i, alone)
@@ -84,6 +87,8 @@ def test_score_flags_poisoned_poses_and_isolates_the_others(drawn):
     valid = np.asarray(out.valid)
     assert not valid[poisoned].any()
     assert np.isneginf(np.asarray(out.score)[~valid]).all()
+    for finger in (out.grasp.left, out.grasp.right):
+        assert np.isnan(np.asarray(finger.joints)[poisoned]).all()
     for i in touching_first(~poisoned, np.asarray(out.grasp.left.case) + np.asarray(out.grasp.right.case))[:3]:
         alone = score(GRIPPER, GRID, np.repeat(poses[i:i + 1], B, axis=0))
         assert_same_candidate(out, i, alone)
@@ -122,3 +127,19 @@ def test_50k_bases_with_poisoned_ones_in_one_call():
         alone = estimate_batch(FINGER, GRID, np.repeat(bases[i:i + 1], B, axis=0), method="geometric")
         for a, b in zip(leaves(out), leaves(alone)):
             np.testing.assert_allclose(a[i], b[0], atol=1e-5)
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered in cast")  # float64 beyond float32's range
+@settings(max_examples=100, deadline=None)
+@given(hnp.arrays(hnp.scalar_dtypes() | hnp.byte_string_dtypes() | hnp.unicode_string_dtypes(),
+                  hnp.array_shapes(min_dims=0, max_dims=3, min_side=0, max_side=4)), st.sampled_from([2, 3]))
+def test_a_batch_of_the_wrong_shape_or_dtype_is_a_softgrip_error(array, width):
+    # estimate_batch, estimate_grasp_batch, score and refine read their candidates through as_candidates
+    # (called directly: under pytest, jaxtyping checks the annotations before the function runs).
+    try:
+        out = as_candidates(array, width, np.float32, "poses")
+    except SoftgripError as err:
+        assert str(err).startswith(f"poses must be a (B, {width}) array of real numbers")
+    else:
+        assert array.ndim == 2 and array.shape[1] == width and array.dtype.kind in "iuf"
+        assert out.shape == array.shape and out.dtype == np.float32
