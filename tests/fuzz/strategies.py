@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from dataclasses import dataclass
@@ -132,3 +133,31 @@ def frame_files(draw, max_side: int = 12) -> FrameFiles:
     if broken == "intrinsics":
         intrinsics = draw(bad_intrinsics_json(height, width))
     return FrameFiles(color=color_png, depth=depth_png, intrinsics=intrinsics)
+
+
+#: The sample profile shipped in data/, as a JSON object.
+SAMPLE_PROFILE = json.loads((Path(__file__).resolve().parents[2] / "data" / "sample_profile.json").read_text())
+
+
+def _paths(node, prefix=()):
+    """Every key path of a JSON document, parents before children."""
+    children = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+    for key, child in children:
+        yield prefix + (key,)
+        yield from _paths(child, prefix + (key,))
+
+
+@st.composite
+def mutated_profiles(draw) -> tuple[tuple, dict]:
+    """(path, profile): the sample profile with the field at ``path`` (a tuple of keys and indices)
+    removed or replaced by one of ``bad_values``."""
+    path = draw(st.sampled_from(list(_paths(SAMPLE_PROFILE))))
+    data = copy.deepcopy(SAMPLE_PROFILE)
+    parent = data
+    for key in path[:-1]:
+        parent = parent[key]
+    if draw(st.booleans()):
+        del parent[path[-1]]
+    else:
+        parent[path[-1]] = draw(bad_values)
+    return path, data

@@ -7,7 +7,6 @@ reaches the (compiled) estimator: each runs in milliseconds.
 
 from __future__ import annotations
 
-import copy
 import json
 import tempfile
 from pathlib import Path
@@ -17,8 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from softgrip_cli import main
-from tests.fuzz.strategies import bad_values, frame_files, json_values
-from tests.fuzz.test_profiles import PATHS, SAMPLE
+from tests.fuzz.strategies import frame_files, json_values, mutated_profiles
 
 DATA = Path(__file__).resolve().parents[2] / "data"
 PROFILE = DATA / "sample_profile.json"
@@ -64,17 +62,10 @@ def test_calibrate_refuses_a_bad_frame_and_keeps_the_old_profile(files, closed, 
 
 
 @CLI
-@given(path=st.sampled_from(PATHS), replacement=st.one_of(st.just("delete"), bad_values))
-def test_a_bad_profile_is_named(path, replacement, capsys):
+@given(mutation=mutated_profiles())
+def test_a_bad_profile_is_named(mutation, capsys):
     capsys.readouterr()
-    data = copy.deepcopy(SAMPLE)
-    parent = data
-    for key in path[:-1]:
-        parent = parent[key]
-    if replacement == "delete":
-        del parent[path[-1]]
-    else:
-        parent[path[-1]] = replacement
+    _, data = mutation
     with tempfile.TemporaryDirectory() as tmp:
         profile = Path(tmp) / "gripper.json"
         profile.write_text(json.dumps(data))

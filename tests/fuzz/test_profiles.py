@@ -3,7 +3,6 @@ wrong type, NaN, a negative or huge number load, or raise a ProfileError naming 
 
 from __future__ import annotations
 
-import copy
 import json
 import math
 import tempfile
@@ -13,20 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calib.profile import CalibrationProfile, ProfileError, load_profile, save_profile
-from tests.fuzz.strategies import bad_values, json_values
-
-SAMPLE = json.loads((Path(__file__).resolve().parents[2] / "data" / "sample_profile.json").read_text())
-
-
-def paths(node, prefix=()):
-    """Every key path of a JSON document, parents before children."""
-    children = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
-    for key, child in children:
-        yield prefix + (key,)
-        yield from paths(child, prefix + (key,))
-
-
-PATHS = list(paths(SAMPLE))
+from tests.fuzz.strategies import SAMPLE_PROFILE, json_values, mutated_profiles
 
 
 def load_text(text: str) -> tuple[CalibrationProfile | None, str | None, str]:
@@ -49,27 +35,20 @@ def test_any_json_document_is_refused_with_a_profile_error(document):
 
 @settings(max_examples=60, deadline=None)
 @given(st.text(max_size=40) | st.binary(max_size=40).map(lambda b: b.decode("latin-1")),
-       st.integers(0, len(json.dumps(SAMPLE))))
+       st.integers(0, len(json.dumps(SAMPLE_PROFILE))))
 def test_damaged_text_is_refused_with_a_profile_error(noise, at):
-    text = json.dumps(SAMPLE)
+    text = json.dumps(SAMPLE_PROFILE)
     profile, error, path = load_text(text[:at] + noise)
     if profile is None:
         assert error.startswith(f"{path}: ")
     else:  # the noise only added whitespace, say
-        assert profile.to_dict() == CalibrationProfile.from_dict(SAMPLE).to_dict()
+        assert profile.to_dict() == CalibrationProfile.from_dict(SAMPLE_PROFILE).to_dict()
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.sampled_from(PATHS), st.one_of(st.just("delete"), bad_values))
-def test_a_removed_or_wrong_field_loads_or_is_named(path, replacement):
-    data = copy.deepcopy(SAMPLE)
-    parent = data
-    for key in path[:-1]:
-        parent = parent[key]
-    if replacement == "delete":
-        del parent[path[-1]]
-    else:
-        parent[path[-1]] = replacement
+@given(mutated_profiles())
+def test_a_removed_or_wrong_field_loads_or_is_named(mutation):
+    path, data = mutation
     profile, error, file = load_text(json.dumps(data))
     if profile is None:
         assert error.startswith(f"{file}: ")
