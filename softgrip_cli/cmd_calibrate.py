@@ -158,7 +158,11 @@ def _fit(args: argparse.Namespace):
         settings = start.segmentation_settings()
     else:
         n_links = args.n_links or DEFAULT_N_LINKS
-        start = start_from_open_frame(load_frame(pairs[0][0]), n_links, camera_name=args.camera or "unspecified")
+        try:
+            start = start_from_open_frame(load_frame(pairs[0][0]), n_links, camera_name=args.camera or "unspecified")
+        except SoftgripError as err:  # the starting values come from the first open frame: name it
+            message = str(err)
+            raise type(err)(message if str(pairs[0][0]) in message else f"{pairs[0][0]}: {message}") from None
         settings = None
     method = resolve_method(args.method, start if args.profile is not None else None)
     mechanics_only = [flag for flag, on in (("--stiffness", args.stiffness),

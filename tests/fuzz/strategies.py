@@ -117,7 +117,7 @@ def frame_files(draw, max_side: int = 12) -> FrameFiles:
     (a random bit depth and channel count, all zeros, damaged or missing bytes), the intrinsics (bad
     values, missing keys, not an object, damaged), or the depth image's size."""
     height, width = draw(st.integers(1, max_side)), draw(st.integers(1, max_side))
-    broken = draw(st.sampled_from(["nothing", "color", "depth", "intrinsics", "size"]))
+    broken = draw(st.sampled_from(["nothing", "nothing", "color", "depth", "intrinsics", "size"]))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     color = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
     depth = rng.integers(1, 65536, (height, width), dtype=np.uint16)

@@ -48,15 +48,17 @@ def test_estimate_and_score_refuse_a_bad_or_tiny_frame(files, capsys):
 
 
 @CLI
-@given(files=frame_files(), closed=st.booleans())
-def test_calibrate_refuses_a_bad_frame_and_keeps_the_old_profile(files, closed, capsys):
+@given(files=frame_files(), role=st.sampled_from(["closed", "open", "fit"]))
+def test_calibrate_refuses_a_bad_frame_and_keeps_the_old_profile(files, role, capsys):
     capsys.readouterr()
     with tempfile.TemporaryDirectory() as tmp:
         frame = str(files.write(Path(tmp) / "frame"))
         output = Path(tmp) / "profile.json"
         output.write_bytes(OLD_BYTES)
-        pair = [frame, "--open", str(DATA / "calib_open")] if closed else [str(DATA / "calib_closed"), "--open", frame]
-        user_error(main(["calibrate", *pair, "-o", str(output)]), capsys, frame)
+        frames = {"closed": [frame, "--open", str(DATA / "calib_open")],
+                  "open": [str(DATA / "calib_closed"), "--open", frame],
+                  "fit": ["--fit", frame, str(DATA / "calib_closed")]}  # the start comes from the open frame
+        user_error(main(["calibrate", *frames[role], "-o", str(output)]), capsys, frame)
         assert output.read_bytes() == OLD_BYTES and sorted(p.name for p in Path(tmp).iterdir()) == ["frame",
                                                                                                    "profile.json"]
 
