@@ -1,5 +1,6 @@
 """Frames: random sizes, bit depths, channels, corrupt PNGs and bad intrinsics load or raise a FrameError
-naming the input; arrays with NaN, inf and wrong dtypes are refused with a FrameError."""
+naming the input; arrays with NaN, inf and wrong dtypes are refused with a FrameError; a real frame
+painted over becomes a scene or a FrameSceneError naming it."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.fuzz.strategies import frame_files, intrinsic_values
-from vision.frames import Frame, FrameError, Intrinsics, load_frame
+from vision.frames import Frame, FrameError, Intrinsics, load_frame, save_frame
 
 SAMPLE = Path(__file__).resolve().parents[2] / "data" / "circle_open"
 FIELDS = ("width", "height", "fx", "fy", "ppx", "ppy", "depth_scale")
@@ -100,3 +101,41 @@ def test_frames_from_arrays_with_nan_inf_and_wrong_dtypes_are_refused(height, wi
     else:
         assert color.dtype == np.uint8 and depth.dtype == np.uint16  # only these get through
         check_loaded(frame)
+
+
+@st.composite
+def painted(draw, frame: Frame) -> Frame:
+    """``frame`` with up to four rectangles painted over it: a random colour, and a random depth (0 = no
+    reading, 65535 = far) or the depth left as it was."""
+    color, depth = frame.color.copy(), frame.depth.copy()
+    h, w = depth.shape
+    for _ in range(draw(st.integers(1, 4))):
+        x0, y0 = draw(st.integers(0, w - 1)), draw(st.integers(0, h - 1))
+        x1, y1 = draw(st.integers(x0 + 1, w)), draw(st.integers(y0 + 1, h))
+        color[y0:y1, x0:x1] = draw(st.tuples(*[st.integers(0, 255)] * 3))
+        value = draw(st.one_of(st.none(), st.sampled_from([0, 1, 65535]), st.integers(0, 65535)))
+        if value is not None:
+            depth[y0:y1, x0:x1] = value
+    if not depth.any():
+        depth[0, 0] = 1
+    return Frame(color=color, depth=depth, intrinsics=frame.intrinsics)
+
+
+@settings(max_examples=15, deadline=None)  # 640 x 480 frames: about 0.3 s each
+@given(st.data())
+def test_a_painted_over_real_frame_becomes_a_scene_or_a_frame_scene_error_naming_it(data):
+    # The command's pipeline up to the core's inputs (segmentation, keypoints, the object's SDF), without
+    # compiling an estimate.
+    from calib.profile import load_profile
+    from softgrip_cli._pipeline import FrameSceneError, frame_scene
+
+    frame = data.draw(painted(load_frame(SAMPLE)))
+    profile = load_profile(SAMPLE.parent / "sample_profile.json")
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = save_frame(frame, Path(tmp) / "painted")
+        try:
+            scene = frame_scene(folder, profile)
+        except FrameSceneError as err:
+            assert str(err).startswith(f"{folder}: ")
+        else:
+            assert np.isfinite(scene.pose).all() and np.isfinite(scene.bases_mm).all()
