@@ -129,20 +129,30 @@ def one_frame_from_frames(
     *,
     label: str = "one frame pair",
     camera_name: str = "unspecified",
+    names: tuple[str, str] = ("the closed frame", "the open frame"),
 ) -> CalibrationProfile:
     """:func:`one_frame_profile` on a closed frame without an object and an open frame.
 
+    ``names`` (closed, open), e.g. the frame folders, start the error messages.
+
     Raises:
         SoftgripError: the closed frame shows an object (eq. 4 needs a free closure), or the vision
-            pipeline fails on either frame (the message names what to adjust).
+            pipeline fails on either frame (the message names the frame and what to adjust).
     """
     settings = settings or SegmentationSettings()
-    closed_seg, _, closed = frame_keypoints(closed_frame, settings)
+
+    def keypoints(frame: Frame, name: str):
+        try:
+            return frame_keypoints(frame, settings)
+        except SoftgripError as err:
+            raise type(err)(f"{name}: {err}") from None  # the same error type, naming the frame
+
+    closed_seg, _, closed = keypoints(closed_frame, names[0])
     if closed_seg.object.any():
         raise SoftgripError(
-            f"the closed frame shows an object ({int(closed_seg.object.sum())} px): eq. 4 needs the gripper "
+            f"{names[0]} shows an object ({int(closed_seg.object.sum())} px): eq. 4 needs the gripper "
             f"closed without touching anything; take the calibration frame without the object (or raise "
             f"the segmentation's object_min_saturation / min_object_px if that is not an object)")
-    _, _, opened = frame_keypoints(open_frame, settings)
+    _, _, opened = keypoints(open_frame, names[1])
     return one_frame_profile(closed, opened, n_links, label=label, segmentation=settings.to_dict(),
                              camera={"name": camera_name, "intrinsics": closed_frame.intrinsics.to_dict()})

@@ -40,7 +40,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,12 +49,19 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from softgrip_jax import FingerModel, Gripper, SoftgripError
+from vision import user_json
+from vision.atomic_write import write_atomic
 from vision.frames import FrameError, Intrinsics
 from vision.segmentation import SegmentationError, SegmentationSettings
 
 #: The profile format this code writes and reads.
 PROFILE_VERSION = 1
 SIDES: tuple[str, str] = ("left", "right")
+#: Most links a finger may have: the paper uses N <= 20, and memory grows with N^2 per candidate
+#: in the mechanics estimate.
+MAX_N_LINKS = 100
+#: Largest magnitude of a number in a profile: the core computes in float32 (max 3.4e38).
+MAX_MAGNITUDE = 1e30
 Method = Literal["one-frame", "least-squares"]
 METHODS: tuple[str, ...] = ("one-frame", "least-squares")
 #: The estimates a least-squares fit can go through (``fit.estimate_method``; softgrip_jax.METHODS).
@@ -74,7 +80,7 @@ class FingerEntry:
         length: finger length L, mm, > 0 (eq. 5).
         theta_entire: entire bending angle Theta, rad, in [0, pi/2) (eq. 4).
         half_thickness: half the finger thickness r, mm, >= 0.
-        n_links: number of links N, >= 1.
+        n_links: number of links N, 1 to :data:`MAX_N_LINKS`.
         base_offset: (dx, dy) mm in image axes, added to a base detected in an open frame.
         stiffness_ratio: bending stiffness at the base over that at the tip (dimensionless, > 0;
             1: uniform). Only the mechanics estimate uses it.
@@ -205,24 +211,11 @@ def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str]) -> P
     data = profile.to_dict()
     _parse(data, str(path))  # the same checks as loading: never write a profile that cannot be read
     text = json.dumps(data, indent=2, allow_nan=False) + "\n"
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     try:
-        # Created like any new file (mode 0o666 less the umask), then renamed over the target.
-        fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        write_atomic(path, text.encode("utf-8"))
     except OSError as err:
-        raise ProfileError(f"{path}: cannot write the profile there ({err.strerror}): check that the "
-                           f"folder {path.parent} exists and is writable") from None
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(temporary, path)
-    except OSError as err:
-        raise ProfileError(f"{path}: cannot write the profile ({err.strerror})") from None
-    finally:
-        if temporary.exists():
-            temporary.unlink()
+        raise ProfileError(f"{path}: cannot write the profile there ({err.strerror}): check that the folder "
+                           f"{path.parent} exists and is writable") from None
     return path
 
 
@@ -240,7 +233,7 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
     except (OSError, UnicodeDecodeError) as err:
         raise ProfileError(f"{path}: cannot read the profile ({err})") from None
     try:
-        data = json.loads(text)
+        data = user_json.loads(text)
     except json.JSONDecodeError as err:
         raise ProfileError(f"{path}: not valid JSON ({err.msg} at line {err.lineno}, column {err.colno})") from None
     return _parse(data, str(path))
@@ -275,11 +268,13 @@ class _Reader:
     def number(self, value: Any, path: str, ok: Callable[[float], bool], expected: str) -> float:
         if not _is_number(value) or not math.isfinite(value) or not ok(float(value)):
             raise self.fail(path, expected, value)
+        if abs(value) > MAX_MAGNITUDE:  # the core computes in float32: this would become inf there
+            raise self.fail(path, f"{expected}, at most {MAX_MAGNITUDE:g} in magnitude", value)
         return float(value)
 
-    def integer(self, value: Any, path: str, lower: int) -> int:
-        if not _is_int(value) or value < lower:
-            raise self.fail(path, f"an integer >= {lower}", value)
+    def integer(self, value: Any, path: str, lower: int, upper: int) -> int:
+        if not _is_int(value) or not lower <= value <= upper:
+            raise self.fail(path, f"an integer >= {lower} and <= {upper}", value)
         return int(value)
 
     def text(self, value: Any, path: str, choices: tuple[str, ...] | None = None) -> str:
@@ -338,7 +333,7 @@ def _parse_finger(r: _Reader, value: Any, path: str) -> FingerEntry:
                               "a number in [0, pi/2)"),
         half_thickness=r.number(f["half_thickness"], f"{path}.half_thickness", lambda v: v >= 0,
                                 "a half-thickness in mm >= 0"),
-        n_links=r.integer(f["n_links"], f"{path}.n_links", 1),
+        n_links=r.integer(f["n_links"], f"{path}.n_links", 1, MAX_N_LINKS),
         base_offset=tuple(r.number(v, f"{path}.base_offset[{i}]", lambda _: True, "a finite number of mm")
                           for i, v in enumerate(offset)),
         stiffness_ratio=r.number(f.get("stiffness_ratio", 1.0), f"{path}.stiffness_ratio", lambda v: v > 0,

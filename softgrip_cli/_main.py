@@ -27,6 +27,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def one_line(text: str) -> str:
+    """``text`` with line breaks and other unprintable characters (from file names, JSON keys, ...)
+    escaped as in a Python string literal, so that an error message stays on one line."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -35,7 +41,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SoftgripError as err:
         if args.debug:
             raise
-        print(f"softgrip {args.command}: error: {err}", file=sys.stderr)
+        print(f"softgrip {args.command}: error: {one_line(str(err))}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -421,6 +421,18 @@ def unique_png_names(scenes_paths: list[str]) -> list[str]:
     return names
 
 
+def check_output_file(path: str | os.PathLike[str], what: str) -> Path:
+    """Refuse, before any work, an output file ``path`` that cannot be written: a folder, or one
+    whose folder does not exist (the message names ``what``, e.g. ``"-o"``, and the path)."""
+    target = Path(path)
+    if target.is_dir():
+        raise SoftgripError(f"{what} {target} is a folder, not a file: add a file name, e.g. {target / 'out'}")
+    if not target.parent.is_dir():
+        raise SoftgripError(f"{what} {target}: the folder {target.parent} does not exist (or is not a folder); "
+                            f"create it first")
+    return target
+
+
 def ensure_dir(path: str | os.PathLike[str], what: str) -> Path:
     """Create folder ``path`` (and parents) or raise a ``SoftgripError`` naming it."""
     folder = Path(path)

@@ -61,7 +61,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="least squares over pairs OPEN CLOSED [OPEN CLOSED ...]")
     parser.add_argument("--profile", type=Path, metavar="START",
                         help="starting values for --fit (default: the first open frame, Theta 0.5 rad)")
-    parser.add_argument("--n-links", type=positive_int, metavar="N",
+    parser.add_argument("--n-links", type=_n_links, metavar="N",
                         help=f"number of links of the model (default: the --profile's, else {DEFAULT_N_LINKS})")
     parser.add_argument("--base-offset", action="store_true",
                         help="with --fit, also fit a base offset per finger (needs 2 or more pairs)")
@@ -86,10 +86,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return parser
 
 
+def _n_links(text: str) -> int:
+    """An argparse type: a number of links from 1 to the profile format's MAX_N_LINKS."""
+    from calib.profile import MAX_N_LINKS
+
+    value = positive_int(text)
+    if value > MAX_N_LINKS:
+        raise argparse.ArgumentTypeError(f"at most {MAX_N_LINKS} links, got {value}")
+    return value
+
+
 def run(args: argparse.Namespace) -> int:
     """Calibrate as ``args`` says, write the profile, print a report; 0 on success."""
     from calib.fit import SkippedFrameWarning
+    from softgrip_cli._pipeline import check_output_file
 
+    check_output_file(args.output, "-o")  # before a fit that may take minutes
     with warnings.catch_warnings():
         warnings.simplefilter("always", SkippedFrameWarning)
         warnings.showwarning = _print_warning
@@ -118,7 +130,8 @@ def _one_frame(args: argparse.Namespace):
         raise SoftgripError(f"{', '.join(fit_only)} only apply to --fit")
     return one_frame_from_frames(load_frame(args.closed), load_frame(args.open_frame),
                                  args.n_links or DEFAULT_N_LINKS, label=f"{args.open_frame} + {args.closed}",
-                                 camera_name=args.camera or "unspecified")
+                                 camera_name=args.camera or "unspecified",
+                                 names=(str(args.closed), str(args.open_frame)))
 
 
 def _fit(args: argparse.Namespace):
@@ -145,7 +158,11 @@ def _fit(args: argparse.Namespace):
         settings = start.segmentation_settings()
     else:
         n_links = args.n_links or DEFAULT_N_LINKS
-        start = start_from_open_frame(load_frame(pairs[0][0]), n_links, camera_name=args.camera or "unspecified")
+        try:
+            start = start_from_open_frame(load_frame(pairs[0][0]), n_links, camera_name=args.camera or "unspecified")
+        except SoftgripError as err:  # the starting values come from the first open frame: name it
+            message = str(err)
+            raise type(err)(message if str(pairs[0][0]) in message else f"{pairs[0][0]}: {message}") from None
         settings = None
     method = resolve_method(args.method, start if args.profile is not None else None)
     mechanics_only = [flag for flag, on in (("--stiffness", args.stiffness),

@@ -135,7 +135,7 @@ def _calibrate(data: Path, out: Path):
         if sample_profile is None:
             raise SoftgripError(f"{sample}: no sample profile, and calibration is not available") from None
         profile, source = sample_profile, str(sample)
-        (out / "profile.json").write_text(json.dumps(profile.to_dict(), indent=2) + "\n")
+        _write_json(out / "profile.json", profile.to_dict())
     else:
         from vision.frames import load_frame
 
@@ -263,13 +263,13 @@ def _refine(scene: pipe.FrameScene, scored: dict, out: Path, method: str) -> dic
 
 
 def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(f".{path.name}.partial")
+    from vision.atomic_write import write_atomic
+
     try:
-        tmp.write_text(json.dumps(data, indent=1, allow_nan=False) + "\n", encoding="utf-8")
-        tmp.replace(path)
+        write_atomic(path, (json.dumps(data, indent=1, allow_nan=False) + "\n").encode("utf-8"))
     except OSError as err:
-        tmp.unlink(missing_ok=True)
-        raise SoftgripError(f"could not write {path}: {err.strerror}") from None
+        raise SoftgripError(f"could not write {path}: {err.strerror}; check that its folder exists and is "
+                            f"writable") from None
 
 
 def _fmt(value, spec: str = ".2f") -> str:

@@ -18,6 +18,7 @@ import numpy as np
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_method
 from softgrip_jax import DEFAULT_METHOD, SoftgripError
+from vision import user_json
 
 EPILOG = """examples:
   softgrip score data/circle_open --profile data/sample_profile.json --heatmap heat.png
@@ -93,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
         grid = parse_grid(args.grid)
     if args.heatmap:
         pipe.ensure_dir(Path(args.heatmap).parent, "heat map's folder")
+        pipe.check_output_file(args.heatmap, "--heatmap")
     scene = pipe.frame_scene(args.frame, profile, length_from_frame=args.length_from_frame)
     if not args.poses:
         grid = grid or default_grid(scene)
@@ -141,9 +143,15 @@ def parse_grid(spec: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         except ValueError:
             raise PoseInputError(f"--grid {spec!r}: the {what} range {part!r} is not FROM:TO:COUNT; expected "
                                  f"{_GRID_FORMAT}") from None
-        if not (math.isfinite(lo) and math.isfinite(hi)) or count < 1:
-            raise PoseInputError(f"--grid {spec!r}: the {what} range {part!r} needs finite ends and a count >= 1")
-        axes.append(np.linspace(lo, hi, count))
+        if not (math.isfinite(lo) and math.isfinite(hi)) or not 1 <= count <= MAX_POSES:
+            raise PoseInputError(f"--grid {spec!r}: the {what} range {part!r} needs finite ends and a count from 1 "
+                                 f"to {MAX_POSES}")
+        with np.errstate(over="ignore", invalid="ignore"):
+            values = np.linspace(lo, hi, count)
+        if not np.isfinite(values).all():
+            raise PoseInputError(f"--grid {spec!r}: the {what} range {part!r} is too wide to step through (its "
+                                 f"values overflow); give ends within +-1e300")
+        axes.append(values)
     total = math.prod(len(a) for a in axes)
     if total > MAX_POSES:
         raise PoseInputError(f"--grid {spec!r} has {total} poses; at most {MAX_POSES} per call (split the grid)")
@@ -199,7 +207,7 @@ def read_poses(path: str) -> np.ndarray:
 
 def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
     try:
-        data = json.loads(text)
+        data = user_json.loads(text)
     except json.JSONDecodeError as err:
         raise PoseInputError(f"{file}, line {err.lineno}: not valid JSON ({err.msg}, column {err.colno})") from None
     key = None
@@ -207,7 +215,7 @@ def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
         key = next((k for k in ("poses", "candidates") if isinstance(data.get(k), list)), None)
         if key is None:
             raise PoseInputError(f'{file}, line 1: expected a list of poses, or an object with a "poses" list, '
-                                 f'got an object with keys {", ".join(sorted(data)) or "(none)"}')
+                                 f'got an object with keys {", ".join(map(json.dumps, sorted(data))) or "(none)"}')
         items = data[key]
     elif isinstance(data, list):
         items = data
@@ -257,7 +265,7 @@ def _element_lines(text: str, key: str | None, count: int) -> list[int] | None:
                 break
             lines.append(text.count("\n", 0, i) + 1)
             _, i = decoder.raw_decode(text, i)
-    except json.JSONDecodeError:
+    except (ValueError, RecursionError):  # what user_json.loads reads but raw_decode cannot: no lines
         return None
     return lines if len(lines) == count else None
 
@@ -267,7 +275,7 @@ _COLUMN_NAMES = {"x_mm": 0, "x": 0, "y_mm": 1, "y": 1, "angle_rad": 2, "angle": 
 
 def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
     poses, columns = [], None
-    for line_no, row in enumerate(csv.reader(io.StringIO(text)), start=1):
+    for line_no, row in _csv_rows(text, file):
         cells = [c.strip() for c in row]
         if not any(cells) or cells[0].startswith("#"):
             continue
@@ -294,6 +302,20 @@ def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
             pose[index] = value
         poses.append(tuple(pose))
     return poses
+
+
+def _csv_rows(text: str, file: Path):
+    """(line number, cells) of each row; a row the csv module cannot split is a PoseInputError."""
+    reader = csv.reader(io.StringIO(text))
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as err:
+            raise PoseInputError(f"{file}, line {reader.line_num}: not a CSV row ({err}); expected "
+                                 f"x_mm,y_mm[,angle_rad]") from None
+        yield reader.line_num, row
 
 
 def _numeric(cell: str) -> bool:

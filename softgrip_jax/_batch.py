@@ -17,6 +17,7 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._deformation import Estimate, estimate, finish, geometric_stage, mechanics_of, needs_mechanics
+from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
 from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
@@ -28,6 +29,21 @@ DEFAULT_CHUNK = 2048
 
 #: A chunk's touching candidates are solved in groups of ceil(chunk / _SOLVE_GROUPS).
 _SOLVE_GROUPS = 8
+
+
+def as_candidates(x, width: int, dtype, what: str, single: bool = False) -> jax.Array:
+    """``x`` as a (B, width) array of ``dtype`` (B may be 0), or a :class:`SoftgripError` saying what
+    was expected: a batch of the wrong shape would otherwise be broadcast into wrong results or fail
+    deep inside the computation. ``single``: a (width,) array is accepted too (and kept 1-D)."""
+    expected = f"{what} must be a (B, {width}) array of real numbers" + (f" or one ({width},)" if single else "")
+    try:
+        array = jnp.asarray(x)
+    except (TypeError, ValueError) as err:
+        raise SoftgripError(f"{expected}, got {type(x).__name__} that is not one ({err})") from None
+    shape_ok = array.shape[-1:] == (width,) and (array.ndim == 2 or (single and array.ndim == 1))
+    if not shape_ok or not (jnp.issubdtype(array.dtype, jnp.floating) or jnp.issubdtype(array.dtype, jnp.integer)):
+        raise SoftgripError(f"{expected}, got shape {array.shape} of {array.dtype}")
+    return array.astype(dtype)
 
 
 def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_GROUPS):
@@ -124,7 +140,7 @@ def estimate_batch(
     equilibrium is solved only for the candidates that touch the object.
     """
     check_method(method)
-    bases = jnp.asarray(bases, finger.length.dtype)
+    bases = as_candidates(bases, 2, finger.length.dtype, "estimate_batch: bases")
     return _estimate_batch(finger, sdf, bases, config, mechanics, min(chunk_size, max(1, bases.shape[0])), method)
 
 
@@ -143,6 +159,6 @@ def estimate_grasp_batch(
     ``method`` and ``mechanics`` (static) are as for :func:`estimate_grasp`.
     """
     check_method(method)
-    poses = jnp.asarray(poses, gripper.base_separation.dtype)
+    poses = as_candidates(poses, 3, gripper.base_separation.dtype, "estimate_grasp_batch: poses")
     return _estimate_grasp_batch(gripper, sdf, poses, config, mechanics,
                                  min(chunk_size, max(1, poses.shape[0])), method)

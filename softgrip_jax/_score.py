@@ -33,7 +33,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._batch import grasp_chunk, map_chunks
+from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._deformation import Estimate
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
@@ -191,7 +191,7 @@ def score(
     :func:`score_pose`; with ``"mechanics"`` the equilibrium is solved only for fingers that touch.
     """
     check_method(method)
-    poses = jnp.asarray(poses, gripper.base_separation.dtype)
+    poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
     b = poses.shape[0]
     mesh = _device_mesh()
     n_dev = 1 if mesh is None else mesh.devices.size
@@ -277,7 +277,7 @@ def refine(
     mechanics estimate's gradient in the pose comes from implicit differentiation.
     """
     check_method(method)
-    poses = jnp.asarray(pose, gripper.base_separation.dtype)
+    poses = as_candidates(pose, 3, gripper.base_separation.dtype, "refine: pose", single=True)
     single = poses.ndim == 1
     out = _refine_batch(gripper, sdf, poses.reshape(-1, 3), weights, config, mechanics, max_steps,
                         jnp.asarray(angle_scale, poses.dtype), method)

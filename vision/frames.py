@@ -18,6 +18,7 @@ import math
 import os
 import shutil
 import uuid
+import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,7 @@ import cv2
 import numpy as np
 
 from softgrip_jax._errors import SoftgripError
+from vision import user_json
 
 COLOR_FILE = "color.png"
 DEPTH_FILE = "depth.png"
@@ -230,16 +232,42 @@ def _describe(array: Any) -> str:
 
 def _read_png(path: Path) -> np.ndarray:
     data = _read_file(path)
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    problem = _png_damage(data)
+    image = None if problem else cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise FrameError(f"{path} is not a readable PNG image (corrupt or truncated?): "
+        raise FrameError(f"{path} is not a readable PNG image ({problem or 'OpenCV cannot decode it'}): "
                          f"write it again, e.g. with 'softgrip capture'")
     return image
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_damage(data: bytes) -> str | None:
+    """What is wrong with the PNG file structure of ``data`` (signature, chunk lengths and CRCs, the
+    IEND chunk), or None. Checked before decoding, because libpng prints its own complaint about a
+    damaged file on stderr before OpenCV gives up."""
+    if not data:
+        return "the file is empty"
+    if not data.startswith(_PNG_SIGNATURE):
+        return "no PNG signature"
+    at = len(_PNG_SIGNATURE)
+    while at + 12 <= len(data):
+        length = int.from_bytes(data[at:at + 4], "big")
+        kind, end = data[at + 4:at + 8], at + 12 + length
+        if end > len(data):
+            break
+        if zlib.crc32(data[at + 4:end - 4]) != int.from_bytes(data[end - 4:end], "big"):
+            return f"its {kind.decode('latin-1')!r} chunk at byte {at} is damaged (CRC mismatch)"
+        if kind == b"IEND":
+            return None
+        at = end
+    return f"truncated after {len(data)} bytes"
+
+
 def _read_json(path: Path) -> Any:
     try:
-        return json.loads(_read_file(path).decode("utf-8"))
+        return user_json.loads(_read_file(path).decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise FrameError(f"{path} is not valid JSON ({err}): it must be an object with keys "
                          f"{', '.join(_FIELDS)}") from None

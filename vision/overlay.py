@@ -17,7 +17,6 @@ Example:
 from __future__ import annotations
 
 import os
-import uuid
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import cv2
 import numpy as np
 
 from softgrip_jax import SoftgripError
+from vision.atomic_write import write_atomic
 
 JOINT_RGB = (0, 0, 255)
 OBSERVED_RGB = (0, 255, 0)
@@ -94,15 +94,9 @@ def save_png(path: str | os.PathLike[str], rgb: np.ndarray) -> Path:
     ok, encoded = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image)
     if not ok:
         raise SoftgripError(f"save_png {target}: OpenCV could not encode the image")
-    tmp = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.partial"
     try:
-        with open(tmp, "xb") as f:
-            f.write(encoded.tobytes())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
+        write_atomic(target, encoded.tobytes())
     except OSError as err:
-        tmp.unlink(missing_ok=True)
         raise SoftgripError(f"could not write {target}: {err.strerror}; check that its folder exists "
                             f"and is writable") from None
     return target

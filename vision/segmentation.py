@@ -52,6 +52,11 @@ from vision.frames import Frame
 Backend = Literal["opencv", "kornia"]
 
 
+#: Largest side (px) of the dilation and opening kernels: a kernel is side x side bytes, and one
+#: wider than a frame means nothing (the defaults are 15 and 3).
+MAX_KERNEL_PX = 255
+
+
 class SegmentationError(SoftgripError):
     """The frame cannot be segmented as a two-finger gripper; the message says what to adjust."""
 
@@ -110,9 +115,9 @@ class SegmentationSettings:
                 f"below object_min_saturation ({self.object_min_saturation}), or a pixel could be both")
         for name in ("hole_fill_px", "gripper_open_px", "object_open_px"):
             value = getattr(self, name)
-            if not _is_int(value) or value < 0 or (value != 0 and value % 2 == 0):
+            if not _is_int(value) or value < 0 or (value != 0 and value % 2 == 0) or value > MAX_KERNEL_PX:
                 raise SegmentationError(f"SegmentationSettings.{name} must be 0 (off) or an odd number "
-                                        f"of pixels, got {value!r}")
+                                        f"of pixels up to {MAX_KERNEL_PX}, got {value!r}")
         for name in ("min_finger_px", "min_object_px"):
             value = getattr(self, name)
             if not _is_int(value) or value < 1:
@@ -254,7 +259,7 @@ def background_cutoff_mm(frame: Frame, settings: SegmentationSettings) -> float:
         return math.inf
     threshold, _ = cv2.threshold(readings.reshape(-1, 1), 0, 65535, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
     near, far = readings[readings <= threshold], readings[readings > threshold]
-    if far.size == 0 or far.mean() < 1.25 * near.mean():
+    if near.size == 0 or far.size == 0 or far.mean() < 1.25 * near.mean():  # one depth: no split
         return math.inf
     return 0.5 * float(np.percentile(near, 99) + np.percentile(far, 1)) * mm_per_unit
 
