@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 
 from softgrip_jax import SoftgripError
 
 # Exit codes: 0 success, 1 unexpected failure (a bug: traceback shown), 2 user error (bad input,
-# message only), 130 interrupted.
+# message only), 130 interrupted, 141 output pipe closed early (as `yes | head` gives).
 EXIT_USER_ERROR = 2
+EXIT_BROKEN_PIPE = 141
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -46,6 +48,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # The reader of our standard output went away (`softgrip score ... | head`): not an error of
+        # ours. Point stdout at /dev/null so that flushing it at exit cannot raise again.
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):  # stdout without a file descriptor (captured, replaced)
+            pass
+        return EXIT_BROKEN_PIPE
 
 
 if __name__ == "__main__":  # pragma: no cover

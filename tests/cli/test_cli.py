@@ -38,3 +38,14 @@ def test_debug_shows_the_exception(tmp_path):
 
     with pytest.raises(SoftgripError):
         main(["--debug", "capture", "--out", str(tmp_path / "out"), "--bag", str(tmp_path / "nope.db3")])
+
+
+def test_closed_output_pipe_exits_141_without_a_traceback(tmp_path, capsys, monkeypatch):
+    from softgrip_cli import cmd_capture
+
+    def reader_went_away(args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(cmd_capture, "run", reader_went_away)
+    assert main(["capture", "--out", str(tmp_path / "out")]) == 141
+    assert "Traceback" not in capsys.readouterr().err
