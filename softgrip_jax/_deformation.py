@@ -235,8 +235,8 @@ def estimate(
         >>> import jax.numpy as jnp
         >>> from softgrip_jax import CASE_NAMES, PolygonSDF
         >>> finger = FingerModel(length=50.0, theta_entire=0.4, half_thickness=3.0, n_links=10)
-        >>> est = estimate(finger, PolygonSDF.regular((60.0, 40.0), 8.0), jnp.zeros(2))
-        >>> CASE_NAMES[int(est.case)], est.joints.shape
+        >>> est = estimate(finger, PolygonSDF.regular((60.0, 40.0), 8.0), jnp.zeros(2), method="geometric")
+        >>> CASE_NAMES[int(est.case)], est.joints.shape  # joints: (N+1, 2) mm, base first
         ('none', (11, 2))
     """
     frame = FingerFrame.hanging_from(jnp.asarray(base, finger.length.dtype))
