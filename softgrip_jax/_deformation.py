@@ -78,7 +78,18 @@ class Estimate(eqx.Module):
 
 
 def case_shapes(finger: FingerModel, contact: Contact) -> tuple[Float[Array, "4"], Float[Array, "4 n"]]:
-    """``(psi, turning)`` of the four cases (a)-(d), stacked in :class:`ContactCase` order."""
+    """``(psi, turning)`` of the four cases (a)-(d), stacked in :class:`ContactCase` order: psi (4,)
+    rad and turning (4, N) rad; ``forward_kinematics(base, psi[k], turning[k], L)`` draws case k.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import ContactCase, PolygonSDF, predict_contact
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
+        >>> c = predict_contact(f, PolygonSDF.regular((20.0, 30.0), 8.0), jnp.zeros(2))
+        >>> psi, turning = case_shapes(f, c)
+        >>> psi.shape, turning.shape, float(psi[ContactCase.NONE])
+        ((4,), (4, 10), 0.0)
+    """
     n, theta = finger.n_links, finger.theta_entire
     free = pcc_turning(theta, n)
     zero = jnp.zeros_like(theta)
@@ -205,6 +216,15 @@ def estimate_in_frame(
     ``method`` (static) chooses the deformation: ``"geometric"`` (the paper's eq. 9) or
     ``"mechanics"`` (the spring chain at equilibrium, :mod:`softgrip_jax._mechanics`, solved with
     the settings ``mechanics`` wherever the finger touches the object).
+
+    Example (a right finger, mirrored: it curls toward -x):
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import PolygonSDF
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
+        >>> frame = FingerFrame(origin=jnp.zeros(2), angle=jnp.array(0.0), handedness=jnp.array(-1.0))
+        >>> est = estimate_in_frame(f, PolygonSDF.regular((100.0, 30.0), 5.0), frame, method="geometric")
+        >>> bool(est.joints[-1, 0] < 0), est.joints.shape  # tip left of the base; (N+1, 2) mm
+        (True, (11, 2))
     """
     check_method(method)
     stage = geometric_stage(finger, sdf, frame, config, method)
