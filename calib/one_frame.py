@@ -135,6 +135,15 @@ def one_frame_from_frames(
     Raises:
         SoftgripError: the closed frame shows an object (eq. 4 needs a free closure), or the vision
             pipeline fails on either frame (the message names what to adjust).
+
+    Example (the sample calibration pair, rendered with Theta 0.55 rad for both fingers):
+        >>> from pathlib import Path
+        >>> import calib
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+        >>> from vision.frames import load_frame
+        >>> profile = one_frame_from_frames(load_frame(data / "calib_closed"), load_frame(data / "calib_open"), 20)
+        >>> [round(profile.fingers[side].theta_entire, 2) for side in ("left", "right")]
+        [0.55, 0.55]
     """
     settings = settings or SegmentationSettings()
     closed_seg, _, closed = frame_keypoints(closed_frame, settings)

@@ -272,6 +272,8 @@ def observed_joints(closure: RodClosure, n_links: int) -> Float[Array, "n1 2"]:
     Returns:
         (N+1, 2) points at arc lengths k L / N, k = 0..N, mm (base first, tip last), in the dtype of
         ``closure.points``.
+
+    Example: :func:`close_rod`'s example divides a closure into 20 links.
     """
     _require_int("observed_joints: n_links", n_links, lower=1)
     with jax.enable_x64(True):
