@@ -184,6 +184,19 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
 
     Raises:
         KeypointError: an empty mask, or one too short for its thickness to have two ends.
+
+    Example (pixels, and the finger's L in mm):
+        >>> from pathlib import Path
+        >>> import vision
+        >>> from vision.frames import load_frame
+        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from vision.geometry import PlaneCamera
+        >>> from vision.segmentation import segment
+        >>> frame = load_frame(data / "calib_open")
+        >>> seg = segment(frame)
+        >>> k = finger_keypoints(seg.left_finger, PlaneCamera.from_frame(frame, seg.fingers), "left")
+        >>> k.centreline_px.shape[1], round(k.length_mm)
+        (2, 52)
     """
     _sign(side)
     finger, contour = _finger_region(np.asarray(mask, dtype=bool), side)

@@ -223,6 +223,15 @@ def segment_batch(
     Raises:
         SegmentationError: as :func:`segment`, naming the frame's index; also a bad backend,
             frames of different sizes for kornia, or kornia not installed.
+
+    Example:
+        >>> from pathlib import Path
+        >>> import vision
+        >>> from vision.frames import load_frame
+        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> segs = segment_batch([load_frame(data / name) for name in ("circle_open", "calib_open")])
+        >>> [bool(s.object.any()) for s in segs]
+        [True, False]
     """
     settings = SegmentationSettings() if settings is None else settings
     frames = list(frames)
