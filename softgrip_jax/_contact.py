@@ -270,7 +270,8 @@ def predict_contact(
         >>> import jax.numpy as jnp
         >>> from softgrip_jax import CASE_NAMES, PolygonSDF
         >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
-        >>> c = predict_contact(f, PolygonSDF.regular((20.0, 30.0), 8.0), jnp.zeros(2))
+        >>> import jax  # jitted, the call compiles once: faster than running op by op
+        >>> c = jax.jit(predict_contact)(f, PolygonSDF.regular((20.0, 30.0), 8.0), jnp.zeros(2))
         >>> CASE_NAMES[int(c.case)], bool(c.touches), round(float(c.n_g1), 1)  # N_g1: links to P_g1
         ('other', True, 7.6)
     """
@@ -297,7 +298,8 @@ def predict_contact_local(
         >>> from softgrip_jax import PolygonSDF
         >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
         >>> disc = PolygonSDF.regular((20.0, 30.0), 8.0)
-        >>> c = predict_contact_local(f, lambda q: disc.distance(q + jnp.array([0.0, 0.0])))
+        >>> import jax
+        >>> c = jax.jit(lambda f: predict_contact_local(f, lambda q: disc.distance(q + jnp.array([0.0, 0.0]))))(f)
         >>> round(float(c.s1), 3) < 0.5  # the chord angle at first touch, before Theta
         True
     """

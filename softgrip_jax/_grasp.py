@@ -75,10 +75,12 @@ def estimate_grasp(
         >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
         >>> g = Gripper(left=f, right=f, base_separation=50.0)
         >>> disc = PolygonSDF.regular((0.0, 35.0), 9.0)
-        >>> est = estimate_grasp(g, disc, jnp.array([0.0, 0.0, 0.0]), method="geometric")
+        >>> import jax
+        >>> run = jax.jit(estimate_grasp, static_argnames="method")  # compiles once; op by op is slower
+        >>> est = run(g, disc, jnp.array([0.0, 0.0, 0.0]), method="geometric")
         >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
         ['other', 'other']
-        >>> est = estimate_grasp(g, disc, jnp.array([0.0, 0.0, 0.0]))  # the default: mechanics
+        >>> est = run(g, disc, jnp.array([0.0, 0.0, 0.0]))  # the default: mechanics
         >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
         ['tip_and_other', 'tip_and_other']
     """

@@ -143,7 +143,7 @@ def _check_mechanics(drawn: Drawn, est, geometric) -> None:
         assert np.abs(_distance(drawn, np.asarray(est.contact.p_o2)[tip_cases])).max() <= _grid_step(drawn)
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(scenes())
 def test_estimates_are_consistent_with_the_contact_geometry(drawn: Drawn):
     bases = jnp.asarray(drawn.bases)
