@@ -57,12 +57,20 @@ def _clean_env() -> dict[str, str]:
     return env
 
 
+@pytest.fixture
+def work(tmp_path):
+    """The copy's folder; its virtual environment (about 1.5 GB) is removed afterwards, as pytest
+    keeps the last few runs' temporary folders."""
+    folder = tmp_path / "softgrip-jax"
+    yield folder
+    shutil.rmtree(folder / ".venv", ignore_errors=True)
+
+
 @pytest.mark.slow
-def test_readme_setup_then_demo_on_a_fresh_copy(tmp_path):
+def test_readme_setup_then_demo_on_a_fresh_copy(tmp_path, work):
     if shutil.which("make") is None:
         pytest.skip("needs make (the README's set-up is `make demo` / `make test`)")
     files = _tracked_files()
-    work = tmp_path / "softgrip-jax"
     for name in files:
         source = REPO / name
         if source.is_file():  # a tracked file deleted in the working tree is not part of the checkout
