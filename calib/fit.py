@@ -347,6 +347,15 @@ def start_from_open_frame(
 
     Raises:
         SoftgripError: the vision pipeline fails on the frame (the message names what to adjust).
+
+    Example (L in mm, Theta in rad):
+        >>> from pathlib import Path
+        >>> import calib
+        >>> from vision.frames import load_frame
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> start = start_from_open_frame(load_frame(data / "calib_open"), 20)
+        >>> round(start.fingers["left"].length), start.fingers["left"].theta_entire
+        (52, 0.5)
     """
     _, _, fingers = frame_keypoints(open_frame, settings)
     entries = {side: FingerEntry(length=f.length_mm, theta_entire=theta_entire,

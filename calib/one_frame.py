@@ -102,7 +102,14 @@ def one_frame_profile(
 
 def free_closure_joints(entry: FingerEntry, base_mm: np.ndarray, side: str) -> np.ndarray:
     """(N+1, 2) joints (mm) of the closed, untouched finger (eqs. 1-3) hanging from ``base_mm``,
-    mirrored for the right finger as the core mirrors it (a ``FingerFrame`` of handedness -1)."""
+    mirrored for the right finger as the core mirrors it (a ``FingerFrame`` of handedness -1).
+
+    Example:
+        >>> import numpy as np
+        >>> entry = FingerEntry(length=50.0, theta_entire=0.0, half_thickness=4.0, n_links=2)
+        >>> free_closure_joints(entry, np.array([10.0, 0.0]), "right").tolist()
+        [[10.0, 0.0], [10.0, 25.0], [10.0, 50.0]]
+    """
     frame = FingerFrame(origin=jnp.asarray(base_mm, jnp.float32), angle=jnp.zeros(()),
                         handedness=jnp.asarray(1.0 if side == "left" else -1.0))
     return np.asarray(frame.to_world(pcc_joints(entry.model(), jnp.zeros(2))), np.float64)
@@ -115,6 +122,15 @@ def frame_keypoints(
 
     Raises:
         SoftgripError: segmentation or keypoint failures (their messages say what to adjust).
+
+    Example (the camera's plane depth in mm; the fingers' L in mm):
+        >>> from pathlib import Path
+        >>> import calib
+        >>> from vision.frames import load_frame
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> seg, camera, (left, right) = frame_keypoints(load_frame(data / "calib_open"))
+        >>> round(camera.depth_mm), round(left.length_mm), round(right.length_mm)
+        (120, 52, 52)
     """
     seg = segment(frame, settings)
     camera = PlaneCamera.from_frame(frame, seg.fingers)
@@ -138,6 +154,15 @@ def one_frame_from_frames(
     Raises:
         SoftgripError: the closed frame shows an object (eq. 4 needs a free closure), or the vision
             pipeline fails on either frame (the message names the frame and what to adjust).
+
+    Example (the sample calibration pair, rendered with Theta 0.55 rad for both fingers):
+        >>> from pathlib import Path
+        >>> import calib
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+        >>> from vision.frames import load_frame
+        >>> profile = one_frame_from_frames(load_frame(data / "calib_closed"), load_frame(data / "calib_open"), 20)
+        >>> [round(profile.fingers[side].theta_entire, 2) for side in ("left", "right")]
+        [0.55, 0.55]
     """
     settings = settings or SegmentationSettings()
 

@@ -196,7 +196,16 @@ class CalibrationProfile:
 
 def to_gripper(profile: CalibrationProfile) -> Gripper:
     """The core's :class:`~softgrip_jax.Gripper` of a profile (base offsets are not part of it:
-    apply them to detected bases with :meth:`CalibrationProfile.corrected_bases`)."""
+    apply them to detected bases with :meth:`CalibrationProfile.corrected_bases`).
+
+    Example (lengths in mm, angles in rad):
+        >>> from pathlib import Path
+        >>> import calib
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+        >>> gripper = to_gripper(load_profile(data / "sample_profile.json"))
+        >>> round(float(gripper.base_separation), 1), gripper.left.n_links, round(float(gripper.left.theta_entire), 3)
+        (64.0, 20, 0.549)
+    """
     return Gripper(left=profile.fingers["left"].model(), right=profile.fingers["right"].model(),
                    base_separation=profile.base_separation)
 
@@ -206,6 +215,17 @@ def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str]) -> P
 
     Raises:
         ProfileError: a field is out of range (named, as when loading), or the file cannot be written.
+
+    Example:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> import calib
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+        >>> profile = load_profile(data / "sample_profile.json")
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     copy = load_profile(save_profile(profile, Path(folder) / "gripper.json"))
+        >>> copy.to_dict() == profile.to_dict()
+        True
     """
     path = Path(path)
     data = profile.to_dict()
@@ -224,6 +244,14 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
 
     Raises:
         ProfileError: missing or unreadable file, invalid JSON, or a bad field (named by its path).
+
+    Example:
+        >>> from pathlib import Path
+        >>> import calib
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+        >>> profile = load_profile(data / "sample_profile.json")
+        >>> profile.fit.method, round(profile.fingers["left"].length, 1)  # L in mm
+        ('one-frame', 52.2)
     """
     path = Path(path)
     try:

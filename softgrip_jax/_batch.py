@@ -138,6 +138,19 @@ def estimate_batch(
     (NaN, outside the SDF grid) comes back ``valid=False`` and does not affect the others.
     ``method`` and ``mechanics`` (static) are as for :func:`estimate`; with ``"mechanics"`` the
     equilibrium is solved only for the candidates that touch the object.
+
+    Args:
+        bases: (B, 2) finger bases in mm (each finger hangs toward +y and curls toward +x).
+        chunk_size: bases evaluated together (static); memory grows with it, not with B.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import CASE_NAMES, FingerModel, PolygonSDF
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
+        >>> bases = jnp.array([[0.0, 0.0], [-60.0, 0.0], [jnp.nan, 0.0]])  # mm
+        >>> est = estimate_batch(f, PolygonSDF.regular((20.0, 30.0), 8.0), bases, method="geometric")
+        >>> est.joints.shape, [CASE_NAMES[int(c)] for c in est.case[:2]], est.valid.tolist()
+        ((3, 11, 2), ['other', 'none'], [True, True, False])
     """
     check_method(method)
     bases = as_candidates(bases, 2, finger.length.dtype, "estimate_batch: bases")
@@ -157,6 +170,23 @@ def estimate_grasp_batch(
     """:func:`estimate_grasp` for B poses (x mm, y mm, angle rad), ``chunk_size`` at a time.
 
     ``method`` and ``mechanics`` (static) are as for :func:`estimate_grasp`.
+
+    Args:
+        poses: (B, 3) gripper poses: centre x, y (mm) and angle (rad).
+
+    Returns:
+        :class:`GraspEstimate` with leading axis B: ``left`` and ``right`` :class:`Estimate` s
+        (joints (B, N+1, 2) mm) and ``valid`` (B,).
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import FingerModel, Gripper, PolygonSDF
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
+        >>> poses = jnp.array([[0.0, 0.0, 0.0], [0.0, -100.0, 0.0]])  # mm, mm, rad
+        >>> g = estimate_grasp_batch(Gripper(f, f, 50.0), PolygonSDF.regular((0.0, 35.0), 9.0), poses,
+        ...                          method="geometric")
+        >>> g.left.joints.shape, g.valid.tolist()
+        ((2, 11, 2), [True, True])
     """
     check_method(method)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "estimate_grasp_batch: poses")

@@ -126,7 +126,19 @@ class Contact(eqx.Module):
 def sweep_shape(
     finger: FingerModel, s: Float[Array, ""], sweep: Literal["pcc", "rigid"] = "pcc"
 ) -> tuple[Float[Array, ""], Float[Array, " n"]]:
-    """``(psi, turning)`` of the finger at closing progress ``s`` (its base-tip chord angle, rad)."""
+    """``(psi, turning)`` of the finger at closing progress ``s`` (its base-tip chord angle, rad):
+    the base rotation (rad) and the (N,) turning angles (rad), for :func:`forward_kinematics`.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=2)
+        >>> psi, turning = sweep_shape(f, jnp.array(0.3))            # PCC: psi 0, turning 2 s / N
+        >>> float(psi), [round(float(t), 3) for t in turning]
+        (0.0, [0.3, 0.3])
+        >>> psi, turning = sweep_shape(f, jnp.array(0.3), "rigid")   # the straight finger, rotated by s
+        >>> round(float(psi), 3), turning.tolist()
+        (0.3, [0.0, 0.0])
+    """
     if sweep == "pcc":
         return jnp.zeros_like(s), pcc_turning(s, finger.n_links)
     return s, jnp.zeros((finger.n_links,), dtype=jnp.result_type(s))
@@ -268,6 +280,15 @@ def predict_contact(
 
     Returns:
         A :class:`Contact` (mm, rad). Pure, jit-, vmap- and grad-compatible.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import CASE_NAMES, PolygonSDF
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
+        >>> import jax  # jitted, the call compiles once: faster than running op by op
+        >>> c = jax.jit(predict_contact)(f, PolygonSDF.regular((20.0, 30.0), 8.0), jnp.zeros(2))
+        >>> CASE_NAMES[int(c.case)], bool(c.touches), round(float(c.n_g1), 1)  # N_g1: links to P_g1
+        ('other', True, 7.6)
     """
     base = jnp.asarray(base, finger.length.dtype)
     contact = predict_contact_local(finger, lambda q: sdf.distance(q + base), config)
@@ -286,6 +307,16 @@ def predict_contact_local(
     The scene enters only through ``dist``, so a finger placed by a frame (translated, rotated or
     mirrored) closes over that frame instead of carrying it inside the SDF: the SDF, usually a large
     grid, then stays one unbatched operand however many candidates are batched.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import PolygonSDF
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
+        >>> disc = PolygonSDF.regular((20.0, 30.0), 8.0)
+        >>> import jax
+        >>> c = jax.jit(lambda f: predict_contact_local(f, lambda q: disc.distance(q + jnp.array([0.0, 0.0]))))(f)
+        >>> round(float(c.s1), 3) < 0.5  # the chord angle at first touch, before Theta
+        True
     """
     dtype = finger.length.dtype
     base = jnp.zeros(2, dtype)

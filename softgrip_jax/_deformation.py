@@ -79,7 +79,19 @@ class Estimate(eqx.Module):
 
 
 def case_shapes(finger: FingerModel, contact: Contact) -> tuple[Float[Array, "4"], Float[Array, "4 n"]]:
-    """``(psi, turning)`` of the four cases (a)-(d), stacked in :class:`ContactCase` order."""
+    """``(psi, turning)`` of the four cases (a)-(d), stacked in :class:`ContactCase` order: psi (4,)
+    rad and turning (4, N) rad; ``forward_kinematics(base, psi[k], turning[k], L)`` draws case k.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import ContactCase, PolygonSDF, predict_contact
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
+        >>> import jax
+        >>> c = jax.jit(predict_contact)(f, PolygonSDF.regular((20.0, 30.0), 8.0), jnp.zeros(2))
+        >>> psi, turning = case_shapes(f, c)
+        >>> psi.shape, turning.shape, float(psi[ContactCase.NONE])
+        ((4,), (4, 10), 0.0)
+    """
     n, theta = finger.n_links, finger.theta_entire
     free = pcc_turning(theta, n)
     zero = jnp.zeros_like(theta)
@@ -206,6 +218,17 @@ def estimate_in_frame(
     ``method`` (static) chooses the deformation: ``"geometric"`` (the paper's eq. 9) or
     ``"mechanics"`` (the spring chain at equilibrium, :mod:`softgrip_jax._mechanics`, solved with
     the settings ``mechanics`` wherever the finger touches the object).
+
+    Example (a right finger, mirrored: it curls toward -x):
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import PolygonSDF
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
+        >>> frame = FingerFrame(origin=jnp.zeros(2), angle=jnp.array(0.0), handedness=jnp.array(-1.0))
+        >>> import jax
+        >>> run = jax.jit(estimate_in_frame, static_argnames="method")  # compiles once; op by op is slower
+        >>> est = run(f, PolygonSDF.regular((100.0, 30.0), 5.0), frame, method="geometric")
+        >>> bool(est.joints[-1, 0] < 0), est.joints.shape  # tip left of the base; (N+1, 2) mm
+        (True, (11, 2))
     """
     check_method(method)
     stage = geometric_stage(finger, sdf, frame, config, method)
@@ -236,8 +259,10 @@ def estimate(
         >>> import jax.numpy as jnp
         >>> from softgrip_jax import CASE_NAMES, PolygonSDF
         >>> finger = FingerModel(length=50.0, theta_entire=0.4, half_thickness=3.0, n_links=10)
-        >>> est = estimate(finger, PolygonSDF.regular((60.0, 40.0), 8.0), jnp.zeros(2))
-        >>> CASE_NAMES[int(est.case)], est.joints.shape
+        >>> import jax
+        >>> run = jax.jit(estimate, static_argnames="method")  # compiles once; op by op is slower
+        >>> est = run(finger, PolygonSDF.regular((60.0, 40.0), 8.0), jnp.zeros(2), method="geometric")
+        >>> CASE_NAMES[int(est.case)], est.joints.shape  # joints: (N+1, 2) mm, base first
         ('none', (11, 2))
     """
     frame = FingerFrame.hanging_from(jnp.asarray(base, finger.length.dtype))

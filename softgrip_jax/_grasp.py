@@ -31,7 +31,17 @@ class GraspEstimate(eqx.Module):
 
 
 def finger_frames(gripper: Gripper, pose: Float[ArrayLike, "3"]) -> tuple[FingerFrame, FingerFrame]:
-    """The (left, right) finger frames of ``gripper`` at ``pose`` = (x mm, y mm, angle rad)."""
+    """The (left, right) finger frames of ``gripper`` at ``pose`` = (x mm, y mm, angle rad): the
+    bases W/2 either side of the centre across the gripper's axis, the right one mirrored.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import FingerModel, Gripper
+        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
+        >>> left, right = finger_frames(Gripper(f, f, 40.0), jnp.array([0.0, 5.0, 0.0]))
+        >>> left.origin.tolist(), right.origin.tolist(), float(right.handedness)
+        ([-20.0, 5.0], [20.0, 5.0], -1.0)
+    """
     dtype = gripper.base_separation.dtype
     pose = jnp.asarray(pose, dtype)
     center, angle = pose[:2], pose[2]
@@ -65,10 +75,12 @@ def estimate_grasp(
         >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
         >>> g = Gripper(left=f, right=f, base_separation=50.0)
         >>> disc = PolygonSDF.regular((0.0, 35.0), 9.0)
-        >>> est = estimate_grasp(g, disc, jnp.array([0.0, 0.0, 0.0]), method="geometric")
+        >>> import jax
+        >>> run = jax.jit(estimate_grasp, static_argnames="method")  # compiles once; op by op is slower
+        >>> est = run(g, disc, jnp.array([0.0, 0.0, 0.0]), method="geometric")
         >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
         ['other', 'other']
-        >>> est = estimate_grasp(g, disc, jnp.array([0.0, 0.0, 0.0]))  # the default: mechanics
+        >>> est = run(g, disc, jnp.array([0.0, 0.0, 0.0]))  # the default: mechanics
         >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
         ['tip_and_other', 'tip_and_other']
     """

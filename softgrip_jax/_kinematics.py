@@ -29,7 +29,14 @@ def _inclusive_cumsum(x: Float[Array, "n *rest"]) -> Float[Array, "n *rest"]:
 
 
 def link_angles(psi: Float[Array, ""], turning: Float[Array, " n"]) -> Float[Array, " n"]:
-    """Angle alpha_k of every link from the downward vertical (rad); eq. 3 for a PCC shape."""
+    """Angle alpha_k of every link from the downward vertical (rad), (N,), from the base rotation
+    ``psi`` (rad) and the (N,) turning angles (rad); eq. 3 for a PCC shape.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> [round(float(a), 3) for a in link_angles(jnp.array(0.0), jnp.array([0.2, 0.2]))]  # Theta (2k+1) / N
+        [0.1, 0.3]
+    """
     return psi + _inclusive_cumsum(turning) - 0.5 * turning
 
 
@@ -39,7 +46,14 @@ def forward_kinematics(
     turning: Float[Array, " n"],
     length: Float[Array, ""],
 ) -> Float[Array, "n+1 2"]:
-    """Joints P_0 (= base) ... P_N in mm of a chain of N = len(turning) links of length L/N."""
+    """Joints P_0 (= base) ... P_N, (N+1, 2) in mm, of a chain of N = len(turning) links of length
+    L/N: ``base`` (2,) mm, base rotation ``psi`` (rad), ``turning`` (N,) rad, ``length`` L mm.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> forward_kinematics(jnp.zeros(2), jnp.array(0.0), jnp.zeros(2), jnp.array(50.0)).tolist()
+        [[0.0, 0.0], [0.0, 25.0], [0.0, 50.0]]
+    """
     n = turning.shape[0]
     steps = (length / n) * unit_direction(link_angles(psi, turning))
     zero = jnp.zeros((1, 2), steps.dtype)
@@ -47,7 +61,13 @@ def forward_kinematics(
 
 
 def pcc_turning(theta: Float[Array, ""], n_links: int) -> Float[Array, " n"]:
-    """Turning angles 2 Theta / N of the piecewise-constant-curvature shape (eqs. 2-3)."""
+    """Turning angles 2 Theta / N (rad), (N,), of the piecewise-constant-curvature shape (eqs. 2-3).
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> pcc_turning(jnp.array(0.5), 4).tolist()
+        [0.25, 0.25, 0.25, 0.25]
+    """
     return jnp.full((n_links,), 2.0 * theta / n_links)
 
 
@@ -72,6 +92,12 @@ def chain_stations(
 
     Returns ``per_link`` equally spaced points on each link (starting at its first joint) plus
     the tip: ``m = N * per_link + 1`` points, in order from base to tip, and their arc lengths (mm).
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> points, arc = chain_stations(jnp.array([[0.0, 0.0], [0.0, 10.0]]), jnp.array(10.0), 2)
+        >>> points.tolist(), arc.tolist()
+        ([[0.0, 0.0], [0.0, 5.0], [0.0, 10.0]], [0.0, 5.0, 10.0])
     """
     n = joints.shape[0] - 1
     t = jnp.arange(per_link, dtype=joints.dtype) / per_link

@@ -114,7 +114,9 @@ class MechanicsConfig(eqx.Module):
         >>> from softgrip_jax import FingerModel, PolygonSDF, estimate, CASE_NAMES
         >>> finger = FingerModel(52.0, 0.55, 4.0, 20, stiffness_ratio=2.0)
         >>> disc = PolygonSDF.regular((24.0, 30.0), 10.0, 64)
-        >>> est = estimate(finger, disc, jnp.zeros(2), method="mechanics", mechanics=MechanicsConfig(max_steps=8))
+        >>> import jax
+        >>> run = jax.jit(estimate, static_argnames="method")  # compiles once; op by op is slower
+        >>> est = run(finger, disc, jnp.zeros(2), method="mechanics", mechanics=MechanicsConfig(max_steps=8))
         >>> CASE_NAMES[int(est.case)], bool(est.valid)
         ('other', True)
     """

@@ -115,8 +115,10 @@ def score_pose(
         >>> f = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=10)
         >>> g = Gripper(left=f, right=f, base_separation=56.0)
         >>> disc = PolygonSDF.regular((0.0, 38.0), 15.0, 128)
-        >>> centred = score_pose(g, disc, jnp.array([0.0, 0.0, 0.0]))
-        >>> missing = score_pose(g, disc, jnp.array([0.0, -60.0, 0.0]))
+        >>> import jax
+        >>> run = jax.jit(score_pose, static_argnames="method")  # compiles once; op by op is slower
+        >>> centred = run(g, disc, jnp.array([0.0, 0.0, 0.0]), method="geometric")
+        >>> missing = run(g, disc, jnp.array([0.0, -60.0, 0.0]), method="geometric")
         >>> bool(centred.score > missing.score)
         True
     """
@@ -189,6 +191,42 @@ def score(
     :class:`Score` whose leaves have a leading axis B; rank with ``jnp.argsort(-result.score)``.
     ``method`` and ``mechanics`` (static) choose the deformation estimate, as for
     :func:`score_pose`; with ``"mechanics"`` the equilibrium is solved only for fingers that touch.
+
+    Args:
+        gripper: both fingers and the base separation W (mm, rad).
+        sdf: the object (mm), in the frame's millimetre coordinates (x right, y down).
+        poses: (B, 3) candidate poses: gripper centre x, y (mm) and angle (rad).
+        chunk_size: poses evaluated together (static); memory grows with it, not with B.
+
+    Returns:
+        :class:`Score` with leading axis B: ``score`` (B,) (-inf where not valid), ``components``,
+        ``grasp`` (both fingers' :class:`Estimate`, joints (B, N+1, 2) mm), ``valid``, ``status``.
+
+    Example (the README's planner: score a grid of poses, refine the best, read both fingers'
+    contacts; ``tests/test_readme.py`` keeps the README's copy identical):
+        >>> import jax.numpy as jnp
+        >>> from softgrip_jax import CASE_NAMES, FingerModel, Gripper, PolygonSDF, refine, score
+        >>> finger = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=20)  # mm, rad
+        >>> gripper = Gripper(left=finger, right=finger, base_separation=56.0)  # mm
+        >>> obj = PolygonSDF.regular(center=(0.0, 38.0), radius=15.0, n_vertices=128)  # a 30 mm disc
+        >>> # Candidate poses (B, 3): gripper centre x, y in mm (y grows downward: the fingers hang
+        >>> # toward +y) and the gripper's angle in rad.
+        >>> x, y, angle = jnp.meshgrid(jnp.linspace(-10.0, 10.0, 11), jnp.linspace(-10.0, 10.0, 11),
+        ...                            jnp.linspace(-0.2, 0.2, 5), indexing="ij")
+        >>> poses = jnp.stack([x.ravel(), y.ravel(), angle.ravel()], axis=-1)  # (605, 3)
+        >>> # One compiled call; invalid candidates score -inf. The geometric estimate is the fastest
+        >>> # for a coarse grid; without method=, score and refine use the mechanics estimate.
+        >>> result = score(gripper, obj, poses, method="geometric")
+        >>> best = int(jnp.argmax(result.score))
+        >>> refined = refine(gripper, obj, poses[best], method="geometric")  # never worse than its start
+        >>> bool(refined.score.score >= result.score[best])
+        True
+        >>> for side in ("left", "right"):  # both fingers of the refined pose, each an Estimate
+        ...     f = getattr(refined.score.grasp, side)
+        ...     print(side, CASE_NAMES[int(f.case)], "first contact on the object (mm):",
+        ...           [round(float(v), 1) for v in f.contact.p_o1], "tip (mm):", [round(float(v), 1) for v in f.joints[-1]])
+        left other first contact on the object (mm): [-10.1, 49.1] tip (mm): [-4.5, 56.6]
+        right other first contact on the object (mm): [13.9, 43.7] tip (mm): [11.5, 53.4]
     """
     check_method(method)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
@@ -275,6 +313,16 @@ def refine(
     unit of the minimiser's variable) balances millimetres against radians. ``method`` and
     ``mechanics`` (static) choose the deformation estimate, as for :func:`score_pose`; the
     mechanics estimate's gradient in the pose comes from implicit differentiation.
+
+    Args:
+        pose: (3,) or (B, 3) start poses: gripper centre x, y (mm) and angle (rad).
+        max_steps: BFGS iterations at most (static).
+
+    Returns:
+        :class:`Refined` (leading axis B for a batch): ``pose`` (3,), its :class:`Score`,
+        ``start_score``, ``status`` (a :class:`RefineStatus`), the minimiser's result and steps.
+
+    Example: :func:`score`'s example refines the best pose of a scored grid.
     """
     check_method(method)
     poses = as_candidates(pose, 3, gripper.base_separation.dtype, "refine: pose", single=True)

@@ -132,7 +132,20 @@ class Frame:
 
 
 def load_frame(path: str | os.PathLike[str]) -> Frame:
-    """Read a frame folder (``color.png``, ``depth.png``, ``intrinsics.json``)."""
+    """Read a frame folder (``color.png``, ``depth.png``, ``intrinsics.json``).
+
+    Returns:
+        ``Frame``: ``color`` uint8 (H, W, 3) RGB, ``depth`` uint16 (H, W) in units of
+        ``intrinsics.depth_scale`` metres (0: no reading), ``intrinsics`` (px; metres per unit).
+
+    Example:
+        >>> from pathlib import Path
+        >>> import vision
+        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> frame = load_frame(data / "circle_open")
+        >>> frame.color.shape, frame.depth.dtype.name, frame.intrinsics.fx, frame.intrinsics.depth_scale
+        ((480, 640, 3), 'uint16', 385.0, 0.0001)
+    """
     folder = Path(path)
     if not folder.exists():
         raise FrameError(f"frame folder {folder} does not exist: give a folder written by "
@@ -158,6 +171,17 @@ def save_frame(frame: Frame, path: str | os.PathLike[str]) -> Path:
     The files are written into a hidden temporary sibling folder that is renamed to ``path`` once
     complete, so ``path`` either does not exist or holds a whole frame. Missing parent folders are
     created.
+
+    Example:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> import numpy as np
+        >>> from vision.synthetic.render import d405_intrinsics
+        >>> frame = Frame(np.zeros((480, 640, 3), np.uint8), np.full((480, 640), 1200, np.uint16), d405_intrinsics())
+        >>> with tempfile.TemporaryDirectory() as root:
+        ...     path = save_frame(frame, next_frame_dir(root))
+        ...     print(path.name, int(load_frame(path).depth[0, 0]), next_frame_dir(root).name)
+        frame_0000 1200 frame_0001
     """
     target = Path(path)
     _refuse_existing(target)
@@ -182,7 +206,12 @@ def save_frame(frame: Frame, path: str | os.PathLike[str]) -> Path:
 
 
 def next_frame_dir(root: str | os.PathLike[str], prefix: str = "frame") -> Path:
-    """The first of ``root/<prefix>_0000``, ``root/<prefix>_0001``, ... that does not exist."""
+    """The first of ``root/<prefix>_0000``, ``root/<prefix>_0001``, ... that does not exist.
+
+    Example:
+        >>> next_frame_dir("/nonexistent/frames").name
+        'frame_0000'
+    """
     root = Path(root)
     index = 0
     while (root / f"{prefix}_{index:04d}").exists():

@@ -42,6 +42,16 @@ def plane_depth_mm(frame: Frame, mask: np.ndarray, what: str = "the gripper regi
         The median over the pixels of ``mask`` that have a reading (depth > 0), in mm. The median
         ignores depth holes and outliers at the mask's edges (mixed foreground/background pixels).
 
+    Example:
+        >>> from pathlib import Path
+        >>> import vision
+        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from vision.frames import load_frame
+        >>> from vision.segmentation import segment
+        >>> frame = load_frame(data / "calib_open")
+        >>> round(plane_depth_mm(frame, segment(frame).fingers))
+        120
+
     Raises:
         FrameError: ``mask`` has the wrong shape, or no pixel of it has a depth reading.
     """

@@ -119,7 +119,12 @@ class FingerKeypoints:
 
 
 def finger_length(base: ArrayLike, tip: ArrayLike) -> float:
-    """Eq. 5: the distance between base (2,) and tip (2,), in their unit."""
+    """Eq. 5: the distance between base (2,) and tip (2,), in their unit.
+
+    Example:
+        >>> finger_length([0.0, 0.0], [3.0, 4.0])
+        5.0
+    """
     return float(np.hypot(*(np.asarray(tip, np.float64) - np.asarray(base, np.float64))))
 
 
@@ -132,6 +137,10 @@ def theta_from_closed(base: ArrayLike, tip: ArrayLike, side: Side = "left") -> f
 
     Raises:
         KeypointError: the tip is not below the base (eq. 4 undefined), or a bad side.
+
+    Example:
+        >>> round(theta_from_closed([0.0, 0.0], [10.0, 50.0]), 4), round(theta_from_closed([0.0, 0.0], [-10.0, 50.0], "right"), 4)
+        (0.1974, 0.1974)
     """
     sign = _sign(side)
     dx, dy = np.asarray(tip, np.float64) - np.asarray(base, np.float64)
@@ -147,6 +156,10 @@ def resample_polyline(points: ArrayLike, n: int) -> np.ndarray:
 
     Returns:
         (n+1, 2) float64 points at arc lengths k S / n, k = 0..n (first and last points kept).
+
+    Example:
+        >>> resample_polyline([[0.0, 0.0], [0.0, 10.0], [10.0, 10.0]], 4).tolist()
+        [[0.0, 0.0], [0.0, 5.0], [0.0, 10.0], [5.0, 10.0], [10.0, 10.0]]
     """
     points = np.asarray(points, dtype=np.float64)
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
@@ -171,6 +184,19 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
 
     Raises:
         KeypointError: an empty mask, or one too short for its thickness to have two ends.
+
+    Example (pixels, and the finger's L in mm):
+        >>> from pathlib import Path
+        >>> import vision
+        >>> from vision.frames import load_frame
+        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from vision.geometry import PlaneCamera
+        >>> from vision.segmentation import segment
+        >>> frame = load_frame(data / "calib_open")
+        >>> seg = segment(frame)
+        >>> k = finger_keypoints(seg.left_finger, PlaneCamera.from_frame(frame, seg.fingers), "left")
+        >>> k.centreline_px.shape[1], round(k.length_mm)
+        (2, 52)
     """
     _sign(side)
     finger, contour = _finger_region(np.asarray(mask, dtype=bool), side)
@@ -197,7 +223,21 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
 
 def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera,
                       rounded_base: bool = True) -> tuple[FingerKeypoints, FingerKeypoints]:
-    """(left, right) keypoints of a segmented frame (see :func:`finger_keypoints`)."""
+    """(left, right) keypoints of a segmented frame (see :func:`finger_keypoints`).
+
+    Example (L of both fingers, eq. 5, from the open sample frame, mm):
+        >>> from pathlib import Path
+        >>> import vision
+        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from vision.frames import load_frame
+        >>> from vision.geometry import PlaneCamera
+        >>> from vision.segmentation import segment
+        >>> frame = load_frame(data / "calib_open")
+        >>> seg = segment(frame)
+        >>> left, right = gripper_keypoints(seg, PlaneCamera.from_frame(frame, seg.fingers))
+        >>> [round(finger_length(k.base_mm, k.tip_mm)) for k in (left, right)]
+        [52, 52]
+    """
     return (finger_keypoints(segmentation.left_finger, camera, "left", rounded_base),
             finger_keypoints(segmentation.right_finger, camera, "right", rounded_base))
 

@@ -58,6 +58,16 @@ def object_sdf(mask: np.ndarray, camera: PlaneCamera) -> SDFGrid:
         (Z / fx, Z / fy) mm. An empty mask (no object) gives a grid that reads ``FAR_MM``
         everywhere: nothing can be touched (contact case (a)).
 
+    Example (a 60 x 60 px square; at 120 mm one pixel is 120 / 385 mm):
+        >>> import numpy as np
+        >>> from vision.synthetic.render import d405_intrinsics
+        >>> camera = PlaneCamera(d405_intrinsics(), 120.0)
+        >>> mask = np.zeros((480, 640), bool); mask[200:260, 300:360] = True
+        >>> grid = object_sdf(mask, camera)
+        >>> point = camera.px_to_mm(np.array([310.0, 229.5]))  # mm; the left edge is at u = 299.5
+        >>> round(float(grid.distance(jnp.asarray(point))) / camera.mm_per_px, 2)  # 10.5 px inside
+        -10.5
+
     Raises:
         ObjectMaskError: the mask is not 2-D or is smaller than 2x2, or covers the whole frame
             (no boundary: check the object's colour thresholds and the background cut-off).
@@ -93,6 +103,13 @@ def object_polygon(mask: np.ndarray, camera: PlaneCamera, tolerance_px: float = 
 
     Returns:
         ``PolygonSDF`` with vertices (V, 2) in mm, V >= 3.
+
+    Example:
+        >>> import numpy as np
+        >>> from vision.synthetic.render import d405_intrinsics
+        >>> mask = np.zeros((480, 640), bool); mask[200:260, 300:360] = True
+        >>> object_polygon(mask, PlaneCamera(d405_intrinsics(), 120.0)).vertices.shape
+        (4, 2)
 
     Raises:
         ObjectMaskError: an empty mask (no object: use :func:`object_sdf`, which handles it), or a

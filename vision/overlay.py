@@ -55,6 +55,12 @@ def draw_overlay(
 
     Raises:
         SoftgripError: a bad image, point array or size.
+
+    Example:
+        >>> image = draw_overlay(np.zeros((100, 100, 3), np.uint8), joints=[np.array([[50.0, 10.0], [50.0, 60.0]])],
+        ...                      contacts=np.array([[50.0, 60.0]]))
+        >>> image.shape, image[10, 50].tolist() != [0, 0, 0]
+        ((100, 100, 3), True)
     """
     if not isinstance(rgb, np.ndarray) or rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise SoftgripError(f"draw_overlay: rgb must be an (H, W, 3) uint8 image, got "
@@ -85,6 +91,12 @@ def save_png(path: str | os.PathLike[str], rgb: np.ndarray) -> Path:
 
     Raises:
         SoftgripError: a bad image, or the file cannot be written (the message names it).
+
+    Example:
+        >>> import tempfile, numpy as np
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     print(save_png(f"{folder}/black.png", np.zeros((4, 4, 3), np.uint8)).name)
+        black.png
     """
     target = Path(path)
     image = np.asarray(rgb)

@@ -56,6 +56,10 @@ def import_realsense() -> ModuleType:
 
     pyrealsense2's wheel needs ``libusb-1.0.so.0`` but does not ship it; loading the wheel's copy
     with ``RTLD_GLOBAL`` lets the import resolve it without a system package.
+
+    Example:
+        >>> import_realsense().__name__
+        'pyrealsense2'
     """
     try:
         import libusb_package
@@ -77,7 +81,12 @@ def import_realsense() -> ModuleType:
 
 
 def list_devices() -> list[DeviceInfo]:
-    """The connected RealSense devices (empty list when there is none)."""
+    """The connected RealSense devices (empty list when there is none).
+
+    Example (each entry is a ``DeviceInfo`` with the camera's name and serial number):
+        >>> isinstance(list_devices(), list)
+        True
+    """
     rs = import_realsense()
     return [_device_info(rs, device) for device in rs.context().query_devices()]
 
@@ -179,6 +188,8 @@ def capture_from_recording(
     are skipped with a warning. Decoded frames are held in memory until written: pass ``count``
     for long recordings. Raises :class:`CameraError` if playback delivers nothing for
     ``stall_timeout`` seconds.
+
+    Example: see :func:`write_recording`.
     """
     rs = import_realsense()
     path = Path(path)
@@ -359,6 +370,21 @@ def write_recording(
     is recorded while the frames are injected at ``fps``. All frames must share one
     :class:`Intrinsics`. Pixels play back bit-exact; intrinsics and depth scale are stored as
     float32. Written atomically (temporary sibling, then rename); never overwrites ``path``.
+
+    Example (a recording of two sample frames, written and read back; no camera needed):
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> import numpy as np
+        >>> import vision
+        >>> from vision.frames import load_frame
+        >>> data = Path(vision.__file__).resolve().parents[1] / "data"
+        >>> frames = [load_frame(data / name) for name in ("circle_open", "square_open")]
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     recording = write_recording(Path(folder) / "scene.db3", frames)
+        ...     written = capture_from_recording(recording, Path(folder) / "frames")
+        ...     again = [load_frame(p) for p in written]
+        >>> [p.name for p in written], all(np.array_equal(a.depth, b.depth) for a, b in zip(frames, again))
+        (['frame_0000', 'frame_0001'], True)
     """
     rs = import_realsense()
     path = Path(path)

@@ -193,6 +193,15 @@ def segment(frame: Frame, settings: SegmentationSettings | None = None) -> Segme
     Raises:
         SegmentationError: no gripper, only one finger, no depth in the gripper region, or a
             region of interest outside the frame; the message names the setting to adjust.
+
+    Example (masks are bool (H, W); the cut-off is in mm):
+        >>> from pathlib import Path
+        >>> import vision
+        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from vision.frames import load_frame
+        >>> seg = segment(load_frame(data / "circle_open"))
+        >>> seg.object.shape, bool(seg.object.any()), bool((seg.left_finger & seg.right_finger).any())
+        ((480, 640), True, False)
     """
     return segment_batch([frame], settings)[0]
 
@@ -219,6 +228,15 @@ def segment_batch(
     Raises:
         SegmentationError: as :func:`segment`, naming the frame's index; also a bad backend,
             frames of different sizes for kornia, or kornia not installed.
+
+    Example:
+        >>> from pathlib import Path
+        >>> import vision
+        >>> from vision.frames import load_frame
+        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> segs = segment_batch([load_frame(data / name) for name in ("circle_open", "calib_open")])
+        >>> [bool(s.object.any()) for s in segs]
+        [True, False]
     """
     settings = SegmentationSettings() if settings is None else settings
     frames = list(frames)
@@ -249,6 +267,14 @@ def background_cutoff_mm(frame: Frame, settings: SegmentationSettings) -> float:
     between them (halfway from the near class's 99th percentile to the far class's 1st), so depth
     noise on either side stays on its side. inf (no background in view) when the far class's mean
     is less than 25 % deeper than the near class's.
+
+    Example (the samples: gripper and object at 120-123 mm, background at 400 mm):
+        >>> from pathlib import Path
+        >>> import vision
+        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from vision.frames import load_frame
+        >>> 123 < background_cutoff_mm(load_frame(data / "circle_open"), SegmentationSettings()) < 400
+        True
     """
     if settings.background_depth_mm is not None:
         return float(settings.background_depth_mm)

@@ -272,6 +272,8 @@ def observed_joints(closure: RodClosure, n_links: int) -> Float[Array, "n1 2"]:
     Returns:
         (N+1, 2) points at arc lengths k L / N, k = 0..N, mm (base first, tip last), in the dtype of
         ``closure.points``.
+
+    Example: :func:`close_rod`'s example divides a closure into 20 links.
     """
     _require_int("observed_joints: n_links", n_links, lower=1)
     with jax.enable_x64(True):
@@ -301,6 +303,14 @@ def free_arc_points(
 
     Returns:
         (..., 2) points, mm, float64. Exact and smooth at Theta = 0 (straight finger).
+
+    Example (the straight finger, and the tip of a closed one: the chord at Theta from the vertical):
+        >>> import numpy as np
+        >>> free_arc_points((0.0, 0.0), 0.0, 50.0, np.array([25.0, 50.0])).tolist()
+        [[0.0, 25.0], [0.0, 50.0]]
+        >>> tip = free_arc_points((0.0, 0.0), 0.5, 50.0, 50.0)
+        >>> round(float(np.arctan2(tip[0], tip[1])), 6)
+        0.5
     """
     with jax.enable_x64(True):
         s = jnp.asarray(arc_lengths, jnp.result_type(float))

@@ -239,6 +239,11 @@ def shape(name: str, size_mm: float = 30.0, angle: float = 0.0) -> np.ndarray:
     Raises:
         SoftgripError (a ValueError): unknown name (the message lists the valid ones), or a bad
             size or angle.
+
+    Example:
+        >>> square = shape("square", 20.0)
+        >>> square.shape, round(float(np.hypot(*square.T).max()), 2)  # corners 10 mm from the centre
+        ((4, 2), 10.0)
     """
     try:
         make = SHAPES[name]
