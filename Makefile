@@ -17,11 +17,15 @@ $(STAMP): pyproject.toml constraints.txt
 
 setup: $(STAMP)
 
+# Two worker processes (pytest-xdist), a test file per worker at a time: the suite is mostly XLA
+# compilation, which runs on one core per process.
+PYTEST := $(PY) -m pytest -n auto --dist loadfile
+
 test: $(STAMP)
-	$(PY) -m pytest
+	$(PYTEST)
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -m "not slow"
+	$(PYTEST) -m "not slow"
 
 demo: $(STAMP)
 	$(VENV)/bin/softgrip demo
