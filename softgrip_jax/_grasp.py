@@ -82,7 +82,7 @@ def estimate_grasp(
         ['other', 'other']
         >>> est = run(g, disc, jnp.array([0.0, 0.0, 0.0]))  # the default: mechanics
         >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
-        ['tip_and_other', 'tip_and_other']
+        ['tip', 'tip']
     """
     check_method(method)
     left_frame, right_frame = finger_frames(gripper, pose)
