@@ -249,6 +249,24 @@ def fit(
             (under-determined: the message names it), a parameter the frames do not constrain at all
             (e.g. the stiffness when no finger touches an object), mismatched N, no convergence, or a
             fitted Theta outside [0, pi/2).
+
+    Example (a pair without an object, whose closed fingers are PCC shapes of Theta 0.55 and 0.45
+    rad; the fit starts from 0.5 and finds both):
+        >>> import numpy as np
+        >>> from calib.one_frame import free_closure_joints
+        >>> from calib.profile import CalibrationProfile, FingerEntry, FitEntry
+        >>> from softgrip_jax import PolygonSDF
+        >>> entry = lambda theta: FingerEntry(52.0, theta, 4.0, 5, (0.0, 0.0))  # L, Theta, r, N, offset
+        >>> bases = np.array([[-32.0, 0.0], [32.0, 0.0]])  # (left, right) in mm
+        >>> true = {"left": entry(0.55), "right": entry(0.45)}
+        >>> observed = np.stack([free_closure_joints(true[s], b, s) for s, b in zip(("left", "right"), bases)])
+        >>> far = PolygonSDF.regular((1000.0, 1000.0), 1.0, n_vertices=3)  # no object within reach
+        >>> start = CalibrationProfile(fingers={"left": entry(0.5), "right": entry(0.5)}, base_separation=64.0,
+        ...     segmentation={}, camera={"name": "example", "intrinsics": None},
+        ...     fit=FitEntry(method="one-frame", frames=["nominal"]))
+        >>> fitted = fit([Observation(far, bases, observed, "pair 1")], start, method="geometric", progress=False)
+        >>> [round(fitted.fingers[s].theta_entire, 3) for s in ("left", "right")], fitted.fit.method
+        ([0.55, 0.45], 'least-squares')
     """
     names = _check_settings(parameters, loss, loss_scale_mm, max_steps, method, mechanics)
     n_links = _common_n_links(start, observations)
@@ -300,6 +318,18 @@ def observations_from_frames(
 
     Raises:
         SoftgripError: segmentation, depth or keypoint failures (the message names what to adjust).
+
+    Example (the sample circle scene, N = 20):
+        >>> from pathlib import Path
+        >>> import calib
+        >>> from vision.frames import load_frame
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> obs = observations_from_frames(load_frame(data / "circle_open"), load_frame(data / "circle_closed"),
+        ...                                None, 20)
+        >>> obs.bases.shape, obs.observed.shape  # (left, right) bases; N+1 closed joints each; mm
+        ((2, 2), (2, 21, 2))
+        >>> round(float(obs.bases[1, 0] - obs.bases[0, 0]), 1)  # the base separation W, mm
+        64.0
     """
     open_seg, open_camera, open_fingers = frame_keypoints(open_frame, settings)
     _, _, closed_fingers = frame_keypoints(closed_frame, settings)
@@ -322,6 +352,15 @@ def load_observations(
     Returns:
         The observations (labelled ``"OPEN + CLOSED"``) and the skipped pairs
         (``{"frame", "reason"}``), for :func:`fit`'s ``skipped``.
+
+    Example (the second pair's open folder does not exist, so that pair is skipped):
+        >>> from pathlib import Path
+        >>> import calib
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> pairs = [(data / "circle_open", data / "circle_closed"), (data / "nowhere", data / "circle_closed")]
+        >>> observations, skipped = load_observations(pairs, None, 20, progress=False)
+        >>> len(observations), len(skipped), "does not exist" in skipped[0]["reason"]
+        (1, 1, True)
     """
     observations, skipped = [], []
     for open_path, closed_path in tqdm(pairs, desc="reading frame pairs", unit="pair", file=sys.stderr,

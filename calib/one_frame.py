@@ -77,6 +77,17 @@ def one_frame_profile(
     Raises:
         SoftgripError: a finger bent away from the gripper's centre (negative Theta: are the frames
             swapped?) or not below its base (``vision.keypoints.KeypointError``), or a bad N.
+
+    Example (the sample calibration pair, rendered with Theta 0.55 rad for both fingers):
+        >>> from pathlib import Path
+        >>> import calib
+        >>> from vision.frames import load_frame
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> _, _, closed = frame_keypoints(load_frame(data / "calib_closed"))
+        >>> _, _, opened = frame_keypoints(load_frame(data / "calib_open"))
+        >>> profile = one_frame_profile(closed, opened, 20)
+        >>> [round(profile.fingers[side].theta_entire, 2) for side in ("left", "right")], profile.fit.method
+        ([0.55, 0.55], 'one-frame')
     """
     fingers, squared = {}, []
     for side, shut, straight in zip(SIDES, closed, open_):

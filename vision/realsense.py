@@ -106,6 +106,12 @@ def capture_from_camera(
     Depth (z16) and colour (rgb8) stream at ``width`` x ``height`` and ``fps``; depth is aligned to
     colour with ``rs.align``. The first ``warmup`` framesets are dropped while auto-exposure
     settles. ``serial`` picks a device (default: the first one found). Returns the folders written.
+
+    Example (needs a connected camera, so the doctest run skips it; ``capture_from_recording`` is the
+    same path from a recording, with a doctested example):
+        >>> folders = capture_from_camera("frames", count=2)  # doctest: +SKIP
+        >>> [f.name for f in folders]  # doctest: +SKIP
+        ['frame_0000', 'frame_0001']
     """
     for name, value, least in (("width", width, 1), ("height", height, 1), ("fps", fps, 1),
                                ("count", count, 1), ("warmup", warmup, 0)):

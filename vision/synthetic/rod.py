@@ -249,6 +249,13 @@ def rod_energy(
 
     Returns:
         () the objective.
+
+    Example (the straight rod without an object stores the energy of bending back from its rest
+    arc, about (2 Theta)^2 / 2 in units of mean(k) / L):
+        >>> import jax.numpy as jnp
+        >>> m = RodMechanics().n_segments
+        >>> round(float(rod_energy(jnp.zeros(m), 0.0, jnp.zeros(2), 0.5, 52.0, 4.0)), 2)
+        0.5
     """
     if jnp.shape(turning) != (mechanics.n_segments,):
         raise SoftgripError(
