@@ -19,6 +19,7 @@ import numpy as np
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_method
 from softgrip_jax import SoftgripError
+from vision.atomic_write import write_atomic
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 CALIB_OPEN, CALIB_CLOSED = "calib_open", "calib_closed"
@@ -263,8 +264,6 @@ def _refine(scene: pipe.FrameScene, scored: dict, out: Path, method: str) -> dic
 
 
 def _write_json(path: Path, data: dict) -> None:
-    from vision.atomic_write import write_atomic
-
     try:
         write_atomic(path, (json.dumps(data, indent=1, allow_nan=False) + "\n").encode("utf-8"))
     except OSError as err:

@@ -150,48 +150,47 @@ def _stations(finger, base, s, config):
     return chain_stations(joints, finger.length, config.per_link(finger.n_links))
 
 
-def _parabola_vertices(
+def _interior_vertices(
     d: Float[Array, "*batch m"], spacing: Float[Array, ""]
-) -> tuple[Float[Array, "*batch m"], Float[Array, "*batch m"]]:
-    """Minimum of the parabola through each station's distance and its neighbours'.
+) -> tuple[Float[Array, "*batch m-2"], Float[Array, "*batch m-2"]]:
+    """Minimum of the parabola through each interior station's distance and its neighbours'.
 
     Stations sample the centreline a few per link (``spacing`` mm apart); the true minimum distance
     usually lies between two of them. Returns (value, offset in station spacings, within
-    [-1/2, 1/2]) per station; end stations and non-convex triples keep their own value. A distance
-    is 1-Lipschitz, so no value is allowed below ``d - spacing / 2``: this keeps a discontinuity
-    (an SDF grid's border) from posing as a deep minimum.
+    [-1/2, 1/2]) for stations 1 ... m-2; a non-convex triple keeps its own value. A distance is
+    1-Lipschitz, so no value is allowed below ``d - spacing / 2``: this keeps a discontinuity (an
+    SDF grid's border) from posing as a deep minimum. Computed on slices, without shifted copies of
+    ``d``: the bracket evaluates it on n_sweep x stations values per candidate.
     """
-    d_prev = jnp.concatenate([d[..., :1], d[..., :-1]], axis=-1)
-    d_next = jnp.concatenate([d[..., 1:], d[..., -1:]], axis=-1)
-    slope = 0.5 * (d_next - d_prev)
-    curvature = d_prev - 2.0 * d + d_next
-    convex = curvature > 0
-    offset = jnp.clip(-slope / jnp.where(convex, curvature, 1.0), -0.5, 0.5)
-    m = d.shape[-1]
-    interior = (jnp.arange(m) > 0) & (jnp.arange(m) < m - 1)
-    offset = jnp.where(convex & interior, offset, 0.0)
-    value = d + slope * offset + 0.5 * curvature * offset**2
-    return jnp.maximum(value, d - 0.5 * spacing), offset
-
-
-def _chain_clearance(distances: Float[Array, "*batch m"], spacing, r: Float[Array, ""]) -> Float[Array, "*batch"]:
-    """g: the smallest centreline clearance (mm), refined between stations ``spacing`` mm apart.
-
-    Equal to the minimum of :func:`_parabola_vertices` over the stations, computed on slices (the end
-    stations keep their own value) so that no shifted copy of ``distances`` is built: the bracket
-    evaluates this on n_sweep x stations values per candidate.
-    """
-    d = distances
-    if d.shape[-1] < 3:
-        return jnp.min(d, axis=-1) - r
     d_prev, d_mid, d_next = d[..., :-2], d[..., 1:-1], d[..., 2:]
     slope = 0.5 * (d_next - d_prev)
     curvature = d_prev - 2.0 * d_mid + d_next
     convex = curvature > 0
     offset = jnp.where(convex, jnp.clip(-slope / jnp.where(convex, curvature, 1.0), -0.5, 0.5), 0.0)
-    value = jnp.maximum(d_mid + slope * offset + 0.5 * curvature * offset**2, d_mid - 0.5 * spacing)
+    value = d_mid + slope * offset + 0.5 * curvature * offset**2
+    return jnp.maximum(value, d_mid - 0.5 * spacing), offset
+
+
+def _parabola_vertices(
+    d: Float[Array, "*batch m"], spacing: Float[Array, ""]
+) -> tuple[Float[Array, "*batch m"], Float[Array, "*batch m"]]:
+    """:func:`_interior_vertices` for every station: the two end stations keep their own value."""
+    if d.shape[-1] < 3:
+        return d, jnp.zeros_like(d)
+    value, offset = _interior_vertices(d, spacing)
+    ends = jnp.zeros_like(d[..., :1])
+    return (jnp.concatenate([d[..., :1], value, d[..., -1:]], axis=-1),
+            jnp.concatenate([ends, offset, ends], axis=-1))
+
+
+def _chain_clearance(distances: Float[Array, "*batch m"], spacing, r: Float[Array, ""]) -> Float[Array, "*batch"]:
+    """g: the smallest centreline clearance (mm), refined between stations ``spacing`` mm apart
+    (the minimum of :func:`_parabola_vertices`, without concatenating its ends)."""
+    d = distances
     ends = jnp.minimum(d[..., 0], d[..., -1])
-    return jnp.minimum(jnp.min(value, axis=-1), ends) - r
+    if d.shape[-1] < 3:
+        return ends - r
+    return jnp.minimum(jnp.min(_interior_vertices(d, spacing)[0], axis=-1), ends) - r
 
 
 def _station_spacing(finger, config):
