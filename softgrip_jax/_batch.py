@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Bool, Float
 
+from softgrip_jax._concurrent import part_count, run_in_parts
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._deformation import Estimate, estimate, finish, geometric_stage, mechanics_of, needs_mechanics
 from softgrip_jax._errors import SoftgripError
@@ -122,6 +123,13 @@ def _estimate_grasp_batch(gripper, sdf, poses, config, mechanics, chunk_size, me
     return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, mechanics), poses, chunk_size)
 
 
+def _in_parts(fn, model, xs, config, mechanics, chunk_size, method, workers):
+    """``fn(*model, xs, config, mechanics, chunk_size, method)`` as concurrent parts of ``xs``."""
+    parts = part_count(workers, xs.shape[0], (model, xs, config, mechanics))
+    part = max(1, -(-xs.shape[0] // parts))
+    return run_in_parts(fn, model, xs, (config, mechanics), parts, chunk_size=min(chunk_size, part), method=method)
+
+
 def estimate_batch(
     finger: FingerModel,
     sdf: AbstractSDF,
@@ -131,6 +139,7 @@ def estimate_batch(
     chunk_size: int = DEFAULT_CHUNK,
     method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
+    workers: int | None = None,
 ) -> Estimate:
     """:func:`estimate` for B finger bases (mm), compiled once per shape, ``chunk_size`` at a time.
 
@@ -142,6 +151,8 @@ def estimate_batch(
     Args:
         bases: (B, 2) finger bases in mm (each finger hangs toward +y and curls toward +x).
         chunk_size: bases evaluated together (static); memory grows with it, not with B.
+        workers: concurrent parts the batch is split into (None: one per CPU core on a CPU
+            backend, one elsewhere; see :mod:`softgrip_jax._concurrent`). Results do not depend on it.
 
     Example:
         >>> import jax.numpy as jnp
@@ -154,7 +165,7 @@ def estimate_batch(
     """
     check_method(method)
     bases = as_candidates(bases, 2, finger.length.dtype, "estimate_batch: bases")
-    return _estimate_batch(finger, sdf, bases, config, mechanics, min(chunk_size, max(1, bases.shape[0])), method)
+    return _in_parts(_estimate_batch, (finger, sdf), bases, config, mechanics, chunk_size, method, workers)
 
 
 def estimate_grasp_batch(
@@ -166,6 +177,7 @@ def estimate_grasp_batch(
     chunk_size: int = DEFAULT_CHUNK,
     method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
+    workers: int | None = None,
 ) -> GraspEstimate:
     """:func:`estimate_grasp` for B poses (x mm, y mm, angle rad), ``chunk_size`` at a time.
 
@@ -173,6 +185,7 @@ def estimate_grasp_batch(
 
     Args:
         poses: (B, 3) gripper poses: centre x, y (mm) and angle (rad).
+        workers: concurrent parts, as for :func:`estimate_batch`.
 
     Returns:
         :class:`GraspEstimate` with leading axis B: ``left`` and ``right`` :class:`Estimate` s
@@ -190,5 +203,4 @@ def estimate_grasp_batch(
     """
     check_method(method)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "estimate_grasp_batch: poses")
-    return _estimate_grasp_batch(gripper, sdf, poses, config, mechanics,
-                                 min(chunk_size, max(1, poses.shape[0])), method)
+    return _in_parts(_estimate_grasp_batch, (gripper, sdf), poses, config, mechanics, chunk_size, method, workers)

@@ -34,6 +34,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks
+from softgrip_jax._concurrent import part_count, run_in_parts
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._deformation import Estimate
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
@@ -172,6 +173,13 @@ def _score_chunks(gripper, sdf, poses, weights, config, mechanics, chunk_size, m
     return jax.vmap(lambda share: jax.lax.map(one, share, batch_size=chunk_size))(poses)
 
 
+@partial(jax.jit, static_argnames=("chunk_size", "method"))
+def _score_flat(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
+    # _score_chunks on one device: poses (P, 3) -> Score with leading axis P.
+    out = _score_chunks(gripper, sdf, poses[None], weights, config, mechanics, chunk_size, method)
+    return jax.tree_util.tree_map(lambda x: x[0], out)
+
+
 def score(
     gripper: Gripper,
     sdf: AbstractSDF,
@@ -182,6 +190,7 @@ def score(
     chunk_size: int = 2048,
     method: str = DEFAULT_METHOD,
     mechanics: MechanicsConfig = MechanicsConfig(),
+    workers: int | None = None,
 ) -> Score:
     """Score B candidate poses (x mm, y mm, angle rad) in one compiled call.
 
@@ -197,6 +206,8 @@ def score(
         sdf: the object (mm), in the frame's millimetre coordinates (x right, y down).
         poses: (B, 3) candidate poses: gripper centre x, y (mm) and angle (rad).
         chunk_size: poses evaluated together (static); memory grows with it, not with B.
+        workers: on one device, concurrent parts the batch is split into (None: one per CPU core
+            on a CPU, one elsewhere), as for :func:`estimate_batch`; results do not depend on it.
 
     Returns:
         :class:`Score` with leading axis B: ``score`` (B,) (-inf where not valid), ``components``,
@@ -232,6 +243,11 @@ def score(
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
     b = poses.shape[0]
     mesh = _device_mesh()
+    if mesh is None:  # one device: on a CPU, concurrent parts over its cores (softgrip_jax._concurrent)
+        parts = part_count(workers, b, (gripper, sdf, poses, weights, config, mechanics))
+        chunk = max(1, min(chunk_size, -(-b // parts)))
+        return run_in_parts(_score_flat, (gripper, sdf), poses, (weights, config, mechanics), parts,
+                            chunk_size=chunk, method=method)
     n_dev = 1 if mesh is None else mesh.devices.size
     per_device = -(-b // n_dev)
     padded = jnp.concatenate([poses, jnp.broadcast_to(poses[:1], (n_dev * per_device - b, 3))]) if b else poses

@@ -1,0 +1,92 @@
+"""A batch split into parts that run side by side on a CPU's cores.
+
+XLA:CPU runs the kernels of one computation one after another and spreads only the larger ones
+over the cores: the estimate's many small kernels (gathers, the root finder's loop) leave the other
+cores mostly idle (on the 2-core benchmark machine, one computation gets 1.25x from its second
+core). Separate computations launched from separate threads do run side by side, so on a CPU the
+batch functions split their candidates into one equal part per core, run the same compiled
+function on each part from a thread, and concatenate the results on the device. Elsewhere (a GPU
+fills itself with one computation), under tracing (``jit``, ``grad``, ``vmap`` of the batch
+function) and for small batches, the function runs once on the whole batch. Results are
+identical either way: every candidate is computed independently.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import jax
+import jax.numpy as jnp
+
+from softgrip_jax._errors import SoftgripError
+
+#: Fewest candidates per part: below this a part's fixed costs outweigh the parallelism.
+MIN_PART = 256
+
+_pool: ThreadPoolExecutor | None = None
+_pool_lock = threading.Lock()
+_compiled: set = set()  # signatures already compiled: their first call runs alone (one compile)
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def part_count(workers: object, batch: int, operands=()) -> int:
+    """How many concurrent parts a batch of ``batch`` candidates runs as (1: no split).
+
+    ``workers`` (checked here, as users pass it: an int >= 1 or None): None means one per core on a CPU backend and 1 on any other; an explicit count is
+    used on any backend (but never more parts than ``batch / MIN_PART``). 1 if any leaf of
+    ``operands`` is being traced.
+    """
+    if workers is None:
+        workers = available_cores() if jax.default_backend() == "cpu" else 1
+    elif not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+        raise SoftgripError(f"workers must be a positive integer (or None: one per CPU core), got {workers!r}")
+    if _traced(operands):
+        return 1
+    return max(1, min(workers, batch // MIN_PART))
+
+
+def _executor(parts: int) -> ThreadPoolExecutor:
+    global _pool
+    with _pool_lock:
+        if _pool is None or _pool._max_workers < parts:
+            _pool = ThreadPoolExecutor(max_workers=parts, thread_name_prefix="softgrip-part")
+        return _pool
+
+
+def _traced(tree) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
+
+
+def run_in_parts(fn, before: tuple, xs: jax.Array, after: tuple, parts: int, **static):
+    """``fn(*before, xs, *after, **static)`` for a jitted ``fn`` whose outputs all have ``xs``'s
+    leading axis, evaluated as ``parts`` (from :func:`part_count`) concurrent equal parts of ``xs``."""
+    b = xs.shape[0]
+    if parts == 1:
+        return fn(*before, xs, *after, **static)
+    size = -(-b // parts)
+    pad = parts * size - b
+    padded = jnp.concatenate([xs, jnp.broadcast_to(xs[:1], (pad,) + xs.shape[1:])]) if pad else xs
+    pieces = [padded[i * size:(i + 1) * size] for i in range(parts)]
+    leaves, treedef = jax.tree_util.tree_flatten((before, after))
+    signature = (fn, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves),
+                 pieces[0].shape, pieces[0].dtype, tuple(sorted(static.items())))
+
+    def run(piece):
+        return jax.block_until_ready(fn(*before, piece, *after, **static))
+
+    pool = _executor(parts)
+    outputs = []
+    if signature not in _compiled:  # the first call compiles; the other parts then reuse it
+        outputs.append(pool.submit(run, pieces[0]).result())
+        _compiled.add(signature)
+    outputs += [f.result() for f in [pool.submit(run, p) for p in pieces[len(outputs):]]]
+    return jax.tree_util.tree_map(lambda *x: jnp.concatenate(x)[:b], *outputs)
