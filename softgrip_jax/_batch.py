@@ -1,10 +1,13 @@
 """Many candidates at once, in chunks so that memory stays bounded for any batch size.
 
-With ``method="mechanics"`` each chunk first computes every geometric estimate, then runs the
-equilibrium solve only for the candidates whose finger touches the object (the others rest in
-their geometric shape, or are invalid): those are gathered to the front and solved a group of
-``ceil(chunk / _SOLVE_GROUPS)`` at a time, so the solver's cost follows the number of touching
-candidates rather than the batch size.
+Most of a finger's estimate is needed only where it touches the object: the root finder, the
+contact chain and the second contact (and, with ``method="mechanics"``, the equilibrium solve). Each
+chunk therefore first brackets every finger's first contact (:func:`search_contact`), then refines
+the contact only of the fingers whose bracket holds one (the others close freely, start in
+collision, or are invalid: :func:`free_contact`), then solves the equilibrium only of those that
+touch. Both steps gather the needed candidates to the front and run them a group of
+``ceil(chunk / _SOLVE_GROUPS)`` at a time (:func:`where_needed`), so their cost follows the number
+of touching candidates rather than the batch size. The results are those of :func:`estimate`.
 """
 
 from __future__ import annotations
@@ -17,10 +20,10 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from softgrip_jax._concurrent import part_count, run_in_parts
 from softgrip_jax._contact import ContactConfig
-from softgrip_jax._deformation import Estimate, estimate, finish, geometric_stage, mechanics_of, needs_mechanics
+from softgrip_jax._deformation import Estimate, finish, mechanics_of, needs_mechanics, refine_search, search_contact, stage_of
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
-from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
+from softgrip_jax._grasp import GraspEstimate, finger_frames
 from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
@@ -81,9 +84,21 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
     return jax.tree_util.tree_map(restore, out)
 
 
-def finger_chunk(finger, sdf, frames, config, mechanics):
-    """Mechanics estimates of a chunk of finger frames (leading axis), solving only the touching ones."""
-    stages = jax.vmap(lambda f: geometric_stage(finger, sdf, f, config, "mechanics"))(frames)
+def geometric_stages(finger, sdf, frames, config, method):
+    """:func:`geometric_stage` of a chunk of finger frames (leading axis), the contact refined
+    (root finder, second contact) only for the fingers whose bracket holds a first contact."""
+    searches = jax.vmap(lambda f: search_contact(finger, sdf, f, config, method))(frames)
+    need = jax.vmap(lambda s: s.need_refining)(searches)
+    refined = where_needed(lambda s: refine_search(finger, sdf, s, config), need, searches)
+    return jax.vmap(lambda s, c: stage_of(finger, s, c))(searches, refined)
+
+
+def finger_chunk(finger, sdf, frames, config, mechanics, method):
+    """Estimates of a chunk of finger frames (leading axis): the contact refined, and with
+    ``method="mechanics"`` the equilibrium solved, only where the finger touches the object."""
+    stages = geometric_stages(finger, sdf, frames, config, method)
+    if method == "geometric":
+        return jax.vmap(lambda st: finish(finger, st))(stages)
     need = jax.vmap(needs_mechanics)(stages)
     eq = where_needed(lambda st: mechanics_of(finger, sdf, st, mechanics, config), need, stages)
     return jax.vmap(lambda st, e: finish(finger, st, e))(stages, eq)
@@ -101,26 +116,21 @@ def map_chunks(fn, xs, chunk_size):
 
 @partial(jax.jit, static_argnames=("chunk_size", "method"))
 def _estimate_batch(finger, sdf, bases, config, mechanics, chunk_size, method):
-    if method == "geometric":
-        return jax.lax.map(lambda b: estimate(finger, sdf, b, config, method="geometric"), bases,
-                           batch_size=chunk_size)
     frames = jax.vmap(FingerFrame.hanging_from)
-    return map_chunks(lambda chunk: finger_chunk(finger, sdf, frames(chunk), config, mechanics), bases, chunk_size)
+    return map_chunks(lambda chunk: finger_chunk(finger, sdf, frames(chunk), config, mechanics, method), bases,
+                      chunk_size)
 
 
-def grasp_chunk(gripper, sdf, poses, config, mechanics):
+def grasp_chunk(gripper, sdf, poses, config, mechanics, method):
     left, right = jax.vmap(lambda p: finger_frames(gripper, p))(poses)
-    left = finger_chunk(gripper.left, sdf, left, config, mechanics)
-    right = finger_chunk(gripper.right, sdf, right, config, mechanics)
+    left = finger_chunk(gripper.left, sdf, left, config, mechanics, method)
+    right = finger_chunk(gripper.right, sdf, right, config, mechanics, method)
     return jax.vmap(lambda a, b: GraspEstimate(left=a, right=b, valid=a.valid & b.valid))(left, right)
 
 
 @partial(jax.jit, static_argnames=("chunk_size", "method"))
 def _estimate_grasp_batch(gripper, sdf, poses, config, mechanics, chunk_size, method):
-    if method == "geometric":
-        return jax.lax.map(lambda p: estimate_grasp(gripper, sdf, p, config, method="geometric"), poses,
-                           batch_size=chunk_size)
-    return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, mechanics), poses, chunk_size)
+    return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, mechanics, method), poses, chunk_size)
 
 
 def _in_parts(fn, model, xs, config, mechanics, chunk_size, method, workers):

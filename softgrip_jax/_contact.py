@@ -317,12 +317,42 @@ def predict_contact_local(
         >>> round(float(c.s1), 3) < 0.5  # the chord angle at first touch, before Theta
         True
     """
+    bracket = bracket_contact(finger, dist, config)
+    refined = refine_contact(finger, dist, bracket, config)
+    free = free_contact(finger, bracket)
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(bracket.needs_root, a, b), refined, free)
+
+
+class Bracket(eqx.Module):
+    """The coarse first-contact search of one finger (finger frame): where the root lies.
+
+    The first stage of :func:`predict_contact_local`; batched code refines (:func:`refine_contact`)
+    only the fingers whose bracket ``needs_root`` and gives the others :func:`free_contact`.
+    """
+
+    touches: Bool[Array, ""]  #: some grid value of s in [0, Theta] has the finger touching
+    initial_overlap: Bool[Array, ""]  #: it touches already at s = 0
+    lower: Float[Array, ""]  #: the grid value of s before the first touching one (rad)
+    upper: Float[Array, ""]  #: the first touching grid value (rad)
+    start: Float[Array, ""]  #: the root finder's start inside [lower, upper] (rad)
+    first: Int[Array, ""]  #: the first of the root window's stations
+
+    @property
+    def needs_root(self) -> Bool[Array, ""]:
+        """A first contact lies inside (0, Theta]: it is refined by :func:`refine_contact`."""
+        return self.touches & ~self.initial_overlap
+
+
+def bracket_contact(
+    finger: FingerModel,
+    dist: Callable[[Float[Array, "*batch 2"]], Float[Array, "*batch"]],
+    config: ContactConfig = ContactConfig(),
+) -> Bracket:
+    """The clearance g at every value of s on the coarse grid (one vectorised lookup of
+    n_sweep x stations points) and the first grid interval where it reaches zero (eq. 5)."""
     dtype = finger.length.dtype
     base = jnp.zeros(2, dtype)
-    theta = finger.theta_entire
-    n, r, length = finger.n_links, finger.half_thickness, finger.length
-
-    # Coarse bracket: clearance at every grid value of s, in one lookup.
+    theta, r = finger.theta_entire, finger.half_thickness
     spacing = _station_spacing(finger, config)
     s_grid = theta * jnp.linspace(0.0, 1.0, config.n_sweep, dtype=dtype)
     points = jax.vmap(lambda s: _stations(finger, base, s, config)[0])(s_grid)
@@ -346,6 +376,48 @@ def predict_contact_local(
     # the gradient into NaN.)
     fraction = jnp.where(need_root, jnp.min(jnp.where(jnp.isfinite(crossing), crossing, 1.0)), 0.5)
     start = lower + fraction * (upper - lower)
+    return Bracket(touches=touches, initial_overlap=initial_overlap, lower=lower, upper=upper, start=start,
+                   first=first)
+
+
+def free_contact(finger: FingerModel, bracket: Bracket) -> Contact:
+    """The :class:`Contact` of a finger whose bracket does not need a root: it closes freely
+    (case none), or the object overlaps it from the start (``initial_overlap``; reported as case
+    none too, since the pose collides and no deformation is predicted).
+
+    The contact fields, undefined for these, describe the closed finger's tip: s1 = Theta
+    (0 for an initial overlap), P_g1 = P_o1 = P_o2 = the tip, L_g1 = L, N_g1 = N.
+    """
+    theta, n = finger.theta_entire, finger.n_links
+    tip = forward_kinematics(jnp.zeros(2, theta.dtype), jnp.zeros_like(theta), pcc_turning(theta, n),
+                             finger.length)[-1]
+    theta_o1 = direction_angle(tip)
+    false = jnp.zeros((), bool)
+    return Contact(
+        case=jnp.asarray(ContactCase.NONE, jnp.int32), touches=bracket.touches,
+        s1=jnp.where(bracket.initial_overlap, 0.0, theta), p_g1=tip, p_o1=tip, p_o2=tip, has_second=false,
+        l_g1=finger.length, n_g1=jnp.asarray(n, theta.dtype), theta_o1=theta_o1, theta_o1o2=jnp.zeros_like(theta),
+        theta_remain=theta - theta_o1, initial_overlap=bracket.initial_overlap, root_converged=~false,
+    )
+
+
+def refine_contact(
+    finger: FingerModel,
+    dist: Callable[[Float[Array, "*batch 2"]], Float[Array, "*batch"]],
+    bracket: Bracket,
+    config: ContactConfig = ContactConfig(),
+) -> Contact:
+    """The first contact s1 inside the bracket (optimistix root finder), where the finger touches
+    (eqs. 6-7), its angles (eq. 8) and the second contact (Fig. 8): the :class:`Contact` of a
+    finger whose ``bracket.needs_root``. (For any other bracket it returns finite values without
+    meaning, so that it can be evaluated, and differentiated, everywhere.)
+    """
+    dtype = finger.length.dtype
+    base = jnp.zeros(2, dtype)
+    theta = finger.theta_entire
+    n, r, length = finger.n_links, finger.half_thickness, finger.length
+    need_root, touches, initial_overlap = bracket.needs_root, bracket.touches, bracket.initial_overlap
+    lower, upper, start, first = bracket.lower, bracket.upper, bracket.start, bracket.first
 
     def fn(s, args):
         finger_, base_, start_ = args

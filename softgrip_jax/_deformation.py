@@ -25,10 +25,11 @@ from __future__ import annotations
 import enum
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._contact import Contact, ContactCase, ContactConfig, predict_contact_local
+from softgrip_jax._contact import Bracket, Contact, ContactCase, ContactConfig, bracket_contact, free_contact, refine_contact
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics, pcc_turning
 from softgrip_jax._mechanics import DEFAULT_METHOD, Equilibrium, MechanicsConfig, check_method, mechanics_start, solve_equilibrium
@@ -122,10 +123,33 @@ class Stage(eqx.Module):
     turning: Float[Array, " n"]
 
 
-def geometric_stage(
+class Search(eqx.Module):
+    """A finger placed by its frame and its first contact bracketed (:func:`search_contact`).
+
+    Batched code refines the contact of only the searches that ``need_refining``
+    (:func:`refine_search`), gives the others :func:`free_contact`, and completes each with
+    :func:`stage_of`.
+    """
+
+    frame: FingerFrame  #: the finger's frame, made harmless (zero) where the input is unusable
+    finite: Bool[Array, ""]
+    inside: Bool[Array, ""]
+    bracket: Bracket
+
+    @property
+    def need_refining(self) -> Bool[Array, ""]:
+        """A usable input whose first contact lies inside (0, Theta]."""
+        return self.finite & self.inside & self.bracket.needs_root
+
+
+def _distance_in(sdf: AbstractSDF, frame: FingerFrame):
+    return lambda q: sdf.distance(frame.to_world(q))
+
+
+def search_contact(
     finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig, method: str
-) -> Stage:
-    """Contact prediction (eqs. 5-8) and the deformation of its case (eq. 9), in the finger frame."""
+) -> Search:
+    """Check the inputs, place the finger and bracket its first contact (eq. 5)."""
     finite = (
         jnp.all(jnp.isfinite(frame.origin)) & jnp.isfinite(frame.angle)
         & jnp.isfinite(finger.theta_entire) & jnp.isfinite(finger.length) & jnp.isfinite(finger.half_thickness)
@@ -141,10 +165,37 @@ def geometric_stage(
         angle=jnp.where(usable, frame.angle, 0.0),
         handedness=frame.handedness,
     )
-    contact = predict_contact_local(finger, lambda q: sdf.distance(safe_frame.to_world(q)), config)
+    return Search(frame=safe_frame, finite=finite, inside=inside,
+                  bracket=bracket_contact(finger, _distance_in(sdf, safe_frame), config))
+
+
+def refine_search(finger: FingerModel, sdf: AbstractSDF, search: Search, config: ContactConfig) -> Contact:
+    """The refined contact (eqs. 5-8, Fig. 8) of a search that ``need_refining``."""
+    return refine_contact(finger, _distance_in(sdf, search.frame), search.bracket, config)
+
+
+def stage_of(finger: FingerModel, search: Search, refined: Contact | None) -> Stage:
+    """The :class:`Stage` of a search: its ``refined`` contact where it needs refining, else
+    :func:`free_contact`; and the deformation of the contact's case (eq. 9)."""
+    contact = free_contact(finger, search.bracket)
+    if refined is not None:
+        need = search.need_refining
+        contact = jax.tree_util.tree_map(lambda a, b: jnp.where(need, a, b), refined, contact)
     psi_all, turning_all = case_shapes(finger, contact)
-    return Stage(frame=safe_frame, finite=finite, inside=inside, contact=contact,
+    return Stage(frame=search.frame, finite=search.finite, inside=search.inside, contact=contact,
                  psi=psi_all[contact.case], turning=turning_all[contact.case])
+
+
+def geometric_stage(
+    finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig, method: str
+) -> Stage:
+    """Contact prediction (eqs. 5-8) and the deformation of its case (eq. 9), in the finger frame.
+
+    One finger: the refinement is computed whether needed or not (under ``vmap`` both sides of a
+    branch run anyway); batched code refines only where needed, with the same result.
+    """
+    search = search_contact(finger, sdf, frame, config, method)
+    return stage_of(finger, search, refine_search(finger, sdf, search, config))
 
 
 def needs_mechanics(stage: Stage) -> Bool[Array, ""]:

@@ -156,21 +156,18 @@ def _device_mesh():
 @partial(jax.jit, static_argnames=("chunk_size", "method"))
 def _score_chunks(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
     # poses: (devices, per_device, 3); the device axis is vmapped (and sharded), each device's
-    # share is scanned in chunks so memory stays bounded.
-    if method == "mechanics":
-        # Chunks of both fingers' estimates, the equilibrium solved only where a finger touches
-        # (softgrip_jax._batch), then the score of each pose. On one device the share is mapped
-        # directly: under vmap the skipped solves would run anyway.
-        def chunk(share):
-            grasps = grasp_chunk(gripper, sdf, share, config, mechanics)
-            return jax.vmap(lambda g: _score_grasp(gripper, sdf, g, weights, config))(grasps)
+    # share is scanned in chunks so memory stays bounded. In a chunk, both fingers' estimates
+    # (the contact refined and the equilibrium solved only where a finger touches,
+    # softgrip_jax._batch), then the score of each pose. On one device the share is mapped
+    # directly: under vmap the skipped work would run anyway.
+    def chunk(share):
+        grasps = grasp_chunk(gripper, sdf, share, config, mechanics, method)
+        return jax.vmap(lambda g: _score_grasp(gripper, sdf, g, weights, config))(grasps)
 
-        per_share = lambda share: map_chunks(chunk, share, chunk_size)  # noqa: E731
-        if poses.shape[0] == 1:
-            return jax.tree_util.tree_map(lambda x: x[None], per_share(poses[0]))
-        return jax.vmap(per_share)(poses)
-    one = lambda p: score_pose(gripper, sdf, p, weights, config, method="geometric")  # noqa: E731
-    return jax.vmap(lambda share: jax.lax.map(one, share, batch_size=chunk_size))(poses)
+    per_share = lambda share: map_chunks(chunk, share, chunk_size)  # noqa: E731
+    if poses.shape[0] == 1:
+        return jax.tree_util.tree_map(lambda x: x[None], per_share(poses[0]))
+    return jax.vmap(per_share)(poses)
 
 
 @partial(jax.jit, static_argnames=("chunk_size", "method"))
