@@ -7,7 +7,15 @@ Run from the repository root:
 
 Each (N, batch) configuration runs in a fresh subprocess so that its peak resident memory is its
 own. The scene is a 480x640 SDF grid at the D405's scale at 120 mm (0.31 mm/px) with a 30 mm
-circle; candidate bases are spread so that all four contact cases occur.
+circle. Two sets of candidate bases:
+
+* ``mixed``: spread uniformly over a 80 x 60 mm window above the circle, so that all four contact
+  cases occur, and so do fingers that close freely (case none) or start inside the object
+  (invalid: ``INITIAL_OVERLAP``); those need only the contact search, not its refinement.
+* ``touching``: only bases whose finger first touches the circle while closing (valid, case other
+  than none), picked from a larger uniform draw by an untimed first pass and repeated up to the
+  batch size: every candidate needs the full estimate (contact search, root finder, second
+  contact and deformation).
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
 
 
-def run_one(n_links: int, batch: int, chunk: int, repeats: int) -> dict:
+def run_one(n_links: int, batch: int, chunk: int, repeats: int, scene: str) -> dict:
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -38,7 +46,14 @@ def run_one(n_links: int, batch: int, chunk: int, repeats: int) -> dict:
     grid = jax.block_until_ready(grid)
     finger = FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0, n_links=n_links)
     rng = np.random.default_rng(0)
-    bases = jnp.asarray(rng.uniform([-60.0, -70.0], [20.0, -10.0], (batch, 2)).astype(np.float32))
+    if scene == "mixed":
+        bases = rng.uniform([-60.0, -70.0], [20.0, -10.0], (batch, 2)).astype(np.float32)
+    else:
+        pool = rng.uniform([-60.0, -70.0], [20.0, -10.0], (20_000, 2)).astype(np.float32)
+        first = estimate_batch(finger, grid, pool, chunk_size=chunk, method="geometric")
+        touching = pool[np.asarray(first.valid & (first.case != 0))]
+        bases = np.resize(touching, (batch, 2))
+    bases = jnp.asarray(bases)
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
     t0 = time.perf_counter()
@@ -50,9 +65,10 @@ def run_one(n_links: int, batch: int, chunk: int, repeats: int) -> dict:
         out = jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=chunk, method="geometric"))
         times.append(time.perf_counter() - t0)
     steady = min(times)
-    cases = np.bincount(np.asarray(out.case), minlength=4).tolist()
+    valid = np.asarray(out.valid)
+    cases = np.bincount(np.asarray(out.case)[valid], minlength=4).tolist() + [int(np.sum(~valid))]
     return {
-        "n_links": n_links, "batch": batch, "chunk": min(chunk, batch), "compile_s": first - steady,
+        "scene": scene, "n_links": n_links, "batch": batch, "chunk": min(chunk, batch), "compile_s": first - steady,
         "steady_s": steady, "per_second": batch / steady, "latency_ms": 1e3 * steady / batch if batch == 1 else None,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "rss_before_mb": rss_before / 1024, "cases": cases,
@@ -63,10 +79,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny configuration for CI")
     parser.add_argument("--chunk", type=int, default=2048)
-    parser.add_argument("--one", nargs=2, type=int, metavar=("N", "BATCH"), help=argparse.SUPPRESS)
+    parser.add_argument("--one", nargs=3, metavar=("SCENE", "N", "BATCH"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_one(args.one[0], args.one[1], args.chunk, repeats=1 if args.quick else 3)))
+        scene, n, b = args.one[0], int(args.one[1]), int(args.one[2])
+        print(json.dumps(run_one(n, b, args.chunk, repeats=1 if args.quick else 3, scene=scene)))
         return
 
     from _machine import describe
@@ -75,17 +92,18 @@ def main() -> None:
     batches = [1, 100] if args.quick else [1, 1_000, 100_000]
     command = "python benchmarks/bench_estimate.py" + (" --quick" if args.quick else "")
     print(f"`{command}` on {describe()}; chunk {args.chunk}\n")
-    print("| N | batch | candidate-fingers/s | latency (ms) | compile (s) | peak RSS (MB) | cases none/tip/tip+other/other |")
-    print("|---|---|---|---|---|---|---|")
-    for n in links:
-        for b in batches:
-            cmd = [sys.executable, __file__, "--one", str(n), str(b), "--chunk", str(args.chunk)]
-            if args.quick:
-                cmd.append("--quick")
-            r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
-            latency = f"{r['latency_ms']:.3f}" if r["latency_ms"] is not None else "-"
-            print(f"| {n} | {b:,} | {r['per_second']:,.0f} | {latency} | {r['compile_s']:.1f} | "
-                  f"{r['peak_rss_mb']:.0f} | {'/'.join(map(str, r['cases']))} |", flush=True)
+    print("| bases | N | batch | candidate-fingers/s | latency (ms) | compile (s) | peak RSS (MB) "
+          "| valid none/tip/tip+other/other, invalid |")
+    print("|---|---|---|---|---|---|---|---|")
+    for scene, n, b in [(scene, n, b) for scene in ("mixed", "touching") for n in links for b in batches]:
+        cmd = [sys.executable, __file__, "--one", scene, str(n), str(b), "--chunk", str(args.chunk)]
+        if args.quick:
+            cmd.append("--quick")
+        r = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
+        latency = f"{r['latency_ms']:.3f}" if r["latency_ms"] is not None else "-"
+        counts = r["cases"]
+        print(f"| {scene} | {n} | {b:,} | {r['per_second']:,.0f} | {latency} | {r['compile_s']:.1f} | "
+              f"{r['peak_rss_mb']:.0f} | {'/'.join(map(str, counts[:4]))}, {counts[4]} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ directory given by ``--base-dir``, e.g.::
      sed -i 's/softgrip_jax\\./softgrip_jax_base./g; s/from softgrip_jax import/from softgrip_jax_base import/g' \\
         softgrip_jax_base/*.py)
     python benchmarks/compare_estimate.py --base-dir /tmp/sg_base --n 20 --batch 100000
+    python benchmarks/compare_estimate.py --base-dir /tmp/sg_base --n 20 --batch 20000 --touching
 
 Same scene as bench_estimate.py; the two versions alternate so that machine load hits both alike.
 """
@@ -35,14 +36,25 @@ def geometric(pkg) -> dict:
     return {"method": "geometric"} if "method" in inspect.signature(pkg.estimate_batch).parameters else {}
 
 
-def scene(pkg, n_links, batch):
+def scene(pkg, n_links, batch, touching):
     spacing = 120.0 / 385.0
     grid = pkg.SDFGrid.sample(lambda p: jnp.linalg.norm(p, axis=-1) - 15.0, origin=(-320 * spacing, -240 * spacing),
                               spacing=(spacing, spacing), shape=(480, 640))
     finger = pkg.FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0, n_links=n_links)
     rng = np.random.default_rng(0)
-    bases = jnp.asarray(rng.uniform([-60.0, -70.0], [20.0, -10.0], (batch, 2)).astype(np.float32))
-    return finger, jax.block_until_ready(grid), bases
+    if not touching:
+        return finger, jax.block_until_ready(grid), jnp.asarray(rng.uniform([-60.0, -70.0], [20.0, -10.0], (batch, 2)),
+                                                                jnp.float32)
+    # As bench_estimate.py's "touching" bases: valid fingers that touch while closing, picked by
+    # this package's estimate (the same picks for both versions), repeated up to the batch size.
+    import softgrip_jax as current
+
+    pool = rng.uniform([-60.0, -70.0], [20.0, -10.0], (20_000, 2)).astype(np.float32)
+    first = current.estimate_batch(current.FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0,
+                                                       n_links=n_links),
+                                   current.SDFGrid(grid.values, grid.origin, grid.spacing), pool, method="geometric")
+    bases = np.resize(pool[np.asarray(first.valid & (first.case != 0))], (batch, 2))
+    return finger, jax.block_until_ready(grid), jnp.asarray(bases)
 
 
 def main():
@@ -53,12 +65,14 @@ def main():
     parser.add_argument("--chunk", type=int, default=2048)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-base", action="store_true")
+    parser.add_argument("--touching", action="store_true",
+                        help="only bases whose finger touches while closing (bench_estimate.py's 'touching')")
     args = parser.parse_args()
     sys.path.insert(0, args.base_dir)
     versions = {"new": importlib.import_module("softgrip_jax")}
     if not args.no_base:
         versions["base"] = importlib.import_module("softgrip_jax_base")
-    setups = {k: scene(p, args.n, args.batch) for k, p in versions.items()}
+    setups = {k: scene(p, args.n, args.batch, args.touching) for k, p in versions.items()}
     outs, best, cpu = {}, {k: np.inf for k in versions}, {k: np.inf for k in versions}
     for k, p in versions.items():
         f, g, b = setups[k]

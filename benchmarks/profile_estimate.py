@@ -31,6 +31,10 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=20, help="links per finger")
     parser.add_argument("--chunk", type=int, default=2048)
     parser.add_argument("--top", type=int, default=30, help="kernels to list")
+    parser.add_argument("--touching", action="store_true",
+                        help="only bases whose finger touches while closing (bench_estimate.py's 'touching')")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="concurrent parts (default 1: one computation, whose kernels the trace lists)")
     args = parser.parse_args()
 
     import jax
@@ -44,11 +48,15 @@ def main() -> None:
     grid = SDFGrid.sample(lambda p: jnp.linalg.norm(p, axis=-1) - 15.0, origin=(-320 * spacing, -240 * spacing),
                           spacing=(spacing, spacing), shape=(480, 640))
     finger = FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0, n_links=args.n)
-    bases = jnp.asarray(np.random.default_rng(0).uniform([-60.0, -70.0], [20.0, -10.0], (args.batch, 2)),
-                        dtype=jnp.float32)
+    bases = np.random.default_rng(0).uniform([-60.0, -70.0], [20.0, -10.0], (max(args.batch, 20_000), 2))
+    bases = bases.astype(np.float32)
+    if args.touching:
+        first = estimate_batch(finger, grid, bases, chunk_size=args.chunk, method="geometric")
+        bases = bases[np.asarray(first.valid & (first.case != 0))]
+    bases = jnp.asarray(np.resize(bases, (args.batch, 2)))
 
     def run(b):
-        return estimate_batch(finger, grid, b, chunk_size=args.chunk, method="geometric")
+        return estimate_batch(finger, grid, b, chunk_size=args.chunk, method="geometric", workers=args.workers)
 
     jax.block_until_ready(run(bases))
     best = np.inf

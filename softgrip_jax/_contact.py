@@ -104,7 +104,9 @@ class Contact(eqx.Module):
     """Predicted contact of one finger (finger-frame coordinates, mm and rad).
 
     Fields that a case does not define (for example P_o2 without a second contact) hold finite
-    placeholder values; read them through ``case``.
+    placeholder values; read them through ``case``. Without a first contact inside (0, Theta]
+    (case none, and an object that overlaps the open finger, reported as case none with
+    ``initial_overlap``) they describe the closed finger's tip (:func:`free_contact`).
     """
 
     case: Int[Array, ""]  #: a :class:`ContactCase` value
@@ -211,9 +213,12 @@ def _window_stations(finger, base, s, config, first):
     """
     n, per_link = finger.n_links, config.per_link(finger.n_links)
     index = first + jnp.arange(_ROOT_WINDOW)
-    link = jnp.minimum(index // per_link, n - 1)
-    frac = ((index - link * per_link) / per_link).astype(s.dtype)
-    ends = jnp.stack([link, link + 1]).astype(s.dtype)  # (2, window) joint indices
+    if per_link == 1:  # the stations are joints: no link ends to interpolate between
+        ends = index.astype(s.dtype)
+    else:
+        link = jnp.minimum(index // per_link, n - 1)
+        frac = ((index - link * per_link) / per_link).astype(s.dtype)
+        ends = jnp.stack([link, link + 1]).astype(s.dtype)  # (2, window) joint indices
     if config.sweep == "pcc":
         chord_angle = s * ends / n
         small = jnp.abs(s) < 1e-4
@@ -223,6 +228,8 @@ def _window_stations(finger, base, s, config, first):
         joints = base + (finger.length / n) * ratio[..., None] * unit_direction(chord_angle)
     else:
         joints = base + (finger.length / n) * ends[..., None] * unit_direction(s)
+    if per_link == 1:
+        return joints
     return joints[0] + frac[:, None] * (joints[1] - joints[0])
 
 
