@@ -58,6 +58,7 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
     Differentiable (gathers, ``lax.map`` and ``lax.cond``).
     """
     b = need.shape[0]
+    groups = max(1, min(groups, b))  # a small batch (one candidate) is one group, not eight
     size = -(-b // groups)
     order = jnp.argsort(~need, stable=True)  # needed first, each part in its original order
     padded = jnp.concatenate([order, jnp.zeros(groups * size - b, order.dtype)])
