@@ -59,6 +59,21 @@ def test_bad_candidates_do_not_poison_gradients():
     assert np.isfinite(jax.jit(jax.grad(loss))(jnp.float32(0.5)))
 
 
+def test_batch_refines_only_touching_fingers_with_the_same_results():
+    # The batch refines the contact (root, second contact) only where the bracket holds a first
+    # contact; every field must still equal the one-finger estimate's, case by case.
+    f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=4)
+    many = bases(300, 5)
+    one = jax.jit(jax.vmap(geometric, in_axes=(None, None, 0)))(f, GRID, many)
+    batch = estimate_batch(f, GRID, many, chunk_size=128, method="geometric", workers=1)
+    np.testing.assert_array_equal(batch.case, one.case)
+    np.testing.assert_array_equal(batch.status, one.status)
+    assert len(set(np.asarray(one.case[one.valid]).tolist())) >= 3 and not bool(jnp.all(one.valid))
+    for name in ("s1", "p_g1", "p_o1", "n_g1", "theta_o1", "theta_o1o2"):
+        np.testing.assert_allclose(getattr(batch.contact, name), getattr(one.contact, name), atol=1e-4, err_msg=name)
+    np.testing.assert_allclose(batch.joints, one.joints, atol=1e-4)
+
+
 @pytest.mark.slow
 def test_vmap_over_100k_bases_matches_chunked_batch():
     many = bases(100_000, 4)

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softgrip_jax import FingerModel, Gripper, SDFGrid, PolygonSDF, SoftgripError, estimate_batch, estimate_grasp_batch
+from softgrip_jax import FingerModel, Gripper, PolygonSDF, SDFGrid, SoftgripError, estimate_batch, score
 from softgrip_jax._concurrent import MIN_PART, part_count, run_in_parts
 
 FINGER = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=4)
@@ -23,17 +23,6 @@ def test_parts_give_the_whole_batch_results_in_order():
     np.testing.assert_array_equal(split.joints, whole.joints)
     np.testing.assert_array_equal(split.case, whole.case)
     assert len(set(np.asarray(whole.case).tolist())) >= 3  # a scene with contacts, not only case (a)
-
-
-def test_grasp_batch_in_parts_matches_one_part():
-    n = 2 * MIN_PART + 1
-    rng = np.random.default_rng(1)
-    poses = np.column_stack([rng.uniform(0.0, 60.0, n), rng.uniform(-10.0, 10.0, n), rng.uniform(-0.2, 0.2, n)])
-    gripper = Gripper(FINGER, FINGER, 50.0)
-    whole = estimate_grasp_batch(gripper, GRID, poses.astype(np.float32), method="geometric", workers=1)
-    split = estimate_grasp_batch(gripper, GRID, poses.astype(np.float32), method="geometric", workers=2)
-    np.testing.assert_array_equal(split.right.joints, whole.right.joints)
-    np.testing.assert_array_equal(split.valid, whole.valid)
 
 
 def test_part_count_rules():
@@ -71,3 +60,15 @@ def test_a_new_shape_compiles_once_for_all_parts():
     out = run_in_parts(double, (), xs, (), 4)
     np.testing.assert_array_equal(out["twice"], 2.0 * xs)
     assert traces == [(MIN_PART, 2)]
+
+
+def test_score_in_parts_matches_one_part():
+    n = 2 * MIN_PART + 1
+    rng = np.random.default_rng(3)
+    poses = np.column_stack([rng.uniform(0.0, 60.0, n), rng.uniform(-10.0, 10.0, n),
+                             rng.uniform(-0.2, 0.2, n)]).astype(np.float32)
+    gripper = Gripper(FINGER, FINGER, 50.0)
+    whole = score(gripper, GRID, poses, method="geometric", workers=1)
+    split = score(gripper, GRID, poses, method="geometric", workers=2)
+    np.testing.assert_array_equal(split.score, whole.score)
+    assert np.isfinite(np.asarray(whole.score)).sum() > 10  # some poses are valid, so scores were compared

@@ -83,12 +83,20 @@ def test_pcc_sweep_first_contact_matches_dense_sweep(sdf_kind, center, radius, n
 
 def test_no_object_in_reach_is_case_a():
     finger = FingerModel(length=L, theta_entire=0.5, half_thickness=R_FINGER, n_links=10)
-    c = predict_contact(finger, circle((60.0, 25.0), 5.0), jnp.zeros(2))
+    base = jnp.array([3.0, -2.0])
+    c = predict_contact(finger, circle((60.0, 25.0), 5.0), base)
     assert not bool(c.touches) and int(c.case) == ContactCase.NONE
     assert float(c.s1) == pytest.approx(0.5)
+    # Undefined contact fields describe the closed finger's tip: N links of L/N on a circle (eqs.
+    # 1-3), so at (L/N) sin(T) / sin(T/N) from the base along the chord angle T.
+    tip = np.array(base) + L / 10 * np.sin(0.5) / np.sin(0.05) * np.array([np.sin(0.5), np.cos(0.5)])
+    np.testing.assert_allclose(c.p_g1, tip, atol=1e-3)
+    np.testing.assert_allclose(c.p_o2, tip, atol=1e-3)
+    assert float(c.n_g1) == 10.0 and not bool(c.has_second)
 
 
 def test_object_overlapping_the_open_finger_is_flagged():
     finger = FingerModel(length=L, theta_entire=0.5, half_thickness=R_FINGER, n_links=10)
     c = predict_contact(finger, circle((2.0, 25.0), 4.0), jnp.zeros(2))
     assert bool(c.initial_overlap) and float(c.s1) == 0.0
+    assert int(c.case) == ContactCase.NONE  # the pose collides: no deformation is predicted
