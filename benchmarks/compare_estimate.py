@@ -9,6 +9,10 @@ directory given by ``--base-dir``, e.g.::
         softgrip_jax_base/*.py)
     python benchmarks/compare_estimate.py --base-dir /tmp/sg_base --n 20 --batch 100000
     python benchmarks/compare_estimate.py --base-dir /tmp/sg_base --n 20 --batch 20000 --touching
+    python benchmarks/compare_estimate.py --one-part --n 20 --batch 32768   # no baseline copy needed
+
+``--one-part`` compares this checkout with itself run as one computation (``workers=1``) instead of
+a baseline copy: the gain of the concurrent parts of ``softgrip_jax._concurrent``.
 
 Same scene as bench_estimate.py; the two versions alternate so that machine load hits both alike.
 """
@@ -65,25 +69,34 @@ def main():
     parser.add_argument("--chunk", type=int, default=2048)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-base", action="store_true")
+    parser.add_argument("--method", default="geometric", choices=("geometric", "mechanics"))
+    parser.add_argument("--one-part", action="store_true",
+                        help="the baseline is this checkout with workers=1 (one computation)")
     parser.add_argument("--touching", action="store_true",
                         help="only bases whose finger touches while closing (bench_estimate.py's 'touching')")
     args = parser.parse_args()
     sys.path.insert(0, args.base_dir)
     versions = {"new": importlib.import_module("softgrip_jax")}
-    if not args.no_base:
+    if args.one_part:
+        versions["base"] = versions["new"]
+    elif not args.no_base:
         versions["base"] = importlib.import_module("softgrip_jax_base")
+
+    def options(k, p):
+        method = geometric(p) if args.method == "geometric" else {"method": args.method}
+        return {**method, **({"workers": 1} if args.one_part and k == "base" else {})}
     setups = {k: scene(p, args.n, args.batch, args.touching) for k, p in versions.items()}
     outs, best, cpu = {}, {k: np.inf for k in versions}, {k: np.inf for k in versions}
     for k, p in versions.items():
         f, g, b = setups[k]
         t0 = time.perf_counter()
-        outs[k] = jax.block_until_ready(p.estimate_batch(f, g, b, chunk_size=args.chunk, **geometric(p)))
+        outs[k] = jax.block_until_ready(p.estimate_batch(f, g, b, chunk_size=args.chunk, **options(k, p)))
         print(f"{k}: first call {time.perf_counter() - t0:.1f} s", flush=True)
     for _ in range(args.repeats):
         for k, p in versions.items():
             f, g, b = setups[k]
             t0, c0 = time.perf_counter(), time.process_time()
-            jax.block_until_ready(p.estimate_batch(f, g, b, chunk_size=args.chunk, **geometric(p)))
+            jax.block_until_ready(p.estimate_batch(f, g, b, chunk_size=args.chunk, **options(k, p)))
             best[k] = min(best[k], time.perf_counter() - t0)
             cpu[k] = min(cpu[k], time.process_time() - c0)
     for k in versions:

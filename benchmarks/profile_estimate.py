@@ -4,6 +4,7 @@ Run from the repository root:
 
     .venv/bin/python benchmarks/profile_estimate.py            # 8,192 bases, N = 20, top 30 kernels
     .venv/bin/python benchmarks/profile_estimate.py --batch 2048 --n 10 --top 50
+    .venv/bin/python benchmarks/profile_estimate.py --touching --batch 16384 --vary   # cost of each stage
 
 Same scene as bench_estimate.py. Prints the throughput of the traced configuration, then each kernel's
 total time over the traced call, how often it ran, its output shape and the JAX operation it came
@@ -35,6 +36,9 @@ def main() -> None:
                         help="only bases whose finger touches while closing (bench_estimate.py's 'touching')")
     parser.add_argument("--workers", type=int, default=1,
                         help="concurrent parts (default 1: one computation, whose kernels the trace lists)")
+    parser.add_argument("--vary", action="store_true",
+                        help="instead of the trace: time per finger with stages cut down (root finder capped at one "
+                             "Newton step, 8 second-contact samples), alternating, median of 5")
     args = parser.parse_args()
 
     import jax
@@ -42,7 +46,7 @@ def main() -> None:
     import numpy as np
     from jax.profiler import ProfileData
 
-    from softgrip_jax import FingerModel, SDFGrid, estimate_batch
+    from softgrip_jax import ContactConfig, FingerModel, SDFGrid, estimate_batch
 
     spacing = 120.0 / 385.0
     grid = SDFGrid.sample(lambda p: jnp.linalg.norm(p, axis=-1) - 15.0, origin=(-320 * spacing, -240 * spacing),
@@ -55,8 +59,23 @@ def main() -> None:
         bases = bases[np.asarray(first.valid & (first.case != 0))]
     bases = jnp.asarray(np.resize(bases, (args.batch, 2)))
 
-    def run(b):
-        return estimate_batch(finger, grid, b, chunk_size=args.chunk, method="geometric", workers=args.workers)
+    def run(b, config=ContactConfig()):
+        return estimate_batch(finger, grid, b, config, chunk_size=args.chunk, method="geometric", workers=args.workers)
+
+    if args.vary:
+        configs = {"default": ContactConfig(), "root finder capped at 1 step": ContactConfig(root_max_steps=1),
+                   "8 second-contact samples": ContactConfig(n_circle=8)}
+        times = {name: [] for name in configs}
+        for config in configs.values():
+            jax.block_until_ready(run(bases, config))
+        for _ in range(5):
+            for name, config in configs.items():
+                t0 = time.perf_counter()
+                jax.block_until_ready(run(bases, config))
+                times[name].append(time.perf_counter() - t0)
+        for name, t in times.items():
+            print(f"{name:30s} {np.median(t) / args.batch * 1e6:6.2f} us per finger")
+        return
 
     jax.block_until_ready(run(bases))
     best = np.inf
