@@ -44,7 +44,7 @@ class Status(enum.IntEnum):
     OK = 0
     NON_FINITE_INPUT = 1  #: a NaN or inf base, pose or parameter; joints are NaN
     BASE_OUTSIDE_SDF = 2  #: the base lies outside the SDF's grid (outside the image); joints are NaN
-    INITIAL_OVERLAP = 3  #: the object already overlaps the open finger: the pose collides
+    INITIAL_OVERLAP = 3  #: the object already overlaps the open finger: the pose collides (reported as case none)
     ROOT_NOT_CONVERGED = 4  #: the first-contact root finder hit its iteration cap
     MECHANICS_NOT_CONVERGED = 5  #: the mechanics equilibrium missed its tolerances within its budget
 
