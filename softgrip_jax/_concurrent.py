@@ -26,6 +26,7 @@ from softgrip_jax._errors import SoftgripError
 MIN_PART = 256
 
 _pool: ThreadPoolExecutor | None = None
+_pool_size = 0
 _pool_lock = threading.Lock()
 _compiled: set = set()  # signatures already compiled: their first call runs alone (one compile)
 
@@ -55,10 +56,13 @@ def part_count(workers: object, batch: int, operands=()) -> int:
 
 
 def _executor(parts: int) -> ThreadPoolExecutor:
-    global _pool
+    """The shared thread pool, grown to at least ``parts`` threads."""
+    global _pool, _pool_size
     with _pool_lock:
-        if _pool is None or _pool._max_workers < parts:
-            _pool = ThreadPoolExecutor(max_workers=parts, thread_name_prefix="softgrip-part")
+        if _pool is None or _pool_size < parts:
+            # A smaller pool is left to itself, not shut down: another thread may still be
+            # submitting parts to it.
+            _pool, _pool_size = ThreadPoolExecutor(max_workers=parts, thread_name_prefix="softgrip-part"), parts
         return _pool
 
 
