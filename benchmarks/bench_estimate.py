@@ -38,21 +38,14 @@ def run_one(n_links: int, batch: int, chunk: int, repeats: int, scene: str) -> d
     import jax.numpy as jnp
     import numpy as np
 
-    from softgrip_jax import FingerModel, SDFGrid, estimate_batch
+    import softgrip_jax
+    from _scene import disc_grid, mixed_bases, touching_bases
+    from _scene import finger as make_finger
+    from softgrip_jax import estimate_batch
 
-    spacing = 120.0 / 385.0
-    grid = SDFGrid.sample(lambda p: jnp.linalg.norm(p, axis=-1) - 15.0, origin=(-320 * spacing, -240 * spacing),
-                          spacing=(spacing, spacing), shape=(480, 640))
-    grid = jax.block_until_ready(grid)
-    finger = FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0, n_links=n_links)
-    rng = np.random.default_rng(0)
-    if scene == "mixed":
-        bases = rng.uniform([-60.0, -70.0], [20.0, -10.0], (batch, 2)).astype(np.float32)
-    else:
-        pool = rng.uniform([-60.0, -70.0], [20.0, -10.0], (20_000, 2)).astype(np.float32)
-        first = estimate_batch(finger, grid, pool, chunk_size=chunk, method="geometric")
-        touching = pool[np.asarray(first.valid & (first.case != 0))]
-        bases = np.resize(touching, (batch, 2))
+    grid = jax.block_until_ready(disc_grid(softgrip_jax))
+    finger = make_finger(softgrip_jax, n_links)
+    bases = mixed_bases(batch) if scene == "mixed" else touching_bases(n_links, batch)
     bases = jnp.asarray(bases)
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 

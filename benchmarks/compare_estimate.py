@@ -33,6 +33,8 @@ import numpy as np
 
 # This checkout's package, not whichever one the interpreter has installed.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(1, str(Path(__file__).resolve().parent))
+from _scene import disc_grid, finger, mixed_bases, touching_bases  # noqa: E402
 
 
 def geometric(pkg) -> dict:
@@ -41,24 +43,8 @@ def geometric(pkg) -> dict:
 
 
 def scene(pkg, n_links, batch, touching):
-    spacing = 120.0 / 385.0
-    grid = pkg.SDFGrid.sample(lambda p: jnp.linalg.norm(p, axis=-1) - 15.0, origin=(-320 * spacing, -240 * spacing),
-                              spacing=(spacing, spacing), shape=(480, 640))
-    finger = pkg.FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0, n_links=n_links)
-    rng = np.random.default_rng(0)
-    if not touching:
-        return finger, jax.block_until_ready(grid), jnp.asarray(rng.uniform([-60.0, -70.0], [20.0, -10.0], (batch, 2)),
-                                                                jnp.float32)
-    # As bench_estimate.py's "touching" bases: valid fingers that touch while closing, picked by
-    # this package's estimate (the same picks for both versions), repeated up to the batch size.
-    import softgrip_jax as current
-
-    pool = rng.uniform([-60.0, -70.0], [20.0, -10.0], (20_000, 2)).astype(np.float32)
-    first = current.estimate_batch(current.FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0,
-                                                       n_links=n_links),
-                                   current.SDFGrid(grid.values, grid.origin, grid.spacing), pool, method="geometric")
-    bases = np.resize(pool[np.asarray(first.valid & (first.case != 0))], (batch, 2))
-    return finger, jax.block_until_ready(grid), jnp.asarray(bases)
+    bases = touching_bases(n_links, batch) if touching else mixed_bases(batch)
+    return finger(pkg, n_links), jax.block_until_ready(disc_grid(pkg)), jnp.asarray(bases)
 
 
 def main():

@@ -24,6 +24,7 @@ from pathlib import Path
 
 # Profile this checkout's package, not whichever one the interpreter has installed.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(1, str(Path(__file__).resolve().parent))
 
 
 def main() -> None:
@@ -38,7 +39,8 @@ def main() -> None:
                         help="concurrent parts (default 1: one computation, whose kernels the trace lists)")
     parser.add_argument("--vary", action="store_true",
                         help="instead of the trace: time per finger with stages cut down (root finder capped at one "
-                             "Newton step, 8 second-contact samples), alternating, median of 5")
+                             "Newton step, 8 second-contact samples, a 10x looser root tolerance), alternating, "
+                             "median of 5")
     args = parser.parse_args()
 
     import jax
@@ -46,25 +48,22 @@ def main() -> None:
     import numpy as np
     from jax.profiler import ProfileData
 
-    from softgrip_jax import ContactConfig, FingerModel, SDFGrid, estimate_batch
+    import softgrip_jax
+    from _scene import disc_grid, finger, mixed_bases, touching_bases
+    from softgrip_jax import ContactConfig, estimate_batch
 
-    spacing = 120.0 / 385.0
-    grid = SDFGrid.sample(lambda p: jnp.linalg.norm(p, axis=-1) - 15.0, origin=(-320 * spacing, -240 * spacing),
-                          spacing=(spacing, spacing), shape=(480, 640))
-    finger = FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0, n_links=args.n)
-    bases = np.random.default_rng(0).uniform([-60.0, -70.0], [20.0, -10.0], (max(args.batch, 20_000), 2))
-    bases = bases.astype(np.float32)
-    if args.touching:
-        first = estimate_batch(finger, grid, bases, chunk_size=args.chunk, method="geometric")
-        bases = bases[np.asarray(first.valid & (first.case != 0))]
-    bases = jnp.asarray(np.resize(bases, (args.batch, 2)))
+    grid = disc_grid(softgrip_jax)
+    finger = finger(softgrip_jax, args.n)
+    bases = touching_bases(args.n, args.batch) if args.touching else mixed_bases(args.batch)
+    bases = jnp.asarray(bases)
 
     def run(b, config=ContactConfig()):
         return estimate_batch(finger, grid, b, config, chunk_size=args.chunk, method="geometric", workers=args.workers)
 
     if args.vary:
         configs = {"default": ContactConfig(), "root finder capped at 1 step": ContactConfig(root_max_steps=1),
-                   "8 second-contact samples": ContactConfig(n_circle=8)}
+                   "8 second-contact samples": ContactConfig(n_circle=8),
+                   "root tolerance 1e-3": ContactConfig(root_atol=1e-3)}
         times = {name: [] for name in configs}
         for config in configs.values():
             jax.block_until_ready(run(bases, config))

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Bool, Float
 
-from softgrip_jax._concurrent import part_count, run_in_parts
+from softgrip_jax._concurrent import pad_rows, run_in_parts
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._deformation import Estimate, finish, mechanics_of, needs_mechanics, refine_search, search_contact, stage_of
 from softgrip_jax._errors import SoftgripError
@@ -109,9 +109,7 @@ def map_chunks(fn, xs, chunk_size):
     """``fn`` on chunks of ``chunk_size`` rows of ``xs`` (padded with its first row), concatenated."""
     b = xs.shape[0]
     n_chunks = -(-b // chunk_size)
-    pad = n_chunks * chunk_size - b
-    padded = jnp.concatenate([xs, jnp.broadcast_to(xs[:1], (pad,) + xs.shape[1:])]) if pad else xs
-    out = jax.lax.map(fn, padded.reshape((n_chunks, chunk_size) + xs.shape[1:]))
+    out = jax.lax.map(fn, pad_rows(xs, n_chunks * chunk_size).reshape((n_chunks, chunk_size) + xs.shape[1:]))
     return jax.tree_util.tree_map(lambda x: x.reshape((n_chunks * chunk_size,) + x.shape[2:])[:b], out)
 
 
@@ -132,13 +130,6 @@ def grasp_chunk(gripper, sdf, poses, config, mechanics, method):
 @partial(jax.jit, static_argnames=("chunk_size", "method"))
 def _estimate_grasp_batch(gripper, sdf, poses, config, mechanics, chunk_size, method):
     return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, mechanics, method), poses, chunk_size)
-
-
-def _in_parts(fn, model, xs, config, mechanics, chunk_size, method, workers):
-    """``fn(*model, xs, config, mechanics, chunk_size, method)`` as concurrent parts of ``xs``."""
-    parts = part_count(workers, xs.shape[0], (model, xs, config, mechanics))
-    part = max(1, -(-xs.shape[0] // parts))
-    return run_in_parts(fn, model, xs, (config, mechanics), parts, chunk_size=min(chunk_size, part), method=method)
 
 
 def estimate_batch(
@@ -176,7 +167,7 @@ def estimate_batch(
     """
     check_method(method)
     bases = as_candidates(bases, 2, finger.length.dtype, "estimate_batch: bases")
-    return _in_parts(_estimate_batch, (finger, sdf), bases, config, mechanics, chunk_size, method, workers)
+    return run_in_parts(_estimate_batch, (finger, sdf), bases, (config, mechanics), workers, chunk_size, method=method)
 
 
 def estimate_grasp_batch(
@@ -214,4 +205,5 @@ def estimate_grasp_batch(
     """
     check_method(method)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "estimate_grasp_batch: poses")
-    return _in_parts(_estimate_grasp_batch, (gripper, sdf), poses, config, mechanics, chunk_size, method, workers)
+    return run_in_parts(_estimate_grasp_batch, (gripper, sdf), poses, (config, mechanics), workers, chunk_size,
+                        method=method)

@@ -2,8 +2,8 @@
 
 XLA:CPU runs the kernels of one computation one after another and spreads only the larger ones
 over the cores: the estimate's many small kernels (gathers, the root finder's loop) leave the other
-cores mostly idle (on the 2-core benchmark machine, one computation gets 1.25x from its second
-core). Separate computations launched from separate threads do run side by side, so on a CPU the
+cores mostly idle (on the 2-core benchmark machine, one computation got 1.36x from its second
+core; benchmarks/RESULTS.md, issue 2). Separate computations launched from separate threads do run side by side, so on a CPU the
 batch functions split their candidates into one equal part per core, run the same compiled
 function on each part from a thread, and concatenate the results on the device. Elsewhere (a GPU
 fills itself with one computation), under tracing (``jit``, ``grad``, ``vmap`` of the batch
@@ -70,15 +70,23 @@ def _traced(tree) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
 
 
-def run_in_parts(fn, before: tuple, xs: jax.Array, after: tuple, parts: int, **static):
-    """``fn(*before, xs, *after, **static)`` for a jitted ``fn`` whose outputs all have ``xs``'s
-    leading axis, evaluated as ``parts`` (from :func:`part_count`) concurrent equal parts of ``xs``."""
+def pad_rows(xs: jax.Array, rows: int) -> jax.Array:
+    """``xs`` padded to ``rows`` rows with copies of its first row (results for them are dropped)."""
+    pad = rows - xs.shape[0]
+    return jnp.concatenate([xs, jnp.broadcast_to(xs[:1], (pad,) + xs.shape[1:])]) if pad > 0 else xs
+
+
+def run_in_parts(fn, before: tuple, xs: jax.Array, after: tuple, workers: int | None, chunk_size: int, **static):
+    """``fn(*before, xs, *after, chunk_size=..., **static)`` for a jitted ``fn`` whose outputs all
+    have ``xs``'s leading axis, evaluated as :func:`part_count` concurrent equal parts of ``xs``,
+    each scanned ``min(chunk_size, part size)`` candidates at a time."""
     b = xs.shape[0]
+    parts = part_count(workers, b, (before, xs, after))
+    size = max(1, -(-b // parts))
+    static = dict(static, chunk_size=min(chunk_size, size))
     if parts == 1:
         return fn(*before, xs, *after, **static)
-    size = -(-b // parts)
-    pad = parts * size - b
-    padded = jnp.concatenate([xs, jnp.broadcast_to(xs[:1], (pad,) + xs.shape[1:])]) if pad else xs
+    padded = pad_rows(xs, parts * size)
     pieces = [padded[i * size:(i + 1) * size] for i in range(parts)]
     leaves, treedef = jax.tree_util.tree_flatten((before, after))
     signature = (fn, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves),

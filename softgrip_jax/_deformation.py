@@ -174,13 +174,11 @@ def refine_search(finger: FingerModel, sdf: AbstractSDF, search: Search, config:
     return refine_contact(finger, _distance_in(sdf, search.frame), search.bracket, config)
 
 
-def stage_of(finger: FingerModel, search: Search, refined: Contact | None) -> Stage:
+def stage_of(finger: FingerModel, search: Search, refined: Contact) -> Stage:
     """The :class:`Stage` of a search: its ``refined`` contact where it needs refining, else
     :func:`free_contact`; and the deformation of the contact's case (eq. 9)."""
-    contact = free_contact(finger, search.bracket)
-    if refined is not None:
-        need = search.need_refining
-        contact = jax.tree_util.tree_map(lambda a, b: jnp.where(need, a, b), refined, contact)
+    need = search.need_refining
+    contact = jax.tree_util.tree_map(lambda a, b: jnp.where(need, a, b), refined, free_contact(finger, search.bracket))
     psi_all, turning_all = case_shapes(finger, contact)
     return Stage(frame=search.frame, finite=search.finite, inside=search.inside, contact=contact,
                  psi=psi_all[contact.case], turning=turning_all[contact.case])

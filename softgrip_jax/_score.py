@@ -34,14 +34,14 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks
-from softgrip_jax._concurrent import part_count, run_in_parts
+from softgrip_jax._concurrent import pad_rows, run_in_parts
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._deformation import Estimate
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
 from softgrip_jax._kinematics import chain_stations
 from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
 from softgrip_jax._model import FingerModel, Gripper
-from softgrip_jax._safe import safe_divide, safe_norm
+from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
 
 
@@ -153,28 +153,24 @@ def _device_mesh():
     return jax.sharding.Mesh(np.array(devices), ("candidates",)) if len(devices) > 1 else None
 
 
-@partial(jax.jit, static_argnames=("chunk_size", "method"))
-def _score_chunks(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
-    # poses: (devices, per_device, 3); the device axis is vmapped (and sharded), each device's
-    # share is scanned in chunks so memory stays bounded. In a chunk, both fingers' estimates
-    # (the contact refined and the equilibrium solved only where a finger touches,
-    # softgrip_jax._batch), then the score of each pose. On one device the share is mapped
-    # directly: under vmap the skipped work would run anyway.
+def _score_share(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
+    """The :class:`Score` of poses (P, 3) on one device, ``chunk_size`` at a time: in each chunk both
+    fingers' estimates (the contact refined and the equilibrium solved only where a finger touches,
+    :mod:`softgrip_jax._batch`), then the score of each pose."""
     def chunk(share):
         grasps = grasp_chunk(gripper, sdf, share, config, mechanics, method)
         return jax.vmap(lambda g: _score_grasp(gripper, sdf, g, weights, config))(grasps)
 
-    per_share = lambda share: map_chunks(chunk, share, chunk_size)  # noqa: E731
-    if poses.shape[0] == 1:
-        return jax.tree_util.tree_map(lambda x: x[None], per_share(poses[0]))
-    return jax.vmap(per_share)(poses)
+    return map_chunks(chunk, poses, chunk_size)
+
+
+_score_one_device = partial(jax.jit, static_argnames=("chunk_size", "method"))(_score_share)
 
 
 @partial(jax.jit, static_argnames=("chunk_size", "method"))
-def _score_flat(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
-    # _score_chunks on one device: poses (P, 3) -> Score with leading axis P.
-    out = _score_chunks(gripper, sdf, poses[None], weights, config, mechanics, chunk_size, method)
-    return jax.tree_util.tree_map(lambda x: x[0], out)
+def _score_sharded(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
+    # poses: (devices, per_device, 3); the device axis is vmapped (and sharded across the devices).
+    return jax.vmap(lambda share: _score_share(gripper, sdf, share, weights, config, mechanics, chunk_size, method))(poses)
 
 
 def score(
@@ -241,20 +237,14 @@ def score(
     b = poses.shape[0]
     mesh = _device_mesh()
     if mesh is None:  # one device: on a CPU, concurrent parts over its cores (softgrip_jax._concurrent)
-        parts = part_count(workers, b, (gripper, sdf, poses, weights, config, mechanics))
-        chunk = max(1, min(chunk_size, -(-b // parts)))
-        return run_in_parts(_score_flat, (gripper, sdf), poses, (weights, config, mechanics), parts,
-                            chunk_size=chunk, method=method)
-    n_dev = 1 if mesh is None else mesh.devices.size
+        return run_in_parts(_score_one_device, (gripper, sdf), poses, (weights, config, mechanics), workers,
+                            chunk_size, method=method)
+    n_dev = mesh.devices.size
     per_device = -(-b // n_dev)
-    padded = jnp.concatenate([poses, jnp.broadcast_to(poses[:1], (n_dev * per_device - b, 3))]) if b else poses
-    padded = padded.reshape(n_dev, per_device, 3)
-    if mesh is not None:
-        spec = jax.sharding.PartitionSpec("candidates")
-        padded = jax.device_put(padded, jax.sharding.NamedSharding(mesh, spec))
-    out = _score_chunks(gripper, sdf, padded, weights, config, mechanics, max(1, min(chunk_size, per_device)), method)
+    padded = pad_rows(poses, n_dev * per_device).reshape(n_dev, per_device, 3)
+    padded = jax.device_put(padded, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("candidates")))
+    out = _score_sharded(gripper, sdf, padded, weights, config, mechanics, max(1, min(chunk_size, per_device)), method)
     return jax.tree_util.tree_map(lambda x: x.reshape((n_dev * per_device,) + x.shape[2:])[:b], out)
-
 
 class RefineStatus(enum.IntEnum):
     IMPROVED = 0  #: the refined pose scores higher and is valid

@@ -1,5 +1,7 @@
 """Batches split into concurrent parts (softgrip_jax._concurrent): same results, one compilation."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -51,13 +53,13 @@ def test_traced_batches_run_as_one_part():
 def test_a_new_shape_compiles_once_for_all_parts():
     traces = []
 
-    @jax.jit
-    def double(x):
+    @functools.partial(jax.jit, static_argnames="chunk_size")
+    def double(x, chunk_size):
         traces.append(x.shape)  # runs only while tracing
         return {"twice": 2.0 * x}
 
     xs = jnp.arange(4 * MIN_PART * 2, dtype=jnp.float32).reshape(-1, 2)
-    out = run_in_parts(double, (), xs, (), 4)
+    out = run_in_parts(double, (), xs, (), 4, 2048)
     np.testing.assert_array_equal(out["twice"], 2.0 * xs)
     assert traces == [(MIN_PART, 2)]
 
