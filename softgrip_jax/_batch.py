@@ -20,7 +20,7 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from softgrip_jax._concurrent import pad_rows, run_in_parts
 from softgrip_jax._contact import ContactConfig
-from softgrip_jax._deformation import Estimate, finish, mechanics_of, needs_mechanics, refine_search, search_contact, stage_of
+from softgrip_jax._deformation import Estimate, estimate_in_frame, finish, mechanics_of, needs_mechanics, refine_search, search_contact, stage_of
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, finger_frames
@@ -33,6 +33,9 @@ DEFAULT_CHUNK = 2048
 
 #: A chunk's touching candidates are solved in groups of ceil(chunk / _SOLVE_GROUPS).
 _SOLVE_GROUPS = 8
+
+#: Chunks smaller than this refine every finger (see :func:`finger_chunk`).
+_SMALL_CHUNK = 16
 
 
 def as_candidates(x, width: int, dtype, what: str, single: bool = False) -> jax.Array:
@@ -60,9 +63,13 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
     b = need.shape[0]
     groups = max(1, min(groups, b))  # a small batch (one candidate) is one group, not eight
     size = -(-b // groups)
-    order = jnp.argsort(~need, stable=True)  # needed first, each part in its original order
+    # Needed first, each part in its original order: every element's place from two running
+    # counts (an argsort does the same about 6x slower on XLA:CPU, and was run twice).
+    count = jnp.sum(need)
+    place = jnp.where(need, jnp.cumsum(need) - 1, count + jnp.cumsum(~need) - 1)
+    order = jnp.zeros(b, place.dtype).at[place].set(jnp.arange(b, dtype=place.dtype), unique_indices=True)
     padded = jnp.concatenate([order, jnp.zeros(groups * size - b, order.dtype)])
-    wanted = jnp.concatenate([need[order], jnp.zeros(groups * size - b, bool)])
+    wanted = jnp.arange(groups * size) < count
     take = lambda idx: jax.tree_util.tree_map(lambda x: x[idx], inputs)  # noqa: E731
     out_shape = jax.eval_shape(jax.vmap(fn), take(padded[:size]))
 
@@ -76,10 +83,9 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
         )
 
     out = jax.lax.map(group, jnp.arange(groups))
-    back = jnp.argsort(order)  # position of each element in the needed-first order
 
     def restore(x):
-        x = x.reshape((groups * size,) + x.shape[2:])[back]
+        x = x.reshape((groups * size,) + x.shape[2:])[place]
         return jnp.where(need.reshape((b,) + (1,) * (x.ndim - 1)), x, jnp.zeros((), x.dtype))
 
     return jax.tree_util.tree_map(restore, out)
@@ -96,7 +102,18 @@ def geometric_stages(finger, sdf, frames, config, method):
 
 def finger_chunk(finger, sdf, frames, config, mechanics, method):
     """Estimates of a chunk of finger frames (leading axis): the contact refined, and with
-    ``method="mechanics"`` the equilibrium solved, only where the finger touches the object."""
+    ``method="mechanics"`` the equilibrium solved, only where the finger touches the object.
+
+    A chunk of fewer than ``_SMALL_CHUNK`` fingers (a batch that small: a planner's single
+    candidate) is every finger's :func:`estimate_in_frame`, refined whether needed or not: sorting
+    out the few that need it costs more there than it saves, and adds loops whose per-kernel cost
+    sets a single candidate's latency.
+    """
+    one = lambda fr: estimate_in_frame(finger, sdf, fr, config, method=method, mechanics=mechanics)  # noqa: E731
+    if frames.origin.shape[0] == 1:  # unbatched: a finger that needs no refinement skips it
+        return jax.tree_util.tree_map(lambda x: x[None], one(jax.tree_util.tree_map(lambda x: x[0], frames)))
+    if frames.origin.shape[0] < _SMALL_CHUNK:
+        return jax.vmap(one)(frames)
     stages = geometric_stages(finger, sdf, frames, config, method)
     if method == "geometric":
         return jax.vmap(lambda st: finish(finger, st))(stages)
@@ -109,6 +126,8 @@ def map_chunks(fn, xs, chunk_size):
     """``fn`` on chunks of ``chunk_size`` rows of ``xs`` (padded with its first row), concatenated."""
     b = xs.shape[0]
     n_chunks = -(-b // chunk_size)
+    if n_chunks == 1:  # no loop around one chunk (its per-iteration cost shows in a small batch's latency)
+        return jax.tree_util.tree_map(lambda x: x[:b], fn(pad_rows(xs, chunk_size)))
     out = jax.lax.map(fn, pad_rows(xs, n_chunks * chunk_size).reshape((n_chunks, chunk_size) + xs.shape[1:]))
     return jax.tree_util.tree_map(lambda x: x.reshape((n_chunks * chunk_size,) + x.shape[2:])[:b], out)
 

@@ -263,7 +263,9 @@ def _second_contact(dist, centre, radius, n_circle):
     frac = jnp.clip(safe_divide(d, d - d_next, 0.5), 0.0, 1.0)
     angle = phi + frac * step
     angle = jnp.where(angle >= jnp.pi, angle - 2.0 * jnp.pi, angle)
-    ranking = jnp.where(crossing, jnp.cos(angle), -jnp.inf)
+    # Nearest the downward vertical: the largest cos(angle), i.e. the smallest |angle| in [-pi, pi)
+    # (compared without the 64 cosines, which XLA:CPU computes at several ns each).
+    ranking = jnp.where(crossing, -jnp.abs(angle), -jnp.inf)
     best = jnp.argmax(ranking)
     has = jnp.any(crossing)
     theta_o1o2 = jnp.where(has, angle[best], 0.0)
