@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Bool, Float
 
+from softgrip_jax._compile import tuned_jit
 from softgrip_jax._concurrent import pad_rows, run_in_parts
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._deformation import Estimate, estimate_in_frame, finish, mechanics_of, needs_mechanics, refine_search, search_contact, stage_of
@@ -104,16 +105,12 @@ def finger_chunk(finger, sdf, frames, config, mechanics, method):
     """Estimates of a chunk of finger frames (leading axis): the contact refined, and with
     ``method="mechanics"`` the equilibrium solved, only where the finger touches the object.
 
-    A chunk of fewer than ``_SMALL_CHUNK`` fingers (a batch that small: a planner's single
-    candidate) is every finger's :func:`estimate_in_frame`, refined whether needed or not: sorting
-    out the few that need it costs more there than it saves, and adds loops whose per-kernel cost
-    sets a single candidate's latency.
+    A chunk of 2 to ``_SMALL_CHUNK - 1`` fingers (a batch that small) is every finger's
+    :func:`estimate_in_frame`, refined whether needed or not: sorting out the few that need it
+    costs more there than it saves, in loops whose per-kernel cost sets a small batch's latency.
     """
-    one = lambda fr: estimate_in_frame(finger, sdf, fr, config, method=method, mechanics=mechanics)  # noqa: E731
-    if frames.origin.shape[0] == 1:  # unbatched: a finger that needs no refinement skips it
-        return jax.tree_util.tree_map(lambda x: x[None], one(jax.tree_util.tree_map(lambda x: x[0], frames)))
-    if frames.origin.shape[0] < _SMALL_CHUNK:
-        return jax.vmap(one)(frames)
+    if 1 < frames.origin.shape[0] < _SMALL_CHUNK:  # (one finger: its refinement is one skippable group)
+        return jax.vmap(lambda fr: estimate_in_frame(finger, sdf, fr, config, method=method, mechanics=mechanics))(frames)
     stages = geometric_stages(finger, sdf, frames, config, method)
     if method == "geometric":
         return jax.vmap(lambda st: finish(finger, st))(stages)
@@ -132,7 +129,7 @@ def map_chunks(fn, xs, chunk_size):
     return jax.tree_util.tree_map(lambda x: x.reshape((n_chunks * chunk_size,) + x.shape[2:])[:b], out)
 
 
-@partial(jax.jit, static_argnames=("chunk_size", "method"))
+@partial(tuned_jit, static_argnames=("chunk_size", "method"))
 def _estimate_batch(finger, sdf, bases, config, mechanics, chunk_size, method):
     frames = jax.vmap(FingerFrame.hanging_from)
     return map_chunks(lambda chunk: finger_chunk(finger, sdf, frames(chunk), config, mechanics, method), bases,
@@ -146,7 +143,7 @@ def grasp_chunk(gripper, sdf, poses, config, mechanics, method):
     return jax.vmap(lambda a, b: GraspEstimate(left=a, right=b, valid=a.valid & b.valid))(left, right)
 
 
-@partial(jax.jit, static_argnames=("chunk_size", "method"))
+@partial(tuned_jit, static_argnames=("chunk_size", "method"))
 def _estimate_grasp_batch(gripper, sdf, poses, config, mechanics, chunk_size, method):
     return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, mechanics, method), poses, chunk_size)
 

@@ -189,20 +189,13 @@ def geometric_stage(
 ) -> Stage:
     """Contact prediction (eqs. 5-8) and the deformation of its case (eq. 9), in the finger frame.
 
-    One finger: the refinement runs only where needed, behind a ``lax.cond`` (under ``vmap`` both
-    sides of that branch run, so a vmapped estimate refines every finger); batched code refines
-    only where needed, with the same result.
+    One finger: the refinement is computed whether needed or not. (Not behind a ``lax.cond``: under
+    ``vmap`` both sides of a branch run anyway, and JAX then broadcasts every operand of the branch,
+    the SDF grid included, to the batch size: out of memory for a vmapped estimate over 100,000
+    bases.) Batched code refines only where needed, with the same result.
     """
     search = search_contact(finger, sdf, frame, config, method)
-    return stage_of(finger, search, only_if(search.need_refining, lambda: refine_search(finger, sdf, search, config)))
-
-
-def only_if(pred: Bool[Array, ""], fn):
-    """``fn()`` where ``pred`` holds, zeros of its shapes elsewhere: a ``lax.cond`` that skips the
-    work for one unbatched element (a single candidate's latency) and that ``vmap`` turns into
-    computing both sides. Differentiable."""
-    zeros = lambda: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(fn))  # noqa: E731
-    return jax.lax.cond(pred, fn, zeros)
+    return stage_of(finger, search, refine_search(finger, sdf, search, config))
 
 
 def needs_mechanics(stage: Stage) -> Bool[Array, ""]:
@@ -292,7 +285,7 @@ def estimate_in_frame(
     stage = geometric_stage(finger, sdf, frame, config, method)
     if method == "geometric":
         return finish(finger, stage)
-    return finish(finger, stage, only_if(needs_mechanics(stage), lambda: mechanics_of(finger, sdf, stage, mechanics, config)))
+    return finish(finger, stage, mechanics_of(finger, sdf, stage, mechanics, config))
 
 
 def estimate(

@@ -34,6 +34,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks
+from softgrip_jax._compile import tuned_jit
 from softgrip_jax._concurrent import pad_rows, run_in_parts
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._deformation import Estimate
@@ -164,10 +165,10 @@ def _score_share(gripper, sdf, poses, weights, config, mechanics, chunk_size, me
     return map_chunks(chunk, poses, chunk_size)
 
 
-_score_one_device = partial(jax.jit, static_argnames=("chunk_size", "method"))(_score_share)
+_score_one_device = partial(tuned_jit, static_argnames=("chunk_size", "method"))(_score_share)
 
 
-@partial(jax.jit, static_argnames=("chunk_size", "method"))
+@partial(tuned_jit, static_argnames=("chunk_size", "method"))
 def _score_sharded(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
     # poses: (devices, per_device, 3); the device axis is vmapped (and sharded across the devices).
     return jax.vmap(lambda share: _score_share(gripper, sdf, share, weights, config, mechanics, chunk_size, method))(poses)
@@ -291,7 +292,7 @@ def _refine_one(gripper, sdf, pose, weights, config, mechanics, max_steps, angle
     )
 
 
-@partial(jax.jit, static_argnames=("max_steps", "method"))
+@partial(tuned_jit, static_argnames=("max_steps", "method"))
 def _refine_batch(gripper, sdf, poses, weights, config, mechanics, max_steps, angle_scale, method):
     return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, mechanics, max_steps, angle_scale,
                                           method))(poses)

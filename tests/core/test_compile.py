@@ -1,0 +1,46 @@
+"""The batch functions' compile options (softgrip_jax._compile)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from softgrip_jax import _compile
+from softgrip_jax._compile import CPU_OPTIONS, compiler_options, tuned_jit
+
+
+@pytest.fixture
+def fresh_options():
+    compiler_options.cache_clear()
+    yield
+    compiler_options.cache_clear()
+
+
+def test_this_xla_accepts_the_cpu_options(fresh_options):
+    # With the pinned jax on a CPU, the options are in use; a jaxlib that renamed one would
+    # silently lose the speed-up, which this test reports.
+    assert jax.default_backend() == "cpu"
+    assert compiler_options() == CPU_OPTIONS
+
+
+def test_an_option_xla_does_not_know_falls_back_to_the_defaults(fresh_options, monkeypatch):
+    monkeypatch.setattr(_compile, "CPU_OPTIONS", {"xla_cpu_no_such_option_anywhere": 1})
+    assert compiler_options() == {}
+
+
+def test_tuned_jit_computes_what_jit_does_and_compiles_once_per_shape():
+    def f(x, n):
+        return jnp.cumsum(jnp.sin(x) ** n) / (1.0 + jnp.arange(x.shape[0]))
+
+    tuned = tuned_jit(f, static_argnames="n")
+    x = jnp.linspace(0.0, 3.0, 37)
+    np.testing.assert_allclose(tuned(x, n=2), jax.jit(f, static_argnames="n")(x, n=2), rtol=1e-6)
+    before = tuned._cache_size()
+    tuned(x + 1.0, n=2)
+    assert tuned._cache_size() == before  # same shapes: no recompilation
+    assert tuned.__name__ == "f"
+    # Inlined inside another trace (where JAX refuses inner compile options), and differentiable.
+    np.testing.assert_allclose(jax.jit(lambda y: tuned(y, n=2))(x), tuned(x, n=2), rtol=1e-6)
+    grad = jax.grad(lambda y: jnp.sum(tuned(y, n=3)))(x)
+    expected = jax.grad(lambda y: jnp.sum(f(y, n=3)))(x)
+    np.testing.assert_allclose(grad, expected, rtol=1e-5, atol=1e-6)
