@@ -5,6 +5,7 @@ Run from the repository root:
     .venv/bin/python benchmarks/profile_estimate.py            # 8,192 bases, N = 20, top 30 kernels
     .venv/bin/python benchmarks/profile_estimate.py --batch 2048 --n 10 --top 50
     .venv/bin/python benchmarks/profile_estimate.py --touching --batch 16384 --vary   # cost of each stage
+    .venv/bin/python benchmarks/profile_estimate.py --touching --batch 100000 --parts 1,2,4   # part counts
 
 Same scene as bench_estimate.py. Prints the throughput of the traced configuration, then each kernel's
 total time over the traced call, how often it ran, its output shape and the JAX operation it came
@@ -41,6 +42,9 @@ def main() -> None:
                         help="instead of the trace: time per finger with stages cut down (root finder capped at one "
                              "Newton step, 8 second-contact samples, a 10x looser root tolerance), alternating, "
                              "median of 5")
+    parser.add_argument("--parts", default=None,
+                        help="instead of the trace: throughput with these concurrent part counts (e.g. 1,2,4), "
+                             "alternating in this process, median of 5")
     args = parser.parse_args()
 
     import jax
@@ -59,6 +63,21 @@ def main() -> None:
 
     def run(b, config=ContactConfig()):
         return estimate_batch(finger, grid, b, config, chunk_size=args.chunk, method="geometric", workers=args.workers)
+
+    if args.parts:
+        counts = [int(c) for c in args.parts.split(",")]
+        times = {c: [] for c in counts}
+        for c in counts:
+            jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=args.chunk, method="geometric", workers=c))
+        for _ in range(5):
+            for c in counts:
+                t0 = time.perf_counter()
+                jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=args.chunk, method="geometric",
+                                                     workers=c))
+                times[c].append(time.perf_counter() - t0)
+        for c, t in times.items():
+            print(f"{c} part(s): {args.batch / np.median(t):10,.0f} candidate-fingers/s")
+        return
 
     if args.vary:
         configs = {"default": ContactConfig(), "root finder capped at 1 step": ContactConfig(root_max_steps=1),
