@@ -61,19 +61,18 @@ def main() -> None:
     bases = touching_bases(args.n, args.batch) if args.touching else mixed_bases(args.batch)
     bases = jnp.asarray(bases)
 
-    def run(b, config=ContactConfig()):
-        return estimate_batch(finger, grid, b, config, chunk_size=args.chunk, method="geometric", workers=args.workers)
+    def run(b, config=ContactConfig(), workers=args.workers):
+        return estimate_batch(finger, grid, b, config, chunk_size=args.chunk, method="geometric", workers=workers)
 
     if args.parts:
         counts = [int(c) for c in args.parts.split(",")]
         times = {c: [] for c in counts}
         for c in counts:
-            jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=args.chunk, method="geometric", workers=c))
+            jax.block_until_ready(run(bases, workers=c))
         for _ in range(5):
             for c in counts:
                 t0 = time.perf_counter()
-                jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=args.chunk, method="geometric",
-                                                     workers=c))
+                jax.block_until_ready(run(bases, workers=c))
                 times[c].append(time.perf_counter() - t0)
         for c, t in times.items():
             print(f"{c} part(s): {args.batch / np.median(t):10,.0f} candidate-fingers/s")

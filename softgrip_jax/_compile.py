@@ -1,8 +1,8 @@
 """How the batch functions are compiled: ``jax.jit`` with XLA:CPU options where they apply.
 
-Two XLA:CPU compile options make the estimate 1.16-1.30x faster on the benchmark machine
-(benchmarks/RESULTS.md, issue 2; same-process A/B, pinned to one core), with results equal to
-within float rounding (joints within 3e-4 mm, the same cases):
+Two XLA:CPU compile options make the estimate 1.17x (every finger touching) to 1.27x (a planner's
+mixed sample) faster on the benchmark machine (benchmarks/RESULTS.md, issue 2), with results equal
+to within float rounding (joints within 3e-4 mm, the same cases):
 
 * ``xla_cpu_prefer_vector_width=512``: LLVM may use 512-bit vectors where the CPU has them (a
   preference: on a CPU without AVX-512 the code is the same as without it);
@@ -20,6 +20,8 @@ import functools
 
 import jax
 import jax.numpy as jnp
+
+from softgrip_jax._concurrent import is_traced
 
 #: Compile options for XLA:CPU (see the module docstring).
 CPU_OPTIONS: dict[str, object] = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_experimental_ynn_fusion_type": ""}
@@ -57,14 +59,19 @@ class tuned_jit:  # noqa: N801 - used as a decorator, like jax.jit
         return self._tuned
 
     def __call__(self, *args, **kwargs):
+        if is_traced((args, kwargs)):  # inside another trace: not the tuned jit, which JAX would refuse
+            return self._plain_jit()(*args, **kwargs)
         try:
             return self._get()(*args, **kwargs)
         except ValueError as err:  # "`compiler_options` can only be passed to top-level `jax.jit`"
-            if "compiler_options" not in str(err):
+            if "compiler_options" not in str(err):  # (a trace whose operands are all constants)
                 raise
+        return self._plain_jit()(*args, **kwargs)
+
+    def _plain_jit(self):
         if self._plain is None:
             self._plain = jax.jit(self._fn, **self._jit_kwargs)
-        return self._plain(*args, **kwargs)
+        return self._plain
 
     def __getattr__(self, name):
         if name.startswith("__"):

@@ -50,7 +50,7 @@ def part_count(workers: object, batch: int, operands=()) -> int:
         workers = available_cores() if jax.default_backend() == "cpu" else 1
     elif not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
         raise SoftgripError(f"workers must be a positive integer (or None: one per CPU core), got {workers!r}")
-    if _traced(operands):
+    if is_traced(operands):
         return 1
     return max(1, min(workers, batch // MIN_PART))
 
@@ -66,7 +66,7 @@ def _executor(parts: int) -> ThreadPoolExecutor:
         return _pool
 
 
-def _traced(tree) -> bool:
+def is_traced(tree) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
 
 

@@ -247,6 +247,7 @@ def score(
     out = _score_sharded(gripper, sdf, padded, weights, config, mechanics, max(1, min(chunk_size, per_device)), method)
     return jax.tree_util.tree_map(lambda x: x.reshape((n_dev * per_device,) + x.shape[2:])[:b], out)
 
+
 class RefineStatus(enum.IntEnum):
     IMPROVED = 0  #: the refined pose scores higher and is valid
     NO_IMPROVEMENT = 1  #: the start was kept: the minimiser found nothing better that stays valid
