@@ -2,26 +2,31 @@
 
 Most of a finger's estimate is needed only where it touches the object: the root finder, the
 contact chain and the second contact (and, with ``method="mechanics"``, the equilibrium solve). Each
-chunk therefore first brackets every finger's first contact (:func:`search_contact`), then refines
+chunk therefore first brackets every finger's first contact (:func:`search_contact`; over the first
+half of the sweep, then over the second half for only the fingers still free there), then refines
 the contact only of the fingers whose bracket holds one (the others close freely, start in
 collision, or are invalid: :func:`free_contact`), then solves the equilibrium only of those that
-touch. Both steps gather the needed candidates to the front and run them a group of
+touch. These steps gather the needed candidates to the front and run them a group of
 ``ceil(chunk / _SOLVE_GROUPS)`` at a time (:func:`where_needed`), so their cost follows the number
-of touching candidates rather than the batch size. The results are those of :func:`estimate`.
+of candidates that need them rather than the batch size. The results are those of :func:`estimate`.
 """
 
 from __future__ import annotations
 
 from functools import partial
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Bool, Float
 
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._concurrent import pad_rows, run_in_parts
-from softgrip_jax._contact import ContactConfig
-from softgrip_jax._deformation import Estimate, estimate_in_frame, finish, mechanics_of, needs_mechanics, refine_search, search_contact, stage_of
+from softgrip_jax._contact import ContactConfig, sweep_parts
+from softgrip_jax._deformation import (
+    Estimate, estimate_in_frame, finish, mechanics_of, needs_mechanics, refine_search, search_contact, search_further,
+    stage_of,
+)
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, finger_frames
@@ -95,7 +100,16 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
 def geometric_stages(finger, sdf, frames, config, method):
     """:func:`geometric_stage` of a chunk of finger frames (leading axis), the contact refined
     (root finder, second contact) only for the fingers whose bracket holds a first contact."""
-    searches = jax.vmap(lambda f: search_contact(finger, sdf, f, config, method))(frames)
+    parts = sweep_parts(config)
+    if parts is None:
+        searches = jax.vmap(lambda f: search_contact(finger, sdf, f, config, method))(frames)
+    else:  # the grid's second part only for the fingers still free after its first
+        first, second = parts
+        searches = jax.vmap(lambda f: search_contact(finger, sdf, f, config, method, first))(frames)
+        free = ~searches.bracket.touches
+        later = where_needed(lambda s: search_further(finger, sdf, s, config, second), free, searches)
+        brackets = jax.tree_util.tree_map(lambda a, b: jnp.where(free, a, b), later, searches.bracket)
+        searches = eqx.tree_at(lambda s: s.bracket, searches, brackets)
     need = jax.vmap(lambda s: s.need_refining)(searches)
     refined = where_needed(lambda s: refine_search(finger, sdf, s, config), need, searches)
     return jax.vmap(lambda s, c: stage_of(finger, s, c))(searches, refined)

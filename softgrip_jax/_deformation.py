@@ -147,9 +147,11 @@ def _distance_in(sdf: AbstractSDF, frame: FingerFrame):
 
 
 def search_contact(
-    finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig, method: str
+    finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig, method: str,
+    rows: tuple[int, int] | None = None,
 ) -> Search:
-    """Check the inputs, place the finger and bracket its first contact (eq. 5)."""
+    """Check the inputs, place the finger and bracket its first contact (eq. 5) over the coarse grid,
+    or over its ``rows`` (:func:`bracket_contact`)."""
     finite = (
         jnp.all(jnp.isfinite(frame.origin)) & jnp.isfinite(frame.angle)
         & jnp.isfinite(finger.theta_entire) & jnp.isfinite(finger.length) & jnp.isfinite(finger.half_thickness)
@@ -166,7 +168,14 @@ def search_contact(
         handedness=frame.handedness,
     )
     return Search(frame=safe_frame, finite=finite, inside=inside,
-                  bracket=bracket_contact(finger, _distance_in(sdf, safe_frame), config))
+                  bracket=bracket_contact(finger, _distance_in(sdf, safe_frame), config, rows))
+
+
+def search_further(
+    finger: FingerModel, sdf: AbstractSDF, search: Search, config: ContactConfig, rows: tuple[int, int]
+) -> Bracket:
+    """The bracket of a search over later ``rows`` of the coarse grid (the finger was free before)."""
+    return bracket_contact(finger, _distance_in(sdf, search.frame), config, rows)
 
 
 def refine_search(finger: FingerModel, sdf: AbstractSDF, search: Search, config: ContactConfig) -> Contact:

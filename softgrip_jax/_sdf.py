@@ -113,13 +113,15 @@ class SDFGrid(AbstractSDF):
         col = jnp.clip(jnp.where(inside, col, 0.0), 0, w - 1)
         # Bilinear between the four corners of the cell (the last row and column read the cell
         # before them), addressed by one flat index into the grid: on XLA:CPU this is about 8 %
-        # faster over the whole estimate than map_coordinates' two-dimensional gathers.
+        # faster over the whole estimate than map_coordinates' two-dimensional gathers. The index is
+        # unsigned so that JAX does not wrap negative indices (a select per corner; the lookup is
+        # 1.14x faster without).
         row0 = jnp.minimum(jnp.floor(row), h - 2)
         col0 = jnp.minimum(jnp.floor(col), w - 2)
         fy, fx = row - row0, col - col0
-        index = row0.astype(jnp.int32) * w + col0.astype(jnp.int32)
+        index = row0.astype(jnp.uint32) * w + col0.astype(jnp.uint32)
         flat = self.values.reshape(-1)
-        corner = lambda offset: flat.at[index + offset].get(mode="promise_in_bounds")
+        corner = lambda offset: flat.at[index + jnp.uint32(offset)].get(mode="promise_in_bounds")
         top = corner(0) + fx * (corner(1) - corner(0))
         bottom = corner(w) + fx * (corner(w + 1) - corner(w))
         value = top + fy * (bottom - top)

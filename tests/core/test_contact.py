@@ -100,3 +100,39 @@ def test_object_overlapping_the_open_finger_is_flagged():
     c = predict_contact(finger, circle((2.0, 25.0), 4.0), jnp.zeros(2))
     assert bool(c.initial_overlap) and float(c.s1) == 0.0
     assert int(c.case) == ContactCase.NONE  # the pose collides: no deformation is predicted
+
+
+@pytest.mark.parametrize("n_links, sweep", [(10, "pcc"), (20, "pcc"), (4, "rigid")])
+def test_bracket_in_two_parts_equals_the_whole_grid(n_links, sweep):
+    # Batched code brackets the grid's first part for every finger and its second part only for
+    # the fingers still free: every field must be the one-pass bracket's (the grid values to
+    # rounding: XLA computes the sines of 6 and of 12 rows in differently vectorised loops).
+    import jax
+
+    from softgrip_jax._contact import bracket_contact, sweep_parts
+
+    config = ContactConfig(sweep=sweep)
+    first, second = sweep_parts(config)
+    assert first == (0, 6) and second == (5, 12)
+    assert sweep_parts(ContactConfig(n_sweep=5)) is None  # too short to split
+    finger = FingerModel(length=L, theta_entire=0.6, half_thickness=R_FINGER, n_links=n_links)
+    disc = circle((20.0, 30.0), 8.0)
+    xs, ys = np.meshgrid(np.linspace(-45.0, 15.0, 31), np.linspace(-25.0, 10.0, 15))
+    bases = jnp.asarray(np.stack([xs.ravel(), ys.ravel()], axis=1), jnp.float32)
+
+    def parts(base):
+        dist = lambda q: disc.distance(q + base)  # noqa: E731
+        whole = bracket_contact(finger, dist, config)
+        early = bracket_contact(finger, dist, config, first)
+        late = bracket_contact(finger, dist, config, second)
+        joined = jax.tree_util.tree_map(lambda a, b: jnp.where(early.touches, a, b), early, late)
+        return whole, joined, early.touches
+
+    whole, joined, early = jax.jit(jax.vmap(parts))(bases)
+    for name in ("touches", "initial_overlap", "first"):
+        np.testing.assert_array_equal(getattr(joined, name), getattr(whole, name), err_msg=name)
+    for name in ("lower", "upper", "start"):
+        np.testing.assert_allclose(getattr(joined, name), getattr(whole, name), rtol=0, atol=1e-6, err_msg=name)
+    # The scene exercises both parts: touches in the first, only in the second, and none.
+    late_only = np.asarray(whole.touches & ~early)
+    assert np.asarray(early).sum() > 20 and late_only.sum() > 20 and (~np.asarray(whole.touches)).sum() > 20
