@@ -13,6 +13,7 @@ identical either way: every candidate is computed independently.
 
 from __future__ import annotations
 
+import numbers
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -76,14 +77,39 @@ def pad_rows(xs: jax.Array, rows: int) -> jax.Array:
     return jnp.concatenate([xs, jnp.broadcast_to(xs[:1], (pad,) + xs.shape[1:])]) if pad > 0 else xs
 
 
+#: A chunk of several is a multiple of this many rows: 8 solve groups of 16 float32 lanes (a chunk
+#: of 2000 rows ran 1.05-1.14x slower than one of 2048).
+CHUNK_ALIGN = 128
+
+
+def balanced_chunk(rows: int, chunk_size: int) -> int:
+    """The chunk size that scans ``rows`` rows in as few chunks of at most ``chunk_size`` rows as
+    possible, all of one size (a multiple of :data:`CHUNK_ALIGN` when there are several), so that
+    the last chunk is not mostly padding: 2,500 rows in chunks of at most 2048 are 2 chunks of 1280
+    rows, not 2 of 2048 (4,096 rows computed).
+
+    Example:
+        >>> balanced_chunk(2500, 2048), balanced_chunk(1000, 2048), balanced_chunk(50_000, 2048)
+        (1280, 1000, 2048)
+    """
+    if not isinstance(chunk_size, numbers.Integral) or isinstance(chunk_size, bool) or chunk_size < 1:
+        raise SoftgripError(f"chunk_size must be a positive integer (candidates evaluated together; memory grows "
+                            f"with it), got {chunk_size!r}")
+    chunks = -(-rows // int(chunk_size))
+    if chunks <= 1:
+        return max(1, rows)
+    even = -(-rows // chunks)
+    return min(int(chunk_size), -(-even // CHUNK_ALIGN) * CHUNK_ALIGN)
+
+
 def run_in_parts(fn, before: tuple, xs: jax.Array, after: tuple, workers: int | None, chunk_size: int, **static):
     """``fn(*before, xs, *after, chunk_size=..., **static)`` for a jitted ``fn`` whose outputs all
     have ``xs``'s leading axis, evaluated as :func:`part_count` concurrent equal parts of ``xs``,
-    each scanned ``min(chunk_size, part size)`` candidates at a time."""
+    each scanned in equal chunks of at most ``chunk_size`` candidates (:func:`balanced_chunk`)."""
     b = xs.shape[0]
     parts = part_count(workers, b, (before, xs, after))
     size = max(1, -(-b // parts))
-    static = dict(static, chunk_size=min(chunk_size, size))
+    static = dict(static, chunk_size=balanced_chunk(size, chunk_size))
     if parts == 1:
         return fn(*before, xs, *after, **static)
     padded = pad_rows(xs, parts * size)

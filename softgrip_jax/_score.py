@@ -35,7 +35,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks
 from softgrip_jax._compile import tuned_jit
-from softgrip_jax._concurrent import pad_rows, run_in_parts
+from softgrip_jax._concurrent import balanced_chunk, pad_rows, run_in_parts
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._deformation import Estimate
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
@@ -244,7 +244,7 @@ def score(
     per_device = -(-b // n_dev)
     padded = pad_rows(poses, n_dev * per_device).reshape(n_dev, per_device, 3)
     padded = jax.device_put(padded, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("candidates")))
-    out = _score_sharded(gripper, sdf, padded, weights, config, mechanics, max(1, min(chunk_size, per_device)), method)
+    out = _score_sharded(gripper, sdf, padded, weights, config, mechanics, balanced_chunk(per_device, chunk_size), method)
     return jax.tree_util.tree_map(lambda x: x.reshape((n_dev * per_device,) + x.shape[2:])[:b], out)
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from softgrip_jax import FingerModel, Gripper, PolygonSDF, SDFGrid, SoftgripError, estimate_batch, score
-from softgrip_jax._concurrent import MIN_PART, part_count, run_in_parts
+from softgrip_jax._concurrent import CHUNK_ALIGN, MIN_PART, balanced_chunk, part_count, run_in_parts
 
 FINGER = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=4)
 GRID = SDFGrid.sample(PolygonSDF.regular((30.0, 40.0), 8.0, 64), origin=(-40.0, -30.0), spacing=(0.5, 0.5),
@@ -35,6 +35,23 @@ def test_part_count_rules():
     for bad in (0, -2, 1.5, True, "2"):
         with pytest.raises(SoftgripError, match="workers must be a positive integer"):
             part_count(bad, 1000)
+
+
+def test_chunks_are_equal_and_never_above_chunk_size():
+    # As few chunks as chunk_size allows, all of one size: the last is not mostly padding.
+    for rows in (1, 7, 2048, 2049, 2500, 50_000, 99_999):
+        for chunk in (1, 100, 2048, 4096):
+            size = balanced_chunk(rows, chunk)
+            count = -(-rows // size)
+            assert size <= chunk and count == -(-rows // chunk)
+            if count == 1:
+                assert size == rows
+            elif size < chunk:
+                assert size % CHUNK_ALIGN == 0 and count * size - rows < count * CHUNK_ALIGN
+    assert balanced_chunk(2049, 2048) == 1152  # 2 chunks of 1152, not 2 of 2048
+    for bad in (0, -1, True):  # (the tests check type hints too: a float would not get this far)
+        with pytest.raises(SoftgripError, match="chunk_size must be a positive integer"):
+            estimate_batch(FINGER, GRID, np.zeros((3, 2), np.float32), chunk_size=bad, method="geometric")
 
 
 def test_traced_batches_run_as_one_part():
