@@ -72,7 +72,7 @@ def run_one(n_links: int, batch: int, chunk: int, repeats: int, scene: str) -> d
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="tiny configuration for CI")
-    parser.add_argument("--chunk", type=int, default=2048)
+    parser.add_argument("--chunk", type=int, default=4096)
     parser.add_argument("--one", nargs=3, metavar=("SCENE", "N", "BATCH"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:

@@ -52,7 +52,7 @@ def main():
     parser.add_argument("--base-dir", default="/tmp/sg_base")
     parser.add_argument("--n", type=int, default=20)
     parser.add_argument("--batch", type=int, default=100_000)
-    parser.add_argument("--chunk", type=int, default=2048)
+    parser.add_argument("--chunk", type=int, default=4096)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--no-base", action="store_true")
     parser.add_argument("--method", default="geometric", choices=("geometric", "mechanics"))

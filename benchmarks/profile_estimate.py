@@ -6,6 +6,7 @@ Run from the repository root:
     .venv/bin/python benchmarks/profile_estimate.py --batch 2048 --n 10 --top 50
     .venv/bin/python benchmarks/profile_estimate.py --touching --batch 16384 --vary   # cost of each stage
     .venv/bin/python benchmarks/profile_estimate.py --touching --batch 100000 --parts 1,2,4   # part counts
+    .venv/bin/python benchmarks/profile_estimate.py --touching --batch 100000 --chunks 2048,4096   # chunk sizes
 
 Same scene as bench_estimate.py. Prints the throughput of the traced configuration, then each kernel's
 total time over the traced call, how often it ran, its output shape and the JAX operation it came
@@ -32,7 +33,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--batch", type=int, default=8192)
     parser.add_argument("--n", type=int, default=20, help="links per finger")
-    parser.add_argument("--chunk", type=int, default=2048)
+    parser.add_argument("--chunk", type=int, default=4096)
     parser.add_argument("--top", type=int, default=30, help="kernels to list")
     parser.add_argument("--touching", action="store_true",
                         help="only bases whose finger touches while closing (bench_estimate.py's 'touching')")
@@ -42,6 +43,9 @@ def main() -> None:
                         help="instead of the trace: time per finger with stages cut down (root finder capped at one "
                              "Newton step, 8 second-contact samples, a 10x looser root tolerance), alternating, "
                              "median of 5")
+    parser.add_argument("--chunks", default=None,
+                        help="instead of the trace: throughput with these chunk sizes (e.g. 2048,4096) and the default "
+                             "parts, alternating in this process, median of 5")
     parser.add_argument("--parts", default=None,
                         help="instead of the trace: throughput with these concurrent part counts (e.g. 1,2,4), "
                              "alternating in this process, median of 5")
@@ -61,21 +65,27 @@ def main() -> None:
     bases = touching_bases(args.n, args.batch) if args.touching else mixed_bases(args.batch)
     bases = jnp.asarray(bases)
 
-    def run(b, config=ContactConfig(), workers=args.workers):
-        return estimate_batch(finger, grid, b, config, chunk_size=args.chunk, method="geometric", workers=workers)
+    def run(b, config=ContactConfig(), workers=args.workers, chunk=args.chunk):
+        return estimate_batch(finger, grid, b, config, chunk_size=chunk, method="geometric", workers=workers)
+
+    def alternate(label, variants):
+        """Median throughput of each variant (keyword arguments of ``run``), alternating, 5 rounds."""
+        times = {name: [] for name in variants}
+        for kwargs in variants.values():
+            jax.block_until_ready(run(bases, **kwargs))
+        for _ in range(5):
+            for name, kwargs in variants.items():
+                t0 = time.perf_counter()
+                jax.block_until_ready(run(bases, **kwargs))
+                times[name].append(time.perf_counter() - t0)
+        for name, t in times.items():
+            print(f"{label(name)}: {args.batch / np.median(t):10,.0f} candidate-fingers/s")
 
     if args.parts:
-        counts = [int(c) for c in args.parts.split(",")]
-        times = {c: [] for c in counts}
-        for c in counts:
-            jax.block_until_ready(run(bases, workers=c))
-        for _ in range(5):
-            for c in counts:
-                t0 = time.perf_counter()
-                jax.block_until_ready(run(bases, workers=c))
-                times[c].append(time.perf_counter() - t0)
-        for c, t in times.items():
-            print(f"{c} part(s): {args.batch / np.median(t):10,.0f} candidate-fingers/s")
+        alternate(lambda c: f"{c} part(s)", {int(c): dict(workers=int(c)) for c in args.parts.split(",")})
+        return
+    if args.chunks:
+        alternate(lambda c: f"chunk {c}", {int(c): dict(workers=None, chunk=int(c)) for c in args.chunks.split(",")})
         return
 
     if args.vary:
