@@ -257,6 +257,23 @@ def demo(tmp_path_factory):
     return json.loads(out), out_dir
 
 
+def test_demo_json_is_symmetric_and_physical(demo):
+    out, _ = demo
+    by_scene = {s["scene"]: {f["side"]: f for f in s["fingers"]} for s in out["scenes"]}
+    centred = by_scene["circle"]  # data/: a 30 mm circle centred between the fingers, at (0, -20) mm
+    assert centred["left"]["case"] == centred["right"]["case"] != "none"
+    # A centred object and a (calibrated, nearly) symmetric gripper: the right finger mirrors the left
+    # about the gripper's centre line x = 0, to within what the vision measures.
+    left, right = np.array(centred["left"]["joints_mm"]), np.array(centred["right"]["joints_mm"])
+    np.testing.assert_allclose(left * [-1, 1], right, atol=0.6)
+    # Every link keeps its length L / N.
+    n = out["calibration"]["n_links"]
+    length = out["calibration"]["fingers"]["left"]["length_mm"]
+    np.testing.assert_allclose(np.linalg.norm(np.diff(left, axis=0), axis=1), length / n, rtol=1e-3)
+    # The contact lies on the 15 mm circle centred at (0, -20).
+    assert np.hypot(*np.subtract(centred["left"]["contacts_mm"][0], [0.0, -20.0])) == pytest.approx(15.0, abs=0.3)
+
+
 def test_demo_writes_its_outputs(demo):
     summary, out_dir = demo
     assert summary["method"] == DEFAULT_METHOD
