@@ -103,12 +103,9 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
 def geometric_stages(finger, sdf, frames, config, method):
     """:func:`geometric_stage` of a chunk of finger frames (leading axis), the contact refined
     (root finder, second contact) only for the fingers whose bracket holds a first contact."""
-    parts = sweep_parts(config)
-    if parts is None:
-        searches = jax.vmap(lambda f: search_contact(finger, sdf, f, config, method))(frames)
-    else:  # the grid's second part only for the fingers still free after its first
-        first, second = parts
-        searches = jax.vmap(lambda f: search_contact(finger, sdf, f, config, method, first))(frames)
+    first, second = sweep_parts(config) or (None, None)  # (None: the whole grid at once)
+    searches = jax.vmap(lambda f: search_contact(finger, sdf, f, config, method, first))(frames)
+    if second is not None:  # the grid's second part only for the fingers still free after its first
         free = ~searches.bracket.touches
         later = where_needed(lambda s: search_further(finger, sdf, s, config, second), free, searches)
         brackets = jax.tree_util.tree_map(lambda a, b: jnp.where(free, a, b), later, searches.bracket)
