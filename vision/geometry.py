@@ -1,12 +1,23 @@
-"""Pixels <-> millimetres in the gripper plane (DESIGN section 3).
+"""Pixels <-> millimetres in the gripper plane, which may be tilted from the camera.
 
-The camera looks at the gripper plane, which lies ``depth_mm`` in front of it. A pixel (u, v) (pixel
-centres at integer coordinates, x right, y down, as pyrealsense2) maps to the point of that plane
+The gripper plane is the plane through the fingers' centrelines (the bending plane). In camera
+coordinates (mm; X right, Y down, Z forward, the pinhole ``u = fx X / Z + ppx``, ``v = fy Y / Z +
+ppy``, pixel centres at integer (u, v), as pyrealsense2) it passes through ``O = (0, 0, depth_mm)``
+on the optical axis and has the unit normal ``n`` (pointing away from the camera; ``(0, 0, 1)`` when
+the camera looks straight at it). Its millimetre axes are
 
-    x_mm = (u - ppx) * Z / fx,    y_mm = (v - ppy) * Z / fy,
+    e_x = (x_hat - (x_hat . n) n) / |...|   (the image's x, tilted into the plane),   e_y = n x e_x,
 
-so one pixel is ``Z / fx`` mm wide and ``Z / fy`` mm tall there. ``Z`` comes from the frame: a
-robust statistic (the median) of the depth readings on the gripper.
+and a point P has plane coordinates ``(e_x . (P - O), e_y . (P - O))``: y down, as the image. A
+pixel maps to the plane point its ray hits (ray-plane intersection), so a camera tilted a few
+degrees from the gripper plane still measures millimetres in the plane, not on a slanted image.
+
+Parallel planes (``offset_mm`` along n: the object's front face a few mm nearer or farther, a
+finger's front surface) share these coordinates: a point of any of them is given by its
+orthogonal projection into the gripper plane. So each mask is converted at the depth of its own
+outline and all land in one millimetre frame. With ``n = (0, 0, 1)`` and no offset the mapping is
+
+    x_mm = (u - ppx) * Z / fx,    y_mm = (v - ppy) * Z / fy.
 
 Example:
     >>> from vision.frames import Intrinsics
@@ -17,21 +28,35 @@ Example:
     [30.0, 0.0]
     >>> camera.mm_to_px([30.0, 0.0]).tolist()
     [420.0, 240.0]
+    >>> nearer = camera.parallel(-3.0)  # a face 3 mm nearer the camera: the same pixel is less far out
+    >>> nearer.px_to_mm([420.0, 240.0]).round(6).tolist()
+    [29.25, 0.0]
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.optimize import least_squares
 
 from vision.frames import Frame, FrameError, Intrinsics
 
+#: A camera tilted more than this (degrees) from the gripper plane gets a warning: the finger's
+#: sides and the object's walls start to show, which the planar model does not describe.
+TILT_WARN_DEG = 15.0
+
+_EDGE_PX = 1.5  # readings nearer a mask's edge than this (px) mix two surfaces; left out of fits
+_MIN_READINGS = 30
+
 
 def plane_depth_mm(frame: Frame, mask: np.ndarray, what: str = "the gripper region") -> float:
-    """Depth of the gripper plane: the median depth reading (mm) over ``mask``.
+    """The median depth reading (mm) over ``mask``: the depth of a plane facing the camera.
 
     Args:
         frame: the RGB-D frame.
@@ -41,6 +66,8 @@ def plane_depth_mm(frame: Frame, mask: np.ndarray, what: str = "the gripper regi
     Returns:
         The median over the pixels of ``mask`` that have a reading (depth > 0), in mm. The median
         ignores depth holes and outliers at the mask's edges (mixed foreground/background pixels).
+        It is the depth of the fingers' front surface, not of their centrelines:
+        :func:`fit_gripper_plane` measures the plane through the centrelines, and its tilt.
 
     Example:
         >>> from pathlib import Path
@@ -55,6 +82,12 @@ def plane_depth_mm(frame: Frame, mask: np.ndarray, what: str = "the gripper regi
     Raises:
         FrameError: ``mask`` has the wrong shape, or no pixel of it has a depth reading.
     """
+    readings = _readings(frame, mask, what)
+    return float(np.median(readings)) * frame.intrinsics.depth_scale * 1000.0
+
+
+def _readings(frame: Frame, mask: np.ndarray, what: str) -> np.ndarray:
+    """The raw depth readings (depth units, > 0) of the pixels of ``mask``; errors name ``what``."""
     mask = np.asarray(mask, dtype=bool)
     if mask.shape != frame.depth.shape:
         raise FrameError(f"mask of {what} is {mask.shape[1]}x{mask.shape[0]} but the frame is "
@@ -65,20 +98,38 @@ def plane_depth_mm(frame: Frame, mask: np.ndarray, what: str = "the gripper regi
         raise FrameError(f"no depth reading in {what} ({int(mask.sum())} pixels, all 0): the "
                          f"camera cannot measure the gripper plane; check that the gripper is within "
                          f"the camera's depth range (a D405 reads from about 70 mm) and not too shiny")
-    return float(np.median(readings)) * frame.intrinsics.depth_scale * 1000.0
+    return readings
+
+
+def _unit_normal(normal: ArrayLike) -> np.ndarray:
+    n = np.asarray(normal, dtype=np.float64).reshape(-1)
+    if n.shape != (3,) or not np.isfinite(n).all() or not np.linalg.norm(n) > 0:
+        raise FrameError(f"PlaneCamera.normal must be a finite, non-zero 3-vector, got {normal!r}")
+    n = n / np.linalg.norm(n)
+    if not n[2] > 0.1:  # within about 84 degrees of the optical axis, facing away from the camera
+        raise FrameError(f"PlaneCamera.normal {n.round(4).tolist()} does not face the camera (its z "
+                         f"component must be > 0.1: the plane seen at less than 84 degrees from the axis)")
+    return n
 
 
 @dataclass(frozen=True)
 class PlaneCamera:
-    """The pinhole camera restricted to the gripper plane at depth ``depth_mm``.
+    """The pinhole camera restricted to a plane: pixels <-> plane millimetres (module docstring).
 
     Attributes:
         intrinsics: the colour camera's intrinsics (fx, fy, ppx, ppy in px).
-        depth_mm: distance Z of the gripper plane from the camera, mm, > 0.
+        depth_mm: Z (mm, > 0) at which the gripper plane crosses the optical axis.
+        normal: (3,) unit normal of the plane in camera coordinates, facing away from the camera
+            (normalised on construction); ``(0, 0, 1)``: the camera looks straight at it.
+        offset_mm: this plane lies ``offset_mm`` behind the gripper plane along the normal (< 0:
+            nearer the camera), e.g. an object's front face; its points are given in the gripper
+            plane's coordinates (orthogonal projection).
     """
 
     intrinsics: Intrinsics
     depth_mm: float
+    normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    offset_mm: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.intrinsics, Intrinsics):
@@ -88,24 +139,57 @@ class PlaneCamera:
         if not (math.isfinite(depth) and depth > 0.0):
             raise FrameError(f"PlaneCamera.depth_mm must be a finite depth > 0 mm, got "
                              f"{self.depth_mm!r}")
+        offset = float(self.offset_mm)
+        if not math.isfinite(offset):
+            raise FrameError(f"PlaneCamera.offset_mm must be a finite number of mm, got {self.offset_mm!r}")
         object.__setattr__(self, "depth_mm", depth)
+        object.__setattr__(self, "normal", tuple(float(c) for c in _unit_normal(self.normal)))
+        object.__setattr__(self, "offset_mm", offset)
+        if not self.axis_depth_mm > 0.0:
+            raise FrameError(f"PlaneCamera: the plane offset by {offset:g} mm passes behind the camera "
+                             f"(depth {depth:g} mm): give an offset that keeps it in front")
 
     @classmethod
     def from_frame(cls, frame: Frame, plane_mask: np.ndarray) -> PlaneCamera:
-        """The camera of ``frame`` at the median depth of ``plane_mask`` (see :func:`plane_depth_mm`)."""
+        """The camera of ``frame`` facing a plane at the median depth of ``plane_mask``
+        (:func:`plane_depth_mm`); :func:`fit_gripper_plane` fits tilt and finger relief too."""
         return cls(frame.intrinsics, plane_depth_mm(frame, plane_mask))
+
+    def parallel(self, offset_mm: float) -> PlaneCamera:
+        """The plane ``offset_mm`` behind the gripper plane (< 0: nearer), same coordinates."""
+        return dataclasses.replace(self, offset_mm=float(offset_mm))
+
+    @property
+    def axes(self) -> np.ndarray:
+        """(3, 3) rows e_x, e_y, n: the plane's axes in camera coordinates."""
+        n = np.asarray(self.normal)
+        ex = np.array([1.0, 0.0, 0.0]) - n[0] * n
+        ex /= np.linalg.norm(ex)
+        return np.stack([ex, np.cross(n, ex), n])
+
+    @property
+    def tilt_deg(self) -> float:
+        """Angle between the plane's normal and the optical axis, degrees."""
+        return float(np.degrees(np.arccos(np.clip(self.normal[2], -1.0, 1.0))))
+
+    @property
+    def axis_depth_mm(self) -> float:
+        """Z (mm) at which this plane (with its offset) crosses the optical axis."""
+        return self.depth_mm + self.offset_mm / self.normal[2]
 
     @property
     def spacing_mm(self) -> np.ndarray:
-        """(2,) size of one pixel in the plane, mm: (Z / fx, Z / fy)."""
-        return self.depth_mm / np.array([self.intrinsics.fx, self.intrinsics.fy])
+        """(2,) size of one pixel (Z / fx, Z / fy), mm, at the optical axis (everywhere when the
+        plane faces the camera)."""
+        return self.axis_depth_mm / np.array([self.intrinsics.fx, self.intrinsics.fy])
 
     @property
     def mm_per_px(self) -> float:
-        """One length scale, mm per px: the geometric mean of the two pixel spacings.
+        """One length scale at the optical axis, mm per px: the geometric mean of the two spacings.
 
-        Exact when fx = fy; otherwise a length converted with it is off by at most
-        ``|fx - fy| / (2 min(fx, fy))`` relative (about 0.1 % for a typical D405).
+        Exact when fx = fy and the plane faces the camera; otherwise a length converted with it is
+        off by at most ``|fx - fy| / (2 min(fx, fy))`` relative (about 0.1 % for a typical D405),
+        plus the tilt's change of scale across the image (:meth:`local_mm_per_px` has it).
         """
         return float(np.sqrt(np.prod(self.spacing_mm)))
 
@@ -114,14 +198,203 @@ class PlaneCamera:
         """(2,) position in mm of the centre of pixel (0, 0)."""
         return self.px_to_mm(np.zeros(2))
 
+    @property
+    def faces_camera(self) -> bool:
+        """True when the plane is perpendicular to the optical axis: the mapping is affine."""
+        return self.normal == (0.0, 0.0, 1.0)
+
+    def rays(self, uv: ArrayLike) -> np.ndarray:
+        """(..., 3) the viewing rays ((u - ppx) / fx, (v - ppy) / fy, 1) of pixels (..., 2)."""
+        uv = np.asarray(uv, dtype=np.float64)
+        i = self.intrinsics
+        return np.stack([(uv[..., 0] - i.ppx) / i.fx, (uv[..., 1] - i.ppy) / i.fy, np.ones(uv.shape[:-1])], -1)
+
+    def depth_at(self, uv: ArrayLike) -> np.ndarray:
+        """(...,) Z (mm) of this plane's point seen at pixels (..., 2)."""
+        n = np.asarray(self.normal)
+        return (self.depth_mm * n[2] + self.offset_mm) / (self.rays(uv) @ n)
+
+    def points_3d(self, xy: ArrayLike) -> np.ndarray:
+        """(..., 3) camera coordinates (mm) of plane points (..., 2) given in mm."""
+        xy = np.asarray(xy, dtype=np.float64)
+        ex, ey, n = self.axes
+        origin = np.array([0.0, 0.0, self.depth_mm]) + self.offset_mm * n
+        return origin + xy[..., :1] * ex + xy[..., 1:2] * ey
+
     def px_to_mm(self, uv: ArrayLike) -> np.ndarray:
         """Pixels (..., 2) (u right, v down) to mm (..., 2) in the plane; float64."""
         uv = np.asarray(uv, dtype=np.float64)
-        principal = np.array([self.intrinsics.ppx, self.intrinsics.ppy])
-        return (uv - principal) * self.spacing_mm
+        if self.faces_camera:  # the affine case, exactly as a fronto-parallel pinhole
+            principal = np.array([self.intrinsics.ppx, self.intrinsics.ppy])
+            return (uv - principal) * self.spacing_mm
+        points = self.rays(uv) * self.depth_at(uv)[..., None]
+        ex, ey, _ = self.axes
+        relative = points - np.array([0.0, 0.0, self.depth_mm])
+        return np.stack([relative @ ex, relative @ ey], -1)
 
     def mm_to_px(self, xy: ArrayLike) -> np.ndarray:
         """Plane points in mm (..., 2) to pixels (..., 2); float64, the inverse of :meth:`px_to_mm`."""
         xy = np.asarray(xy, dtype=np.float64)
-        principal = np.array([self.intrinsics.ppx, self.intrinsics.ppy])
-        return xy / self.spacing_mm + principal
+        if self.faces_camera:
+            principal = np.array([self.intrinsics.ppx, self.intrinsics.ppy])
+            return xy / self.spacing_mm + principal
+        p = self.points_3d(xy)
+        i = self.intrinsics
+        return np.stack([i.fx * p[..., 0] / p[..., 2] + i.ppx, i.fy * p[..., 1] / p[..., 2] + i.ppy], -1)
+
+    def local_mm_per_px(self, uv: ArrayLike) -> np.ndarray:
+        """(...,) length scale (mm per px) at pixels (..., 2): sqrt of the mapping's area change."""
+        uv = np.asarray(uv, dtype=np.float64)
+        du = self.px_to_mm(uv + [0.5, 0.0]) - self.px_to_mm(uv - [0.5, 0.0])
+        dv = self.px_to_mm(uv + [0.0, 0.5]) - self.px_to_mm(uv - [0.0, 0.5])
+        return np.sqrt(np.abs(du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]))
+
+    def to_dict(self) -> dict[str, float | list[float]]:
+        """``{"depth_mm", "normal", "tilt_deg"}`` for a profile (rounded; offset not included)."""
+        return {"depth_mm": round(self.depth_mm, 4), "normal": [round(c, 6) for c in self.normal],
+                "tilt_deg": round(self.tilt_deg, 3)}
+
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """The gripper plane fitted to the fingers' depth readings (:func:`fit_gripper_plane`).
+
+    Attributes:
+        camera: the plane through the fingers' outlines (where their silhouettes lie), tilted as
+            measured: the millimetre frame of everything else.
+        relief_mm: per finger region, how far its outline lies behind its nearest front-surface
+            reading (at its ridge): about r for a finger of round cross-section, 0 for a flat front.
+        relief_measured: True when ``relief_mm`` was measured from the depth across the fingers,
+            False when it was given.
+        readings: number of depth readings the fit used.
+        residual_mm: robust spread (1.4826 MAD) of the readings about the fitted surface, mm.
+    """
+
+    camera: PlaneCamera
+    relief_mm: tuple[float, ...]
+    relief_measured: bool
+    readings: int
+    residual_mm: float
+
+    @property
+    def tilt_deg(self) -> float:
+        """Angle between the gripper plane and the image plane, degrees."""
+        return self.camera.tilt_deg
+
+
+def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thickness_px: Sequence[float],
+                      relief_mm: float | None = None) -> PlaneFit:
+    """Fit the plane through the fingers' outlines, and its tilt, to their depth readings.
+
+    Every reading of a finger region (away from its edge) is a point P = Z ray(u, v) of its front
+    surface. The surface is modelled as the plane n . P = c, lifted toward the camera across each
+    finger by an elliptic bulge ``relief_k sqrt(1 - (rho / r)^2)``, rho being the pixel's distance
+    from the finger's ridge (r minus its distance to the mask's edge) and r the finger's half-width:
+    a finger of round cross-section has relief r, a flat front relief 0, and either way its outline
+    (the widest part of its cross-section) lies in the plane n . P = c. The plane's two tilt angles,
+    c and each finger's relief are found together by robust least squares (scipy's soft-L1 loss), so
+    depth holes, flying pixels and a few wrong readings do not pull the plane.
+
+    Args:
+        frame: the RGB-D frame.
+        regions: bool (H, W) masks, one per finger, of the finger alone (no gripper body).
+        half_thickness_px: each finger's half-width r (px), as measured in its mask.
+        relief_mm: the relief, mm, when known (e.g. from a profile) instead of measured; the same
+            for every finger.
+
+    Returns:
+        The :class:`PlaneFit`. Fingers whose readings span too small an area to tell a tilt (less
+        than about 10 px in some direction) give a plane facing the camera.
+
+    Raises:
+        FrameError: a mask of the wrong shape, or fewer than 30 depth readings in the regions.
+
+    Example (the open sample frame: flat fronts in a plane facing the camera at 120 mm):
+        >>> from pathlib import Path
+        >>> import vision
+        >>> from vision.frames import load_frame
+        >>> from vision.segmentation import segment
+        >>> frame = load_frame(Path(vision.__file__).resolve().parents[1] / "data" / "calib_open")
+        >>> seg = segment(frame)
+        >>> fit = fit_gripper_plane(frame, [seg.left_finger, seg.right_finger], [13.0, 13.0])
+        >>> round(fit.camera.depth_mm), fit.tilt_deg < 0.5, [abs(r) < 0.3 for r in fit.relief_mm]
+        (120, True, [True, True])
+    """
+    if len(regions) != len(half_thickness_px) or not regions:
+        raise FrameError(f"fit_gripper_plane: give one half-thickness per region, got {len(regions)} regions "
+                         f"and {len(half_thickness_px)} half-thicknesses")
+    scale = frame.intrinsics.depth_scale * 1000.0
+    rays, heights, labels = [], [], []
+    for k, (region, r_px) in enumerate(zip(regions, half_thickness_px)):
+        region = np.asarray(region, dtype=bool)
+        _readings(frame, region, f"finger region {k}")  # shape check and a clear error without readings
+        inside = cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        usable = region & (frame.depth > 0) & (inside >= _EDGE_PX)
+        v, u = np.nonzero(usable)
+        rho = np.clip(float(r_px) - (inside[v, u] - 0.5), 0.0, float(r_px))
+        rays.append(np.column_stack([(u - frame.intrinsics.ppx) / frame.intrinsics.fx,
+                                     (v - frame.intrinsics.ppy) / frame.intrinsics.fy, np.ones(u.size)])
+                    * (frame.depth[v, u] * scale)[:, None])
+        heights.append(np.sqrt(np.clip(1.0 - (rho / max(float(r_px), 1e-9)) ** 2, 0.0, 1.0)))
+        labels.append(np.full(u.size, k))
+    points, bulge, label = np.vstack(rays), np.concatenate(heights), np.concatenate(labels)
+    if len(points) < _MIN_READINGS:
+        raise FrameError(f"only {len(points)} depth readings inside the fingers (at least {_MIN_READINGS} "
+                         f"needed to fit the gripper plane): check the depth stream and the segmentation")
+    uv = points[:, :2] / points[:, 2:]
+    spread = np.linalg.eigvalsh(np.cov(uv.T * frame.intrinsics.fx)) if len(uv) > 2 else np.zeros(2)
+    tilted = bool(spread.min() > 10.0**2)
+    n_regions = len(regions)
+    fixed = None if relief_mm is None else float(relief_mm)
+
+    def unpack(p: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        a, b = (p[0], p[1]) if tilted else (0.0, 0.0)
+        normal = np.array([math.cos(a) * math.sin(b), -math.sin(a), math.cos(a) * math.cos(b)])
+        relief = np.full(n_regions, fixed) if fixed is not None else p[3:]
+        return normal, p[2], relief
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        normal, c, relief = unpack(p)
+        return points @ normal - c + relief[label] * bulge
+
+    start = np.concatenate([[0.0, 0.0, float(np.median(points[:, 2]))],
+                            [] if fixed is not None else np.zeros(n_regions)])
+    solution = least_squares(residuals, start, loss="soft_l1", f_scale=1.0, x_scale="jac")
+    spread_mm = 1.4826 * float(np.median(np.abs(residuals(solution.x))))
+    solution = least_squares(residuals, solution.x, loss="soft_l1", f_scale=max(2.0 * spread_mm, 0.02),
+                             x_scale="jac")
+    normal, c, relief = unpack(solution.x)
+    final = residuals(solution.x)
+    camera = PlaneCamera(frame.intrinsics, depth_mm=c / normal[2], normal=tuple(normal))
+    return PlaneFit(camera=camera, relief_mm=tuple(float(x) for x in relief), relief_measured=fixed is None,
+                    readings=len(points), residual_mm=1.4826 * float(np.median(np.abs(final - np.median(final)))))
+
+
+def face_offset_mm(frame: Frame, mask: np.ndarray, camera: PlaneCamera) -> float | None:
+    """How far (mm) the surface seen in ``mask`` lies behind ``camera``'s plane along its normal.
+
+    The median over the mask's readings away from its edge (``_EDGE_PX``) of ``n . P - c``: for an
+    object, the depth of its front face relative to the gripper plane (< 0: nearer the camera).
+    None when the mask has fewer than 30 such readings (no depth on the object).
+
+    Example (the sample's disc has its face 3 mm behind the fingers' plane):
+        >>> from pathlib import Path
+        >>> import vision
+        >>> from vision.frames import load_frame
+        >>> from vision.segmentation import segment
+        >>> frame = load_frame(Path(vision.__file__).resolve().parents[1] / "data" / "circle_open")
+        >>> seg = segment(frame)
+        >>> camera = PlaneCamera.from_frame(frame, seg.fingers)
+        >>> round(face_offset_mm(frame, seg.object, camera))
+        3
+    """
+    region = np.asarray(mask, dtype=bool)
+    if region.shape != frame.depth.shape or not region.any():
+        return None
+    inside = cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    v, u = np.nonzero(region & (frame.depth > 0) & (inside >= _EDGE_PX))
+    if u.size < _MIN_READINGS:
+        return None
+    points = camera.rays(np.column_stack([u, v])) * (frame.depth[v, u] * frame.intrinsics.depth_scale * 1000.0)[:, None]
+    n = np.asarray(camera.normal)
+    return float(np.median(points @ n - camera.depth_mm * n[2]))

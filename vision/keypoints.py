@@ -1,31 +1,41 @@
-"""Finger keypoints from a finger mask: base, tip, centreline, L (eq. 5) and Theta (eq. 4).
+"""Finger keypoints from a finger mask: base, tip, centreline, half-thickness, L (eq. 5), Theta (eq. 4).
 
-A finger in the image is a tube of constant half-thickness r around its centreline, with rounded
-ends (the centreline's ends are the centres of those end caps). From its mask:
+A finger in the image is a tube of half-width r around its centreline. Its tip end is rounded (the
+centreline ends at the centre of the tip's cap); its base end is either rounded too (a free-standing
+finger) or cut flat where the finger leaves the gripper's body, with the body in view above it or
+not. From its mask:
 
-1. **Centreline.** The finger's ridge: the cheapest 8-connected pixel path from the topmost pixel
+1. **Ridge.** The finger's medial path: the cheapest 8-connected pixel path from the topmost pixel
    (the middle of the top row) to the pixel farthest from it inside the mask, each step costing its
    length times ``(D_max / D)^4`` with ``D`` OpenCV's exact distance transform of the mask, so the
-   path keeps to the medial axis, however the finger curls (several points per row are fine). It is
-   resampled every pixel and smoothed (Gaussian, sigma 2 px) to sub-pixel precision. Only the
-   mask's largest component counts, with its holes (e.g. unfilled depth holes) filled.
-2. **Tip and base.** The end caps are half-discs of radius r: each is a circle fitted (least squares)
-   to the mask's contour points beyond the point r before the path's end (r roughly from the
-   distance transform along the ridge), and its centre is the tip (or the base). A finger cut flat at the top,
-   where it attaches to the gripper's body (``rounded_base=False``, e.g. with a segmentation region
-   of interest that leaves the body out), has its base at the middle of its top edge instead.
-3. The centreline is trimmed to run from base to tip; its arc length gives the half-thickness from
-   the mask's area (a tube of length l and half-thickness r with two half-disc caps covers
-   2 r l + pi r^2).
+   path keeps to the medial axis however the finger curls. It is resampled every pixel and smoothed
+   (Gaussian, sigma 2 px). Only the mask's largest component counts, with its holes (e.g. unfilled
+   depth holes) filled.
+2. **Edges at sub-pixel precision.** Every measurement below reads the mask along straight lines
+   (bilinear interpolation of the 0/1 mask, ``cv2.remap``) and takes the point where it crosses 1/2:
+   the boundary halfway between the last pixel centre inside and the first outside, which is
+   unbiased on average over the edge's sub-pixel phase.
+3. **Tip.** Lines parallel to the ridge's last stretch, spread across the finger, each give a point
+   of the tip's cap; a circle fitted to them (least squares) has the tip at its centre. Points on
+   ``cut_column`` (where segmentation cut two touching fingertips apart) are left out.
+4. **Base.** The distance transform along the ridge is about r on the finger; where it grows well
+   beyond r toward the top, the ridge has entered the gripper's **body**: lines beside the finger,
+   parallel to its axis, find the body's edge, and the base is where the finger's axis meets it.
+   Without a body, lines parallel to the axis find the top end's profile: a half-circle (a
+   **rounded** base, whose cap centre is the base) or a straight cut (a **flat** base, at the middle
+   of the cut). ``rounded_base`` overrides the detection.
+5. **Half-thickness.** Lines across the finger, every few pixels between its ends, give its width;
+   r is half the median width, converted to millimetres point by point through the camera.
+6. The centreline is the smoothed ridge trimmed to run from base to tip (for eq. 10's observed
+   positions).
 
-Everything is in pixels and, through a :class:`~vision.geometry.PlaneCamera`, in millimetres in the
-gripper plane; angles and lengths are measured in millimetres. The mask itself is analysed as if
-pixels were square: with fx != fy the rounded ends look slightly elliptic, which costs little (Theta
-within 0.007 rad at 5 % anisotropy; a D405's fx and fy differ by well under 1 %). The left finger
-curls toward +x; the right finger's Theta is measured toward -x (the scene mirrored about the
-gripper's centre line, DESIGN section 3).
+Everything is found in pixels and converted to millimetres in the gripper plane through a
+:class:`~vision.geometry.PlaneCamera` (which may be tilted: lengths and angles are measured in
+millimetres). The left finger curls toward +x; the right finger's Theta is measured toward -x (the
+scene mirrored about the gripper's centre line).
 
-Uses ``scipy.sparse.csgraph.dijkstra`` for the path (scipy comes with jax).
+Uses ``scipy.sparse.csgraph.dijkstra`` for the path and OpenCV for the distance transform and the
+line sampling.
 """
 
 from __future__ import annotations
@@ -44,10 +54,15 @@ from vision.geometry import PlaneCamera
 from vision.segmentation import Segmentation
 
 Side = Literal["left", "right"]
+BaseEnd = Literal["rounded", "flat"]
 
 _STEPS = ((0, 1), (1, 0), (1, 1), (1, -1))  # half of the 8 neighbours; the graph is undirected
 _RIDGE_POWER = 4.0
 _SMOOTH_SIGMA_PX = 2.0
+_SAMPLE_STEP_PX = 0.25  # step of the line sampling
+_BODY_GROWTH = 1.3  # distance transform over r at which the ridge is inside something wider: the body
+_LINES = 17  # lines across a cap or a cut end
+_CAP_REACH = 0.85  # their spread across the finger, as a fraction of r
 
 
 class KeypointError(SoftgripError):
@@ -60,11 +75,17 @@ class FingerKeypoints:
 
     Attributes:
         side: ``"left"`` (curls toward +x) or ``"right"``.
-        base_px: (2,) base point (u, v), px: where the finger attaches.
+        base_px: (2,) base point (u, v), px: where the finger leaves the gripper's body (a flat
+            base), or the centre of its rounded base end.
         tip_px: (2,) tip point, px: the centre of the tip's rounded end.
         centreline_px: (K, 2) the centreline, px, base first and tip last, about 1 px apart.
-        half_thickness_px: the finger's half-thickness r, px.
+        half_thickness_px: the finger's half-width r, px.
         camera: the gripper plane's camera.
+        base_end: ``"rounded"`` or ``"flat"``: what the base end looks like (detected or given).
+        body_in_view: True when the finger hangs from a gripper body seen in the mask.
+        width_edges_px: (S, 2, 2) pairs of points on the finger's two sides, px, across the
+            finger at S stations (for the half-thickness in mm).
+        region: (H, W) bool, the finger alone: its mask without the body (for depth fits).
     """
 
     side: Side
@@ -73,6 +94,16 @@ class FingerKeypoints:
     centreline_px: np.ndarray
     half_thickness_px: float
     camera: PlaneCamera
+    base_end: BaseEnd = "rounded"
+    body_in_view: bool = False
+    width_edges_px: np.ndarray | None = None
+    region: np.ndarray | None = None
+
+    def with_camera(self, camera: PlaneCamera) -> FingerKeypoints:
+        """The same keypoints, in millimetres through another camera (e.g. a fitted plane)."""
+        import dataclasses
+
+        return dataclasses.replace(self, camera=camera)
 
     @property
     def base_mm(self) -> np.ndarray:
@@ -91,8 +122,12 @@ class FingerKeypoints:
 
     @property
     def half_thickness_mm(self) -> float:
-        """Half-thickness r in mm."""
-        return self.half_thickness_px * self.camera.mm_per_px
+        """Half-width r in mm: half the median width across the finger, measured in mm."""
+        if self.width_edges_px is None or len(self.width_edges_px) == 0:
+            middle = self.centreline_px[len(self.centreline_px) // 2]
+            return float(self.half_thickness_px * self.camera.local_mm_per_px(middle))
+        edges = self.camera.px_to_mm(self.width_edges_px)
+        return 0.5 * float(np.median(np.hypot(*(edges[:, 1] - edges[:, 0]).T)))
 
     @property
     def length_mm(self) -> float:
@@ -171,59 +206,74 @@ def resample_polyline(points: ArrayLike, n: int) -> np.ndarray:
     return np.column_stack([np.interp(stations, arc, points[:, 0]), np.interp(stations, arc, points[:, 1])])
 
 
-def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_base: bool = True) -> FingerKeypoints:
-    """Base, tip, centreline and half-thickness of the finger in ``mask``.
+def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_base: bool | None = None, *,
+                     cut_column: float | None = None) -> FingerKeypoints:
+    """Base, tip, centreline and half-thickness of the finger in ``mask`` (module docstring).
 
     Args:
-        mask: (H, W) bool, the finger; only its largest 8-connected component is used.
+        mask: (H, W) bool, the finger (and possibly the part of the gripper's body it hangs from);
+            only its largest 8-connected component is used.
         camera: the gripper plane's camera, for the millimetre views.
         side: ``"left"`` or ``"right"``: which finger it is (for Theta).
-        rounded_base: True when the top end of the finger is rounded like the tip (a free-standing
-            finger, as rendered); False when it is cut flat where it attaches (the gripper's body or
-            the segmentation's region of interest), the base then being the middle of the top edge.
+        rounded_base: None (default) detects the base end; True: the base end is a rounded cap
+            (its centre is the base); False: the finger is cut flat at its base (the middle of the
+            cut, or where it leaves a body in view, is the base).
+        cut_column: the column (px) along which segmentation cut this finger from the other one
+            (touching fingertips), or None; mask edges on it are not the finger's outline.
 
     Raises:
-        KeypointError: an empty mask, or one too short for its thickness to have two ends.
+        KeypointError: an empty mask, one too short for its thickness to have two ends, or an end
+            cut off by the image border.
 
     Example (pixels, and the finger's L in mm):
         >>> from pathlib import Path
         >>> import vision
-        >>> from vision.frames import load_frame
         >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from vision.frames import load_frame
         >>> from vision.geometry import PlaneCamera
         >>> from vision.segmentation import segment
         >>> frame = load_frame(data / "calib_open")
         >>> seg = segment(frame)
         >>> k = finger_keypoints(seg.left_finger, PlaneCamera.from_frame(frame, seg.fingers), "left")
-        >>> k.centreline_px.shape[1], round(k.length_mm)
-        (2, 52)
+        >>> k.centreline_px.shape[1], round(k.length_mm), k.base_end, k.body_in_view
+        (2, 52, 'rounded', False)
     """
     _sign(side)
     finger, contour = _finger_region(np.asarray(mask, dtype=bool), side)
-    ridge, ridge_depth = _ridge(finger)
+    inside = cv2.distanceTransform(finger.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    ridge = _ridge(finger, inside)
     line = _smooth(resample_polyline(ridge, max(1, int(np.ceil(_arc(ridge)[-1])))))
-    radius = float(ridge_depth.max())  # rough: distances between pixel centres run about 0.5 px long
-    if _arc(line)[-1] < 4.0 * radius:
-        raise KeypointError(f"the {side} finger is too short to find its base and tip ({_arc(line)[-1]:.0f} "
-                            f"px long for a half-thickness of {radius:.0f} px): is the whole finger in view?")
+    arc = _arc(line)
+    clearance = _bilinear(inside, line)
+    radius = float(np.median(clearance[len(line) // 2:]))  # rough r (px) from the tip's half
+    if arc[-1] < 4.0 * radius:
+        raise KeypointError(f"the {side} finger is too short to find its base and tip ({arc[-1]:.0f} px long "
+                            f"for a half-thickness of {radius:.0f} px): is the whole finger in view?")
+    sampler = _Sampler(finger)
+    if cut_column is not None:  # the cut is not the finger's outline
+        contour = contour[np.abs(contour[:, 0] - cut_column) > 1.0]
     tip = _cap_centre(line[::-1], radius, contour, finger.shape, f"{side} finger's tip")
-    if rounded_base:
-        base = _cap_centre(line, radius, contour, finger.shape, f"{side} finger's base")
-    else:
-        base = _top_edge_centre(finger)
+    base, end, body = _base(sampler, line, arc, clearance, radius, rounded_base, contour,
+                            f"{side} finger's base")
     first = int(np.argmin(np.hypot(*(line - base).T)))
     last = int(np.argmin(np.hypot(*(line - tip).T)))
+    if last <= first + 1:
+        raise KeypointError(f"the {side} finger's base and tip could not be told apart: is the whole finger in "
+                            f"view and separate from the other finger?")
     centreline = np.vstack([base, line[first + 1:last], tip])
-    # The mask's area is 2 r l + c r^2 for a tube of length l with half-disc ends (c = pi for two).
-    length, area, ends = _arc(centreline)[-1], float(finger.sum()), np.pi if rounded_base else np.pi / 2
-    half_thickness = (np.sqrt(length**2 + ends * area) - length) / ends
+    edges = _width_edges(sampler, centreline, radius)
+    half_thickness = 0.5 * float(np.median(np.hypot(*(edges[:, 1] - edges[:, 0]).T))) if len(edges) else radius
+    axis = _direction(line, arc, arc[first] + radius, arc[first] + 3.0 * radius)
+    region = finger & _beyond(finger.shape, base, axis)
     return FingerKeypoints(side=side, base_px=base, tip_px=tip, centreline_px=centreline,
-                           half_thickness_px=float(half_thickness), camera=camera)
+                           half_thickness_px=half_thickness, camera=camera, base_end=end, body_in_view=body,
+                           width_edges_px=edges, region=region)
 
 
 def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera,
-                      rounded_base: bool = True) -> tuple[FingerKeypoints, FingerKeypoints]:
-    """(left, right) keypoints of a segmented frame (see :func:`finger_keypoints`).
+                      rounded_base: bool | None = None) -> tuple[FingerKeypoints, FingerKeypoints]:
+    """(left, right) keypoints of a segmented frame (see :func:`finger_keypoints`); when segmentation
+    cut the fingers apart at its centre column, edges on that column are not used.
 
     Example (L of both fingers, eq. 5, from the open sample frame, mm):
         >>> from pathlib import Path
@@ -238,8 +288,19 @@ def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera,
         >>> [round(finger_length(k.base_mm, k.tip_mm)) for k in (left, right)]
         [52, 52]
     """
-    return (finger_keypoints(segmentation.left_finger, camera, "left", rounded_base),
-            finger_keypoints(segmentation.right_finger, camera, "right", rounded_base))
+    cut = _cut_column(segmentation)
+    return (finger_keypoints(segmentation.left_finger, camera, "left", rounded_base, cut_column=cut),
+            finger_keypoints(segmentation.right_finger, camera, "right", rounded_base, cut_column=cut))
+
+
+def _cut_column(segmentation: Segmentation) -> float | None:
+    """The column segmentation cut the fingers apart at, when the two masks meet there."""
+    split = getattr(segmentation, "split", None)
+    if split is not None:
+        return None if split == "components" else float(segmentation.center_column)
+    left, right = segmentation.left_finger, segmentation.right_finger
+    touching = cv2.dilate(left.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool) & right
+    return float(segmentation.center_column) if touching.any() else None
 
 
 def _sign(side: str) -> float:
@@ -257,29 +318,28 @@ def _finger_region(mask: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray]
     _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
     largest = (labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))).view(np.uint8)
     contours, _ = cv2.findContours(largest, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    filled = cv2.drawContours(np.zeros_like(largest), contours, -1, 1, thickness=cv2.FILLED)
-    return filled.view(bool), contours[0].reshape(-1, 2).astype(np.float64)
+    filled = cv2.drawContours(np.zeros_like(largest), contours, -1, 1, thickness=cv2.FILLED).view(bool)
+    return filled, contours[0].reshape(-1, 2).astype(np.float64)
 
 
-def _ridge(finger: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _ridge(finger: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """The finger's medial path: (K, 2) pixel centres (u, v) from the middle of the top row to the
-    pixel geodesically farthest from it, and (K,) the distance transform (px) along it."""
-    rows, cols = np.nonzero(finger)
-    top, left = rows.min() - 1, cols.min() - 1  # a crop with a one-pixel empty margin
-    crop = np.zeros((rows.max() - top + 2, cols.max() - left + 2), np.uint8)
-    r, c = rows - top, cols - left
-    crop[r, c] = 1
-    depth = cv2.distanceTransform(crop, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    index = np.full(crop.shape, -1, np.int64)
+    pixel geodesically farthest from it; ``depth`` (H, W) is the mask's distance transform."""
+    r, c = np.nonzero(finger)
+    index = np.full(finger.shape, -1, np.int64)
     index[r, c] = np.arange(r.size)
+    height, width = finger.shape
     heads, tails, lengths, clearances = [], [], [], []
     for dr, dc in _STEPS:
-        neighbour = index[r + dr, c + dc]
+        rr, cc = r + dr, c + dc
+        ok = (rr < height) & (cc >= 0) & (cc < width)
+        neighbour = np.full(r.size, -1, np.int64)
+        neighbour[ok] = index[rr[ok], cc[ok]]
         linked = neighbour >= 0
         heads.append(np.flatnonzero(linked))
         tails.append(neighbour[linked])
         lengths.append(np.full(linked.sum(), np.hypot(dr, dc)))
-        clearances.append(np.minimum(depth[r[linked], c[linked]], depth[r[linked] + dr, c[linked] + dc]))
+        clearances.append(np.minimum(depth[r[linked], c[linked]], depth[rr[linked], cc[linked]]))
     heads, tails, lengths, clearances = map(np.concatenate, (heads, tails, lengths, clearances))
 
     def graph(weights: np.ndarray) -> csr_matrix:
@@ -293,7 +353,7 @@ def _ridge(finger: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     path = [start]
     while path[-1] != end:
         path.append(int(predecessor[path[-1]]))
-    return np.column_stack([c[path] + left, r[path] + top]).astype(np.float64), depth[r[path], c[path]]
+    return np.column_stack([c[path], r[path]]).astype(np.float64)
 
 
 def _arc(points: np.ndarray) -> np.ndarray:
@@ -308,33 +368,201 @@ def _smooth(points: np.ndarray) -> np.ndarray:
     return blurred.reshape(-1, 2)
 
 
+def _at(line: np.ndarray, arc: np.ndarray, s: float) -> np.ndarray:
+    """(2,) the point of polyline ``line`` at arc length ``s`` (clamped to its ends)."""
+    return np.array([np.interp(s, arc, line[:, 0]), np.interp(s, arc, line[:, 1])])
+
+
+def _direction(line: np.ndarray, arc: np.ndarray, s0: float, s1: float) -> np.ndarray:
+    """(2,) unit vector from the line's point at arc length s0 to the one at s1."""
+    d = _at(line, arc, s1) - _at(line, arc, s0)
+    return d / max(float(np.hypot(*d)), 1e-12)
+
+
+def _bilinear(image: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(...,) bilinear samples of a float image at points (..., 2) (u, v); 0 outside."""
+    p = np.asarray(points, np.float32).reshape(-1, 1, 2)
+    out = cv2.remap(image.astype(np.float32), p[..., 0], p[..., 1], cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    return out.reshape(np.asarray(points).shape[:-1])
+
+
+class _Sampler:
+    """Sub-pixel crossings of a mask's 1/2 level along straight lines (bilinear 0/1 mask)."""
+
+    def __init__(self, mask: np.ndarray) -> None:
+        self.mask = mask.astype(np.float32)
+        self.shape = mask.shape
+
+    def exits(self, starts: np.ndarray, direction: np.ndarray, reach: float, entering: bool = False) -> np.ndarray:
+        """(K, 2) the first point where each line from ``starts`` (K, 2) along ``direction`` (2,) or
+        (K, 2) leaves the mask (or enters it, with ``entering``) within ``reach`` px; NaN where it
+        does not, or where the line runs off the image first."""
+        starts = np.atleast_2d(np.asarray(starts, np.float64))
+        direction = np.broadcast_to(np.asarray(direction, np.float64), starts.shape)
+        steps = np.arange(0.0, reach + _SAMPLE_STEP_PX, _SAMPLE_STEP_PX)
+        points = starts[:, None] + steps[None, :, None] * direction[:, None]
+        values = _bilinear(self.mask, points)
+        if entering:
+            values = 1.0 - values
+        outside = values < 0.5
+        found = outside.any(axis=1) & (values[:, 0] >= 0.5)
+        k = np.argmax(outside, axis=1)
+        k = np.maximum(k, 1)
+        rows = np.arange(len(starts))
+        before, after = values[rows, k - 1], values[rows, k]
+        fraction = np.clip((before - 0.5) / np.maximum(before - after, 1e-9), 0.0, 1.0)
+        hit = points[rows, k - 1] + fraction[:, None] * (points[rows, k] - points[rows, k - 1])
+        off = (hit < 0.0).any(axis=1) | (hit[:, 0] > self.shape[1] - 1) | (hit[:, 1] > self.shape[0] - 1)
+        hit[~found | off] = np.nan
+        return hit
+
+
+def _circle_centre(points: np.ndarray) -> np.ndarray:
+    """(2,) centre of the least-squares (Kasa) circle through points (K, 2), K >= 3."""
+    design = np.column_stack([2.0 * points, np.ones(len(points))])
+    solution, *_ = np.linalg.lstsq(design, (points**2).sum(axis=1), rcond=None)
+    return solution[:2]
+
+
+def _lines_across(centre: np.ndarray, axis: np.ndarray, radius: float, reach: float = _CAP_REACH) -> np.ndarray:
+    """(_LINES, 2) starts of lines parallel to ``axis`` spread over +-reach r across the finger."""
+    normal = np.array([-axis[1], axis[0]])
+    return centre + np.linspace(-reach, reach, _LINES)[:, None] * radius * normal
+
+
+def _end_points(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, s_in: float, s_out: float,
+                radius: float, what: str, cut_column: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Points (K, 2) where lines parallel to the line's stretch [s_in, s_out], from s_in across
+    the finger, leave the mask at its end; and that direction (2,). Points on the cut column or
+    the image border are dropped; too few of them raise a KeypointError naming ``what``."""
+    axis = _direction(line, arc, s_in, s_out)
+    hits = sampler.exits(_lines_across(_at(line, arc, s_in), axis, radius), axis, abs(s_out - s_in) + 3.0 * radius)
+    keep = np.isfinite(hits).all(axis=1)
+    if cut_column is not None:
+        keep &= np.abs(hits[:, 0] - cut_column) > 1.0
+    if keep.sum() < 5:
+        raise KeypointError(f"the {what} is cut off by the image border (or hidden), so its end cannot be "
+                            f"found: keep the whole finger in view")
+    return hits[keep], axis
+
+
 def _cap_centre(line: np.ndarray, radius: float, contour: np.ndarray, shape: tuple[int, int],
                 what: str) -> np.ndarray:
     """(2,) centre of the rounded end at ``line[0]``: a circle fitted to the contour beyond it.
 
     ``line`` (K, 2) is the smoothed ridge starting at that end. The cap's centre lies about
     ``radius`` inside the end, and the ridge's direction another radius further in points out of
-    the cap; the contour points ahead of the rough centre along it are the cap's half-circle.
-    ``shape`` (H, W) is the image's: a cap touching the image border is cut off, not round.
+    the cap; the contour points ahead of the rough centre along it are the cap's half-circle. They
+    are the mask's boundary pixels, a circle about half a pixel smaller than the cap around the
+    same centre. ``shape`` (H, W) is the image's: a cap touching the image border is cut off.
     """
     arc = _arc(line)
-    rough, inner = (np.array([np.interp(s, arc, line[:, 0]), np.interp(s, arc, line[:, 1])])
-                    for s in (radius, 2.0 * radius))
+    rough, inner = _at(line, arc, radius), _at(line, arc, 2.0 * radius)
     outward = (rough - inner) / np.hypot(*(rough - inner))
     offset = contour - rough
     cap = contour[(offset @ outward > 0.0) & (np.hypot(*offset.T) < 2.0 * radius)]
-    on_border = (cap.min(axis=0) <= 0).any() or (cap.max(axis=0) >= np.array(shape[::-1]) - 1).any()
+    on_border = len(cap) and ((cap.min(axis=0) <= 0).any() or (cap.max(axis=0) >= np.array(shape[::-1]) - 1).any())
     if len(cap) < 5 or on_border:
         raise KeypointError(f"the {what} is cut off by the image border (or hidden), so its rounded end "
                             f"cannot be found: keep the whole finger in view")
-    # Algebraic (Kasa) fit: |p|^2 = 2 c . p + (rho^2 - |c|^2), linear in c.
-    design = np.column_stack([2.0 * cap, np.ones(len(cap))])
-    solution, *_ = np.linalg.lstsq(design, (cap**2).sum(axis=1), rcond=None)
-    return solution[:2]
+    return _circle_centre(cap)
 
 
-def _top_edge_centre(finger: np.ndarray) -> np.ndarray:
-    """(2,) middle of the top edge of the mask's top row: where a flat-cut finger attaches."""
-    rows, cols = np.nonzero(finger)
-    top = rows.min()
-    return np.array([cols[rows == top].mean(), top - 0.5])
+def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.ndarray, radius: float,
+          rounded: bool | None, contour: np.ndarray, what: str) -> tuple[np.ndarray, BaseEnd, bool]:
+    """(base point (2,), base end kind, body in view) at the top end of ``line``."""
+    wide = np.flatnonzero(clearance[: len(line) // 2] > _BODY_GROWTH * radius)
+    if wide.size:  # the ridge runs out of something wider than the finger: the gripper's body
+        s_finger = arc[wide.max()] + 2.0 * radius
+        centre = _CentreCurve(sampler, line, arc, s_finger, s_finger + 4.0 * radius, radius, what)
+        up, normal = centre.frame(s_finger)
+        start = centre(s_finger)
+        offsets = np.concatenate([np.linspace(1.2, 1.8, 4), -np.linspace(1.2, 1.8, 4)]) * radius
+        hits = sampler.exits(start + offsets[:, None] * normal, up, 6.0 * radius, entering=True)
+        reach = (hits - start) @ up
+        reach = reach[np.isfinite(reach)]
+        if reach.size < 2:
+            raise KeypointError(f"the {what} meets the gripper's body, but the body's edge beside the finger "
+                                f"cannot be found: keep the finger's base in view")
+        return centre.reach(s_finger, float(np.median(reach))), "flat", True
+    top = _at(line, arc, 0.0)
+    if rounded is None or rounded:
+        try:
+            points, axis = _end_points(sampler, line, arc, 2.5 * radius, radius, radius, what)
+        except KeypointError:
+            if rounded:
+                raise
+            points, axis = None, None
+        if points is not None:
+            across = (points - top) @ np.array([-axis[1], axis[0]])
+            along = (points - top) @ axis
+            curvature = np.polyfit(across, along, 2)[0]  # a half-circle of radius r: about -1 / (2 r)
+            if rounded or curvature < -0.25 / radius:
+                return _cap_centre(line, radius, contour, sampler.shape, what), "rounded", False
+    s_in = 2.0 * radius
+    centre = _CentreCurve(sampler, line, arc, 1.5 * radius, 5.0 * radius, radius, what)
+    up, _ = centre.frame(s_in)
+    hits = sampler.exits(_lines_across(centre(s_in), up, radius), up, 3.0 * radius)
+    if (hits[:, 1] < 1.0).any() or np.isnan(hits).sum() > 2 * (_LINES // 2):
+        raise KeypointError(f"the {what} is cut off by the image border: keep the whole finger in view")
+    reach = (hits - centre(s_in)) @ up
+    return centre.reach(s_in, float(np.nanmedian(reach))), "flat", False
+
+
+class _CentreCurve:
+    """The finger's centre over a stretch of the ridge: midpoints of its two sides at stations
+    every pixel of arc length in [s_lo, s_hi], fitted by a quadratic in the arc length (so that it
+    can be followed a little beyond the stretch, e.g. to where the finger leaves the body)."""
+
+    def __init__(self, sampler: _Sampler, line: np.ndarray, arc: np.ndarray, s_lo: float, s_hi: float,
+                 radius: float, what: str) -> None:
+        stations = np.arange(s_lo, s_hi, 1.0)
+        centres = np.stack([_at(line, arc, s) for s in stations])
+        tangents = np.stack([_direction(line, arc, s - radius, s + radius) for s in stations])
+        normals = np.column_stack([-tangents[:, 1], tangents[:, 0]])
+        sides = [sampler.exits(centres, sign * normals, 3.0 * radius) for sign in (1.0, -1.0)]
+        middle = 0.5 * (sides[0] + sides[1])
+        ok = np.isfinite(middle).all(axis=1)
+        if ok.sum() < 5:
+            raise KeypointError(f"the sides of the finger near its {what.split()[-1]} cannot be found: keep "
+                                f"the whole finger in view")
+        self.coefficients = [np.polyfit(stations[ok], middle[ok, k], 2) for k in (0, 1)]
+
+    def __call__(self, s: float) -> np.ndarray:
+        """(2,) the centre at arc length ``s`` (px)."""
+        return np.array([np.polyval(c, s) for c in self.coefficients])
+
+    def reach(self, s: float, distance: float) -> np.ndarray:
+        """(2,) the point of the curve ``distance`` px from its point at ``s``, measured toward the
+        base along the curve's direction there (following the curve, which may bend)."""
+        up, _ = self.frame(s)
+        trial = s - np.linspace(0.0, 3.0 * abs(distance) + 3.0, 200)
+        along = (np.stack([self(t) for t in trial]) - self(s)) @ up
+        return self(float(np.interp(distance, along, trial)))
+
+    def frame(self, s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(toward the base, across) unit vectors (2,) at arc length ``s``."""
+        d = -np.array([np.polyval(np.polyder(c), s) for c in self.coefficients])
+        d /= np.hypot(*d)
+        return d, np.array([-d[1], d[0]])
+
+
+def _width_edges(sampler: _Sampler, centreline: np.ndarray, radius: float) -> np.ndarray:
+    """(S, 2, 2) both side points across the finger at stations every r/2 between its ends."""
+    arc = _arc(centreline)
+    stations = np.arange(2.0 * radius, arc[-1] - 2.0 * radius, max(0.5 * radius, 1.0))
+    if stations.size == 0:
+        return np.zeros((0, 2, 2))
+    centres = np.stack([_at(centreline, arc, s) for s in stations])
+    tangents = np.stack([_direction(centreline, arc, s - radius, s + radius) for s in stations])
+    normals = np.column_stack([-tangents[:, 1], tangents[:, 0]])
+    sides = [sampler.exits(centres, sign * normals, 3.0 * radius) for sign in (1.0, -1.0)]
+    pairs = np.stack(sides, axis=1)
+    return pairs[np.isfinite(pairs).all(axis=(1, 2))]
+
+
+def _beyond(shape: tuple[int, int], base: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """bool (H, W): pixels on the finger's side of the line through ``base`` across ``axis``."""
+    v, u = np.indices(shape)
+    return (u - base[0]) * axis[0] + (v - base[1]) * axis[1] >= 0.0
