@@ -73,12 +73,13 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 from tqdm import tqdm
 
-from calib.one_frame import frame_keypoints
+from calib.one_frame import frame_keypoints, frame_measurement
 from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import (DEFAULT_METHOD, METHODS, AbstractSDF, ContactConfig, FingerFrame, FingerModel, MechanicsConfig, SoftgripError,
                           Status, estimate_in_frame)
 from vision.frames import Frame, load_frame
 from vision.object_sdf import object_sdf
+from vision.measure import MeasureSettings
 from vision.segmentation import SegmentationSettings
 
 Loss = Literal["huber", "cauchy"]
@@ -309,12 +310,16 @@ def observations_from_frames(
     settings: SegmentationSettings | None,
     n_links: int,
     label: str = "frame pair",
+    *,
+    measure: MeasureSettings | None = None,
 ) -> Observation:
     """The :class:`Observation` of a pair of frames, through the vision pipeline.
 
     The open frame gives both finger bases and the object's signed-distance grid (far everywhere
-    without an object); the closed frame gives both fingers' centrelines divided into ``n_links``
-    equal arc lengths.
+    without an object; the outline taken at the depth of the object's front face); the closed
+    frame gives both fingers' centrelines divided into ``n_links`` equal arc lengths (split at the
+    open frame's centre line when its fingertips touch). ``measure`` says how the fingers are
+    measured (a profile's ``vision`` settings; defaults when None).
 
     Raises:
         SoftgripError: segmentation, depth or keypoint failures (the message names what to adjust).
@@ -331,12 +336,13 @@ def observations_from_frames(
         >>> round(float(obs.bases[1, 0] - obs.bases[0, 0]), 1)  # the base separation W, mm
         64.0
     """
-    open_seg, open_camera, open_fingers = frame_keypoints(open_frame, settings)
-    _, _, closed_fingers = frame_keypoints(closed_frame, settings)
+    opened = frame_measurement(open_frame, settings, measure)
+    closed = frame_measurement(closed_frame, settings, measure, center_hint=opened.segmentation.center_column)
+    # Both frames' millimetres are their own fitted planes: the same plane when the camera stayed.
     return Observation(
-        sdf=object_sdf(open_seg.object, open_camera),
-        bases=np.stack([f.base_mm for f in open_fingers]),
-        observed=np.stack([f.observed_mm(n_links) for f in closed_fingers]),
+        sdf=object_sdf(opened.segmentation.object, opened.object_camera),
+        bases=np.stack([f.base_mm for f in opened.keypoints]),
+        observed=np.stack([f.observed_mm(n_links) for f in closed.keypoints]),
         label=label,
     )
 
@@ -346,8 +352,11 @@ def load_observations(
     settings: SegmentationSettings | None,
     n_links: int,
     progress: bool = True,
+    *,
+    measure: MeasureSettings | None = None,
 ) -> tuple[list[Observation], list[dict[str, str]]]:
     """Observations of (open, closed) frame folders; pairs that fail are skipped with a warning.
+    ``measure``: how the fingers are measured (see :func:`observations_from_frames`).
 
     Returns:
         The observations (labelled ``"OPEN + CLOSED"``) and the skipped pairs
@@ -368,7 +377,7 @@ def load_observations(
         label = f"{open_path} + {closed_path}"
         try:
             observations.append(observations_from_frames(load_frame(open_path), load_frame(closed_path),
-                                                         settings, n_links, label))
+                                                         settings, n_links, label, measure=measure))
         except SoftgripError as err:
             skipped.append(_skip(label, str(err)))
     return observations, skipped
@@ -380,6 +389,8 @@ def start_from_open_frame(
     settings: SegmentationSettings | None = None,
     theta_entire: float = NOMINAL_THETA,
     camera_name: str = "unspecified",
+    *,
+    measure: MeasureSettings | None = None,
 ) -> CalibrationProfile:
     """Starting values for :func:`fit` from an open frame alone: L (eq. 5), r and the base
     separation W from its fingers, and a nominal Theta for both fingers.
@@ -396,7 +407,7 @@ def start_from_open_frame(
         >>> round(start.fingers["left"].length), start.fingers["left"].theta_entire
         (52, 0.5)
     """
-    _, _, fingers = frame_keypoints(open_frame, settings)
+    _, _, fingers = frame_keypoints(open_frame, settings, measure)
     entries = {side: FingerEntry(length=f.length_mm, theta_entire=theta_entire,
                                  half_thickness=f.half_thickness_mm, n_links=n_links)
                for side, f in zip(SIDES, fingers)}

@@ -26,7 +26,8 @@ from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import FingerFrame, SoftgripError, pcc_joints
 from vision.frames import Frame
 from vision.geometry import PlaneCamera
-from vision.keypoints import FingerKeypoints, finger_length, gripper_keypoints, theta_from_closed
+from vision.keypoints import FingerKeypoints, finger_length, theta_from_closed
+from vision.measure import GripperMeasurement, MeasureSettings, MeasurementWarning, measure_gripper
 from vision.segmentation import Segmentation, SegmentationSettings, segment
 
 
@@ -57,6 +58,7 @@ def one_frame_profile(
     label: str = "one frame pair",
     segmentation: dict | None = None,
     camera: dict | None = None,
+    vision: dict | None = None,
 ) -> CalibrationProfile:
     """Calibrate both fingers from their keypoints in a closed (no object) and an open frame.
 
@@ -67,6 +69,7 @@ def one_frame_profile(
         label: how the profile's ``fit.frames`` names the frame pair.
         segmentation: segmentation settings to record (``{}`` if None).
         camera: ``{"name", "intrinsics"}`` to record (``"unspecified"`` if None).
+        vision: the measurement settings and what was detected, to record (``{}`` if None).
 
     Returns:
         A profile with ``fit.method = "one-frame"``. Its residual is the RMS distance (mm) between
@@ -108,6 +111,7 @@ def one_frame_profile(
         fingers=fingers, base_separation=base_separation, segmentation=dict(segmentation or {}),
         camera=dict(camera or {"name": "unspecified", "intrinsics": None}),
         fit=FitEntry(method="one-frame", frames=[label], residual_rms_mm=rms, frame_residual_rms_mm=[rms]),
+        vision=dict(vision or {}),
     )
 
 
@@ -126,10 +130,41 @@ def free_closure_joints(entry: FingerEntry, base_mm: np.ndarray, side: str) -> n
     return np.asarray(frame.to_world(pcc_joints(entry.model(), jnp.zeros(2))), np.float64)
 
 
+def frame_measurement(frame: Frame, settings: SegmentationSettings | None = None,
+                      measure: MeasureSettings | None = None, *,
+                      center_hint: float | None = None) -> GripperMeasurement:
+    """Segment a frame and measure its gripper (:func:`vision.measure.measure_gripper`): the
+    fitted gripper plane, both fingers' keypoints and the object's depth. Notes on what was measured
+    (e.g. a steep camera tilt) are issued as :class:`vision.measure.MeasurementWarning`.
+
+    ``center_hint`` (px) is where another frame of the same set-up put the gripper's centre line
+    (used to split fingers that touch); None to find it in this frame.
+
+    Raises:
+        SoftgripError: segmentation or keypoint failures (their messages say what to adjust).
+    """
+    import warnings
+
+    seg = segment(frame, settings) if center_hint is None else _segment_with_hint(frame, settings, center_hint)
+    measurement = measure_gripper(frame, seg, measure)
+    for note in measurement.warnings():
+        warnings.warn(note, MeasurementWarning, stacklevel=2)
+    return measurement
+
+
+def _segment_with_hint(frame: Frame, settings: SegmentationSettings | None, center_hint: float):
+    """``segment`` with a centre-line hint, where segmentation takes one (else without it)."""
+    try:
+        return segment(frame, settings, center_hint=center_hint)
+    except TypeError:
+        return segment(frame, settings)
+
+
 def frame_keypoints(
-    frame: Frame, settings: SegmentationSettings | None = None
+    frame: Frame, settings: SegmentationSettings | None = None, measure: MeasureSettings | None = None
 ) -> tuple[Segmentation, PlaneCamera, tuple[FingerKeypoints, FingerKeypoints]]:
-    """Segment a frame and find both fingers' keypoints (the camera at the fingers' median depth).
+    """Segment a frame and find both fingers' keypoints, in the fitted gripper plane's millimetres
+    (:func:`frame_measurement`).
 
     Raises:
         SoftgripError: segmentation or keypoint failures (their messages say what to adjust).
@@ -143,9 +178,8 @@ def frame_keypoints(
         >>> round(camera.depth_mm), round(left.length_mm), round(right.length_mm)
         (120, 52, 52)
     """
-    seg = segment(frame, settings)
-    camera = PlaneCamera.from_frame(frame, seg.fingers)
-    return seg, camera, gripper_keypoints(seg, camera)
+    m = frame_measurement(frame, settings, measure)
+    return m.segmentation, m.camera, m.keypoints
 
 
 def one_frame_from_frames(
@@ -157,10 +191,14 @@ def one_frame_from_frames(
     label: str = "one frame pair",
     camera_name: str = "unspecified",
     names: tuple[str, str] = ("the closed frame", "the open frame"),
+    measure: MeasureSettings | None = None,
 ) -> CalibrationProfile:
     """:func:`one_frame_profile` on a closed frame without an object and an open frame.
 
-    ``names`` (closed, open), e.g. the frame folders, start the error messages.
+    ``names`` (closed, open), e.g. the frame folders, start the error messages. ``measure`` says
+    how the fingers are measured (base ends, relief); the profile records it in its ``vision``
+    section with what was detected in each frame (base ends, body, plane and tilt, relief). The
+    closed frame is split at the open frame's centre line when its fingertips touch.
 
     Raises:
         SoftgripError: the closed frame shows an object (eq. 4 needs a free closure), or the vision
@@ -176,19 +214,23 @@ def one_frame_from_frames(
         [0.55, 0.55]
     """
     settings = settings or SegmentationSettings()
+    measure = measure or MeasureSettings()
 
-    def keypoints(frame: Frame, name: str):
+    def measured(frame: Frame, name: str, hint: float | None = None) -> GripperMeasurement:
         try:
-            return frame_keypoints(frame, settings)
+            return frame_measurement(frame, settings, measure, center_hint=hint)
         except SoftgripError as err:
             raise type(err)(f"{name}: {err}") from None  # the same error type, naming the frame
 
-    closed_seg, _, closed = keypoints(closed_frame, names[0])
-    if closed_seg.object.any():
+    opened = measured(open_frame, names[1])
+    closed = measured(closed_frame, names[0], opened.segmentation.center_column)
+    if closed.segmentation.object.any():
         raise SoftgripError(
-            f"{names[0]} shows an object ({int(closed_seg.object.sum())} px): eq. 4 needs the gripper "
+            f"{names[0]} shows an object ({int(closed.segmentation.object.sum())} px): eq. 4 needs the gripper "
             f"closed without touching anything; take the calibration frame without the object (or raise "
             f"the segmentation's object_min_saturation / min_object_px if that is not an object)")
-    _, _, opened = keypoints(open_frame, names[1])
-    return one_frame_profile(closed, opened, n_links, label=label, segmentation=settings.to_dict(),
-                             camera={"name": camera_name, "intrinsics": closed_frame.intrinsics.to_dict()})
+    vision = {**measure.to_dict(), "detected": {"open": opened.detected(), "closed": closed.detected()}}
+    return one_frame_profile(closed.keypoints, opened.keypoints, n_links, label=label,
+                             segmentation=settings.to_dict(),
+                             camera={"name": camera_name, "intrinsics": closed_frame.intrinsics.to_dict()},
+                             vision=vision)

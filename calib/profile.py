@@ -12,6 +12,7 @@ A profile says everything the estimator needs about one gripper and how it was o
       },
       "segmentation": {...},
       "camera": {"name": "synthetic", "intrinsics": {"width": 640, ...}},
+      "vision": {"base_end": "auto", "finger_relief_mm": "auto", "detected": {...}},
       "fit": {"method": "least-squares", "estimate_method": "mechanics", "frames": [...], "residual_rms_mm": 0.41,
               "frame_residual_rms_mm": [...], "standard_errors": {"left.theta_entire": 0.002, ...},
               "skipped": [{"frame": "...", "reason": "..."}]}
@@ -27,7 +28,11 @@ fit went through, ``"geometric"`` or ``"mechanics"``; the commands estimate with
 otherwise (absent: the profile says nothing, e.g. a one-frame calibration, which uses no estimate).
 ``segmentation`` holds :class:`vision.segmentation.SegmentationSettings` fields (``{}``: defaults);
 ``camera`` names the camera (serial number, ``"synthetic"``, or ``"unspecified"``) and its
-intrinsics (pyrealsense2 names, or null).
+intrinsics (pyrealsense2 names, or null). ``vision`` (optional) says how the fingers are measured
+(:class:`vision.measure.MeasureSettings`: ``base_end`` ``"auto"``/``"rounded"``/``"flat"``,
+``finger_relief_mm`` ``"auto"`` or mm) and records under ``detected`` what calibration found in its
+frames (each finger's base end, whether the gripper's body was in view, the fitted plane with its
+tilt, each finger's relief, the object's face offset): a record for the user, not an input.
 
 Loading validates every field and names the bad one as a path, e.g.
 ``fingers.left.theta_entire: expected a number in [0, pi/2), got "abc"``. Saving writes a temporary
@@ -52,6 +57,7 @@ from softgrip_jax import FingerModel, Gripper, SoftgripError
 from vision import user_json
 from vision.atomic_write import write_atomic
 from vision.frames import FrameError, Intrinsics
+from vision.measure import MeasureSettings, MeasureSettingsError
 from vision.segmentation import SegmentationError, SegmentationSettings
 
 #: The profile format this code writes and reads.
@@ -145,6 +151,8 @@ class CalibrationProfile:
         camera: ``{"name": str, "intrinsics": dict | None}``.
         fit: how it was obtained.
         version: the format version, :data:`PROFILE_VERSION`.
+        vision: :class:`~vision.measure.MeasureSettings` fields and what was ``detected``
+            (``{}``: defaults, nothing recorded).
     """
 
     fingers: dict[str, FingerEntry]
@@ -153,6 +161,7 @@ class CalibrationProfile:
     camera: dict[str, Any]
     fit: FitEntry
     version: int = PROFILE_VERSION
+    vision: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object written by :func:`save_profile`."""
@@ -166,6 +175,7 @@ class CalibrationProfile:
                         for side, f in self.fingers.items()},
             "segmentation": dict(self.segmentation),
             "camera": dict(self.camera),
+            **({"vision": dict(self.vision)} if self.vision else {}),
             "fit": {"method": self.fit.method,
                     **({} if self.fit.estimate_method is None else {"estimate_method": self.fit.estimate_method}),
                     "frames": list(self.fit.frames),
@@ -187,6 +197,10 @@ class CalibrationProfile:
     def segmentation_settings(self) -> SegmentationSettings:
         """The segmentation settings (defaults for fields the profile leaves out)."""
         return SegmentationSettings.from_dict(self.segmentation)
+
+    def measure_settings(self) -> MeasureSettings:
+        """How to measure the fingers (defaults for fields the profile leaves out)."""
+        return MeasureSettings.from_dict(self.vision)
 
     def corrected_bases(self, bases_mm: ArrayLike) -> np.ndarray:
         """(2, 2) [left, right] finger bases detected in an open frame (mm) plus each base offset."""
@@ -320,7 +334,7 @@ class _Reader:
 
 def _parse(data: Any, source: str) -> CalibrationProfile:
     r = _Reader(source)
-    root = r.obj(data, "", ("version", "gripper", "fingers", "segmentation", "camera", "fit"))
+    root = r.obj(data, "", ("version", "gripper", "fingers", "segmentation", "camera", "fit"), ("vision",))
     version = root["version"]
     if not _is_int(version) or version != PROFILE_VERSION:
         newer = _is_int(version) and version > PROFILE_VERSION
@@ -345,8 +359,16 @@ def _parse(data: Any, source: str) -> CalibrationProfile:
             Intrinsics.from_dict(camera["intrinsics"], source=f"{source}: camera.intrinsics")
         except FrameError as err:
             raise ProfileError(str(err)) from None
+    vision = root.get("vision", {})
+    try:
+        MeasureSettings.from_dict(vision, source=f"{source}: vision")
+    except MeasureSettingsError as err:
+        raise ProfileError(str(err)) from None
+    if not isinstance(vision.get("detected", {}), dict):
+        raise r.fail("vision.detected", "a JSON object (what calibration detected)", vision["detected"])
     return CalibrationProfile(fingers=fingers, base_separation=base_separation, segmentation=dict(segmentation),
-                              camera=dict(camera), fit=_parse_fit(r, root["fit"]), version=PROFILE_VERSION)
+                              camera=dict(camera), fit=_parse_fit(r, root["fit"]), version=PROFILE_VERSION,
+                              vision=dict(vision))
 
 
 def _parse_finger(r: _Reader, value: Any, path: str) -> FingerEntry:

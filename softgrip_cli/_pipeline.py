@@ -4,11 +4,14 @@ One frame of the open gripper (and usually an object) becomes a :class:`FrameSce
 
 1. the frame folder is loaded (``vision.frames.load_frame``) and segmented with the profile's
    segmentation settings;
-2. the gripper plane's camera is the fingers' median depth (``PlaneCamera.from_frame``);
-3. each finger's keypoints give its base (plus the profile's base offset); the gripper's pose is the
-   point midway between the two bases and the angle of the base line (0: the bases level, fingers
-   hanging toward +y), in the same millimetre frame as ``PlaneCamera.px_to_mm``;
-4. the object mask becomes the core's ``SDFGrid`` (one value per pixel; no object reads "far");
+2. the gripper is measured (``vision.measure.measure_gripper``, with the profile's ``vision``
+   settings): the gripper plane fitted to the fingers' depth (tilt and front-surface relief), each
+   finger's keypoints, and the depth of the object's front face;
+3. each finger's base (plus the profile's base offset) gives the gripper's pose: the point midway
+   between the two bases and the angle of the base line (0: the bases level, fingers hanging toward
+   +y), in the gripper plane's millimetres (``PlaneCamera.px_to_mm``);
+4. the object mask, at the depth of its front face, becomes the core's ``SDFGrid`` (no object reads
+   "far");
 5. the gripper is the profile's (``calib.profile.to_gripper``), optionally with each finger's length
    L measured in this frame (eq. 5).
 
@@ -179,8 +182,7 @@ def frame_scene(path: str | os.PathLike[str], profile, *, length_from_frame: boo
             the frame's path.
     """
     from vision.frames import load_frame
-    from vision.geometry import PlaneCamera
-    from vision.keypoints import gripper_keypoints
+    from vision.measure import measure_gripper
     from vision.object_sdf import object_sdf
     from vision.segmentation import segment
 
@@ -189,12 +191,14 @@ def frame_scene(path: str | os.PathLike[str], profile, *, length_from_frame: boo
     try:
         frame = load_frame(path)
         seg = segment(frame, settings)
-        camera = PlaneCamera.from_frame(frame, seg.fingers)
-        keypoints = gripper_keypoints(seg, camera)
-        sdf = object_sdf(seg.object, camera)
+        measured = measure_gripper(frame, seg, profile.measure_settings())
+        camera, keypoints = measured.camera, measured.keypoints
+        sdf = object_sdf(seg.object, measured.object_camera)
     except SoftgripError as err:
         message = str(err)
         raise FrameSceneError(message if label in message else f"{label}: {message}") from None
+    for note in measured.warnings():
+        warn(f"{label}: {note}")
     bases = profile.corrected_bases(np.stack([k.base_mm for k in keypoints]))
     pose = pose_from_bases(bases[0], bases[1])
     lengths = tuple(k.length_mm for k in keypoints) if length_from_frame else None

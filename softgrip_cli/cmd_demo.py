@@ -194,14 +194,13 @@ def _estimate_scene(data: Path, name: str, profile, out: Path, method: str):
 def _observed(path: Path, profile, n_links: int) -> list[np.ndarray]:
     """[left, right] observed positions (eq. 10: the closed centreline in N equal arc lengths), mm."""
     from vision.frames import load_frame
-    from vision.geometry import PlaneCamera
-    from vision.keypoints import gripper_keypoints
+    from vision.measure import measure_gripper
     from vision.segmentation import segment
 
     try:
         frame = load_frame(path)
         seg = segment(frame, pipe.segmentation_settings(profile))
-        keypoints = gripper_keypoints(seg, PlaneCamera.from_frame(frame, seg.fingers))
+        keypoints = measure_gripper(frame, seg, profile.measure_settings()).keypoints
     except SoftgripError as err:
         raise SoftgripError(f"{path}: {err}") from None
     return [k.observed_mm(n_links) for k in keypoints]

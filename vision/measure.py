@@ -1,0 +1,189 @@
+"""A segmented frame -> the gripper measured in millimetres: plane, keypoints, the object's depth.
+
+The steps, each in its own module:
+
+1. each finger's keypoints in pixels (:mod:`vision.keypoints`): base (a rounded end, a flat cut, or
+   where the finger leaves the gripper's body), tip, centreline, half-width, and the finger's own
+   pixels without the body;
+2. the gripper plane fitted to the fingers' depth readings (:func:`vision.geometry.fit_gripper_plane`):
+   its tilt from the camera and each finger's front-surface relief (a round finger's front is up to
+   r nearer the camera than its outline), so that each finger's outline is converted at its own depth;
+3. the object's front face: its depth relative to the gripper plane
+   (:func:`vision.geometry.face_offset_mm`), so that its outline is converted at that depth and lands in
+   the gripper plane's millimetres.
+
+How to measure is set by :class:`MeasureSettings` (a calibration profile's ``vision`` section);
+:meth:`GripperMeasurement.detected` is what a profile records of what was found.
+
+Example (the open sample frame: rounded bases, no body in view, a plane facing the camera):
+    >>> from pathlib import Path
+    >>> import vision
+    >>> from vision.frames import load_frame
+    >>> from vision.segmentation import segment
+    >>> frame = load_frame(Path(vision.__file__).resolve().parents[1] / "data" / "calib_open")
+    >>> m = measure_gripper(frame, segment(frame))
+    >>> [k.base_end for k in m.keypoints], m.body_in_view, m.plane.tilt_deg < 0.5
+    (['rounded', 'rounded'], False, True)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from softgrip_jax import SoftgripError
+from vision.frames import Frame
+from vision.geometry import TILT_WARN_DEG, PlaneCamera, PlaneFit, face_offset_mm, fit_gripper_plane
+from vision.keypoints import FingerKeypoints, gripper_keypoints
+from vision.segmentation import Segmentation
+
+BaseEndSetting = Literal["auto", "rounded", "flat"]
+BASE_END_SETTINGS: tuple[str, ...] = ("auto", "rounded", "flat")
+#: The largest finger relief (mm) a profile may give: far beyond any finger's half-thickness.
+MAX_RELIEF_MM = 50.0
+
+
+class MeasureSettingsError(SoftgripError):
+    """A bad measurement setting; the message names it."""
+
+
+class MeasurementWarning(UserWarning):
+    """Something measured in a frame that a user should check (e.g. a steep camera tilt)."""
+
+
+@dataclass(frozen=True)
+class MeasureSettings:
+    """How the gripper is measured (a calibration profile's ``vision`` section).
+
+    Attributes:
+        base_end: ``"auto"`` (detect from each finger's mask), ``"rounded"`` (the base end is a cap
+            whose centre is the base) or ``"flat"`` (the finger is cut flat where it leaves the
+            gripper's body: the base is the middle of the cut).
+        finger_relief_mm: how far (mm) each finger's outline lies behind its nearest front-surface
+            depth reading: r for a round finger, 0 for a flat front; None (JSON ``"auto"``) measures
+            it from the depth across the fingers.
+    """
+
+    base_end: BaseEndSetting = "auto"
+    finger_relief_mm: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.base_end not in BASE_END_SETTINGS:
+            raise MeasureSettingsError(f"vision.base_end must be one of {', '.join(BASE_END_SETTINGS)}, got "
+                                       f"{self.base_end!r}")
+        relief = self.finger_relief_mm
+        if relief is not None:
+            if isinstance(relief, bool) or not isinstance(relief, (int, float)) or not math.isfinite(relief) \
+                    or not 0.0 <= relief <= MAX_RELIEF_MM:
+                raise MeasureSettingsError(f"vision.finger_relief_mm must be \"auto\" or a number of mm in "
+                                           f"[0, {MAX_RELIEF_MM:g}], got {relief!r}")
+            object.__setattr__(self, "finger_relief_mm", float(relief))
+
+    @property
+    def rounded_base(self) -> bool | None:
+        """:func:`vision.keypoints.finger_keypoints`' ``rounded_base`` for this setting."""
+        return {"auto": None, "rounded": True, "flat": False}[self.base_end]
+
+    def to_dict(self) -> dict[str, Any]:
+        """``{"base_end", "finger_relief_mm"}`` for a profile (``"auto"`` for a measured relief)."""
+        return {"base_end": self.base_end,
+                "finger_relief_mm": "auto" if self.finger_relief_mm is None else self.finger_relief_mm}
+
+    @classmethod
+    def from_dict(cls, d: Any, source: str = "vision settings") -> MeasureSettings:
+        """Build from a JSON object (missing keys: defaults; unknown keys refused; errors name
+        ``source`` and the key). A ``"detected"`` entry (what a profile recorded) is ignored."""
+        if not isinstance(d, dict):
+            raise MeasureSettingsError(f"{source}: expected a JSON object, got {type(d).__name__}")
+        known = {"base_end", "finger_relief_mm", "detected"}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise MeasureSettingsError(f"{source}: unknown setting(s) {', '.join(unknown)}; valid ones: "
+                                       f"base_end, finger_relief_mm")
+        relief = d.get("finger_relief_mm", "auto")
+        try:
+            return cls(base_end=d.get("base_end", "auto"), finger_relief_mm=None if relief == "auto" else relief)
+        except MeasureSettingsError as err:
+            raise MeasureSettingsError(f"{source}: {err}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class GripperMeasurement:
+    """One frame's gripper in millimetres.
+
+    Attributes:
+        segmentation: the frame's :class:`~vision.segmentation.Segmentation`.
+        plane: the fitted gripper plane (its ``camera`` is :attr:`camera`).
+        keypoints: (left, right) :class:`~vision.keypoints.FingerKeypoints` through :attr:`camera`.
+        object_offset_mm: the object's front face behind the gripper plane (mm, < 0: nearer the
+            camera), or None (no object, or no depth on it: taken as 0).
+    """
+
+    segmentation: Segmentation
+    plane: PlaneFit
+    keypoints: tuple[FingerKeypoints, FingerKeypoints]
+    object_offset_mm: float | None
+
+    @property
+    def camera(self) -> PlaneCamera:
+        """The gripper plane's camera: the millimetre frame of the estimate."""
+        return self.plane.camera
+
+    @property
+    def object_camera(self) -> PlaneCamera:
+        """The plane of the object's front face, in the gripper plane's coordinates."""
+        return self.camera.parallel(self.object_offset_mm or 0.0)
+
+    @property
+    def body_in_view(self) -> bool:
+        """True when a finger hangs from a gripper body seen in the frame."""
+        return any(k.body_in_view for k in self.keypoints)
+
+    def warnings(self) -> list[str]:
+        """Sentences about what was measured that a user should check (empty when all is ordinary)."""
+        out = []
+        if self.plane.tilt_deg > TILT_WARN_DEG:
+            out.append(f"the camera is tilted {self.plane.tilt_deg:.1f} degrees from the gripper plane (more than "
+                       f"{TILT_WARN_DEG:g}): the fingers' sides start to show and millimetres lose accuracy; "
+                       f"face the camera to the gripper")
+        if self.segmentation.object.any() and self.object_offset_mm is None:
+            out.append("the object has no depth readings: its outline is taken in the gripper plane")
+        return out
+
+    def detected(self) -> dict[str, Any]:
+        """What was found, for a profile's ``vision.detected``: base ends, body, plane, relief."""
+        sides = ("left", "right")
+        return {
+            "base_end": {side: k.base_end for side, k in zip(sides, self.keypoints)},
+            "body_in_view": self.body_in_view,
+            "plane": self.camera.to_dict(),
+            "finger_relief_mm": {side: round(r, 3) for side, r in zip(sides, self.plane.relief_mm)},
+            "finger_relief_measured": self.plane.relief_measured,
+            "object_face_offset_mm": None if self.object_offset_mm is None else round(self.object_offset_mm, 3),
+        }
+
+
+def measure_gripper(frame: Frame, segmentation: Segmentation,
+                    settings: MeasureSettings | None = None) -> GripperMeasurement:
+    """Measure a segmented frame's gripper and object in millimetres (module docstring).
+
+    Raises:
+        SoftgripError: keypoints that cannot be found (``vision.keypoints.KeypointError``) or no
+            depth on the fingers (``vision.frames.FrameError``); the message says what to adjust.
+    """
+    settings = settings or MeasureSettings()
+    provisional = PlaneCamera.from_frame(frame, segmentation.fingers)  # keypoints are found in pixels
+    keypoints = gripper_keypoints(segmentation, provisional, settings.rounded_base)
+    plane = fit_gripper_plane(frame, [k.region for k in keypoints], [k.half_thickness_px for k in keypoints],
+                              settings.finger_relief_mm)
+    offset = face_offset_mm(frame, segmentation.object, plane.camera) if segmentation.object.any() else None
+    return GripperMeasurement(segmentation=segmentation, plane=plane,
+                              keypoints=tuple(k.with_camera(plane.camera) for k in keypoints),
+                              object_offset_mm=offset)
+
+
+def replace_settings(settings: MeasureSettings, **changes: Any) -> MeasureSettings:
+    """``settings`` with some fields changed (validated again)."""
+    return dataclasses.replace(settings, **changes)
