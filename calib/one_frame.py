@@ -3,7 +3,9 @@
 From a frame of the closed gripper with no object and a frame of the open gripper:
 
 * Theta of each finger from the closed frame, eq. 4: ``atan((x_tip - x_base) / (y_tip - y_base))``,
-  with the horizontal offset mirrored for the right finger (it curls toward -x);
+  with x and y along the gripper's axes (y perpendicular to the line through both bases, so a camera
+  rolled about its axis does not tilt the angle) and x mirrored for the right finger (it curls
+  toward -x);
 * L of each finger from the open frame, eq. 5: the base-tip distance of the straight finger;
 * the half-thickness r of each finger from its mask in the open frame (the keypoints' tube fit);
 * the base separation W: the distance between the two bases in the open frame.
@@ -26,7 +28,7 @@ from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import FingerFrame, SoftgripError, pcc_joints
 from vision.frames import Frame
 from vision.geometry import PlaneCamera
-from vision.keypoints import FingerKeypoints, finger_length, theta_from_closed
+from vision.keypoints import FingerKeypoints, finger_length, gripper_angle, theta_from_closed
 from vision.measure import GripperMeasurement, MeasureSettings, MeasurementWarning, measure_gripper
 from vision.segmentation import Segmentation, SegmentationSettings, segment
 
@@ -93,8 +95,9 @@ def one_frame_profile(
         ([0.55, 0.55], 'one-frame')
     """
     fingers, squared = {}, []
+    angle = gripper_angle(closed[0].base_mm, closed[1].base_mm)  # the gripper's axis, as in the estimate
     for side, shut, straight in zip(SIDES, closed, open_):
-        theta = theta_from_closed(shut.base_mm, shut.tip_mm, side)  # eq. 4
+        theta = theta_from_closed(shut.base_mm, shut.tip_mm, side, angle)  # eq. 4
         if theta < 0:
             raise SoftgripError(
                 f"the {side} finger of the closed frame bends away from the gripper's centre (Theta = "
@@ -103,7 +106,7 @@ def one_frame_profile(
         entry = FingerEntry(length=finger_length(straight.base_mm, straight.tip_mm), theta_entire=theta,
                             half_thickness=float(straight.half_thickness_mm), n_links=n_links)
         fingers[side] = entry
-        model_joints = free_closure_joints(entry, shut.base_mm, side)
+        model_joints = free_closure_joints(entry, shut.base_mm, side, angle)
         squared.append(np.sum((model_joints - shut.observed_mm(n_links)) ** 2, axis=-1))
     rms = float(np.sqrt(np.mean(squared)))
     base_separation = float(np.hypot(*(np.asarray(open_[1].base_mm) - np.asarray(open_[0].base_mm))))
@@ -115,9 +118,10 @@ def one_frame_profile(
     )
 
 
-def free_closure_joints(entry: FingerEntry, base_mm: np.ndarray, side: str) -> np.ndarray:
+def free_closure_joints(entry: FingerEntry, base_mm: np.ndarray, side: str, angle: float = 0.0) -> np.ndarray:
     """(N+1, 2) joints (mm) of the closed, untouched finger (eqs. 1-3) hanging from ``base_mm``,
-    mirrored for the right finger as the core mirrors it (a ``FingerFrame`` of handedness -1).
+    mirrored for the right finger as the core mirrors it (a ``FingerFrame`` of handedness -1), on a
+    gripper turned by ``angle`` (rad, see :func:`vision.keypoints.gripper_angle`).
 
     Example:
         >>> import numpy as np
@@ -125,7 +129,7 @@ def free_closure_joints(entry: FingerEntry, base_mm: np.ndarray, side: str) -> n
         >>> free_closure_joints(entry, np.array([10.0, 0.0]), "right").tolist()
         [[10.0, 0.0], [10.0, 25.0], [10.0, 50.0]]
     """
-    frame = FingerFrame(origin=jnp.asarray(base_mm, jnp.float32), angle=jnp.zeros(()),
+    frame = FingerFrame(origin=jnp.asarray(base_mm, jnp.float32), angle=jnp.asarray(angle, jnp.float32),
                         handedness=jnp.asarray(1.0 if side == "left" else -1.0))
     return np.asarray(frame.to_world(pcc_joints(entry.model(), jnp.zeros(2))), np.float64)
 

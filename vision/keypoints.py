@@ -163,11 +163,14 @@ def finger_length(base: ArrayLike, tip: ArrayLike) -> float:
     return float(np.hypot(*(np.asarray(tip, np.float64) - np.asarray(base, np.float64))))
 
 
-def theta_from_closed(base: ArrayLike, tip: ArrayLike, side: Side = "left") -> float:
+def theta_from_closed(base: ArrayLike, tip: ArrayLike, side: Side = "left", gripper_angle: float = 0.0) -> float:
     """Eq. 4: the entire bending angle from a closed finger's base (2,) and tip (2,) (mm or px).
 
-    ``atan((x_tip - x_base) / (y_tip - y_base))`` for the left finger; for the right one the
-    horizontal offset is mirrored (-x), so a right finger curling toward the centre also gives a
+    ``atan((x_tip - x_base) / (y_tip - y_base))`` for the left finger, x and y along the gripper's
+    axes: ``gripper_angle`` (rad) is the angle of the gripper's "down" from the image's downward
+    vertical, positive toward +x (0: the fingers hang down the image; a camera rolled about its axis
+    gives another angle, e.g. from the line through both bases). For the right finger the offset
+    across the gripper is mirrored, so a right finger curling toward the centre also gives a
     positive angle. Use millimetres when fx != fy (pixels are not square then).
 
     Raises:
@@ -176,14 +179,31 @@ def theta_from_closed(base: ArrayLike, tip: ArrayLike, side: Side = "left") -> f
     Example:
         >>> round(theta_from_closed([0.0, 0.0], [10.0, 50.0]), 4), round(theta_from_closed([0.0, 0.0], [-10.0, 50.0], "right"), 4)
         (0.1974, 0.1974)
+        >>> round(theta_from_closed([0.0, 0.0], [10.0, 50.0], gripper_angle=0.1), 4)  # a gripper turned by 0.1 rad
+        0.0974
     """
     sign = _sign(side)
-    dx, dy = np.asarray(tip, np.float64) - np.asarray(base, np.float64)
+    d = np.asarray(tip, np.float64) - np.asarray(base, np.float64)
+    down = np.array([np.sin(gripper_angle), np.cos(gripper_angle)])
+    across = np.array([down[1], -down[0]])
+    dx, dy = float(d @ across), float(d @ down)
     if not dy > 0:
         raise KeypointError(f"the {side} finger's tip {np.asarray(tip).tolist()} is not below its base "
                             f"{np.asarray(base).tolist()} (y down): eq. 4 needs a bending angle below pi/2; "
                             f"is this a frame of the closed gripper without an object?")
     return float(np.arctan(sign * dx / dy))
+
+
+def gripper_angle(left_base: ArrayLike, right_base: ArrayLike) -> float:
+    """The angle (rad) of a gripper's "down" from the image's downward vertical, positive toward +x,
+    from its two finger bases (2,): perpendicular to the line from the left base to the right one.
+
+    Example:
+        >>> gripper_angle([0.0, 0.0], [10.0, 0.0]), round(gripper_angle([0.0, 0.0], [10.0, -1.0]), 4)
+        (0.0, 0.0997)
+    """
+    d = np.asarray(right_base, np.float64) - np.asarray(left_base, np.float64)
+    return float(np.arctan2(-d[1], d[0])) + 0.0  # no -0.0
 
 
 def resample_polyline(points: ArrayLike, n: int) -> np.ndarray:
