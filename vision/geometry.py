@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
 
 from vision.frames import Frame, FrameError, Intrinsics
 
@@ -53,6 +54,7 @@ TILT_WARN_DEG = 15.0
 
 _EDGE_PX = 1.5  # readings nearer a mask's edge than this (px) mix two surfaces; left out of fits
 _MIN_READINGS = 30
+_RELIEF_REACH = 0.85  # readings this far across the finger (fraction of r) or nearer its centre are fitted
 
 
 def plane_depth_mm(frame: Frame, mask: np.ndarray, what: str = "the gripper region") -> float:
@@ -283,13 +285,17 @@ class PlaneFit:
 
 
 def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thickness_px: Sequence[float],
-                      relief_mm: float | None = None) -> PlaneFit:
+                      relief_mm: float | None = None, *,
+                      centrelines_px: Sequence[np.ndarray] | None = None,
+                      width_edges_px: Sequence[np.ndarray] | None = None) -> PlaneFit:
     """Fit the plane through the fingers' outlines, and its tilt, to their depth readings.
 
     Every reading of a finger region (away from its edge) is a point P = Z ray(u, v) of its front
     surface. The surface is modelled as the plane n . P = c, lifted toward the camera across each
     finger by an elliptic bulge ``relief_k sqrt(1 - (rho / r)^2)``, rho being the pixel's distance
-    from the finger's ridge (r minus its distance to the mask's edge) and r the finger's half-width:
+    from the finger's centreline (or, without one, r minus its distance to the mask's edge) and r
+    the finger's half-width; readings in the outer 15 % of the width, where the surface is steep and
+    pixels mix finger and background, are left out:
     a finger of round cross-section has relief r, a flat front relief 0, and either way its outline
     (the widest part of its cross-section) lies in the plane n . P = c. The plane's two tilt angles,
     c and each finger's relief are found together by robust least squares (scipy's soft-L1 loss), so
@@ -301,6 +307,11 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
         half_thickness_px: each finger's half-width r (px), as measured in its mask.
         relief_mm: the relief, mm, when known (e.g. from a profile) instead of measured; the same
             for every finger.
+        centrelines_px: each finger's centreline (K, 2) in px (u, v), or None to take the distance
+            transform's ridge; sub-pixel centrelines measure rho, and so the relief, better.
+        width_edges_px: with ``centrelines_px``, each finger's side points (S, 2, 2) px across it at
+            S stations (:attr:`vision.keypoints.FingerKeypoints.width_edges_px`): r is then taken
+            where each reading is, since perspective and tilt change it along the finger.
 
     Returns:
         The :class:`PlaneFit`. Fingers whose readings span too small an area to tell a tilt (less
@@ -331,11 +342,18 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
         inside = cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
         usable = region & (frame.depth > 0) & (inside >= _EDGE_PX)
         v, u = np.nonzero(usable)
-        rho = np.clip(float(r_px) - (inside[v, u] - 0.5), 0.0, float(r_px))
+        local_r = np.full(u.size, float(r_px))
+        if centrelines_px is None:
+            rho = np.clip(float(r_px) - (inside[v, u] - 0.5), 0.0, float(r_px))
+        else:
+            edges = None if width_edges_px is None else width_edges_px[k]
+            rho, local_r = _across(np.column_stack([u, v]).astype(np.float64), centrelines_px[k], edges, float(r_px))
+        keep = rho <= _RELIEF_REACH * local_r
+        u, v, rho, local_r = u[keep], v[keep], rho[keep], local_r[keep]
         rays.append(np.column_stack([(u - frame.intrinsics.ppx) / frame.intrinsics.fx,
                                      (v - frame.intrinsics.ppy) / frame.intrinsics.fy, np.ones(u.size)])
                     * (frame.depth[v, u] * scale)[:, None])
-        heights.append(np.sqrt(np.clip(1.0 - (rho / max(float(r_px), 1e-9)) ** 2, 0.0, 1.0)))
+        heights.append(np.sqrt(np.clip(1.0 - (rho / np.maximum(local_r, 1e-9)) ** 2, 0.0, 1.0)))
         labels.append(np.full(u.size, k))
     points, bulge, label = np.vstack(rays), np.concatenate(heights), np.concatenate(labels)
     if len(points) < _MIN_READINGS:
@@ -368,6 +386,26 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
     camera = PlaneCamera(frame.intrinsics, depth_mm=c / normal[2], normal=tuple(normal))
     return PlaneFit(camera=camera, relief_mm=tuple(float(x) for x in relief), relief_measured=fixed is None,
                     readings=len(points), residual_mm=1.4826 * float(np.median(np.abs(final - np.median(final)))))
+
+
+def _across(points: np.ndarray, polyline: np.ndarray, edges: np.ndarray | None,
+            r_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's distance (P,) to a polyline (K, 2) and the half-width (P,) there, px.
+
+    The polyline is resampled every 0.1 px and searched with a k-d tree (scipy); the half-width is
+    interpolated along it from ``edges`` (S, 2, 2), side pairs across the finger, or ``r_px``."""
+    polyline = np.asarray(polyline, np.float64)
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(polyline, axis=0).T))])
+    fine = np.linspace(0.0, arc[-1], max(2, int(arc[-1] / 0.1) + 1))
+    dense = np.column_stack([np.interp(fine, arc, polyline[:, 0]), np.interp(fine, arc, polyline[:, 1])])
+    tree = cKDTree(dense)
+    distance, nearest = tree.query(points)
+    if edges is None or len(edges) < 2:
+        return distance, np.full(len(points), r_px)
+    _, station = tree.query(0.5 * (edges[:, 0] + edges[:, 1]))
+    order = np.argsort(fine[station])
+    half = 0.5 * np.hypot(*(edges[:, 1] - edges[:, 0]).T)
+    return distance, np.interp(fine[nearest], fine[station][order], half[order])
 
 
 def face_offset_mm(frame: Frame, mask: np.ndarray, camera: PlaneCamera) -> float | None:

@@ -177,7 +177,8 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
     provisional = PlaneCamera.from_frame(frame, segmentation.fingers)  # keypoints are found in pixels
     keypoints = gripper_keypoints(segmentation, provisional, settings.rounded_base)
     plane = fit_gripper_plane(frame, [k.region for k in keypoints], [k.half_thickness_px for k in keypoints],
-                              settings.finger_relief_mm)
+                              settings.finger_relief_mm, centrelines_px=[k.centreline_px for k in keypoints],
+                              width_edges_px=[k.width_edges_px for k in keypoints])
     offset = face_offset_mm(frame, segmentation.object, plane.camera) if segmentation.object.any() else None
     return GripperMeasurement(segmentation=segmentation, plane=plane,
                               keypoints=tuple(k.with_camera(plane.camera) for k in keypoints),
