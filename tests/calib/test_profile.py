@@ -284,3 +284,38 @@ def test_a_saved_profile_is_created_like_any_new_file(tmp_path: Path) -> None:
 def test_saving_into_a_missing_folder(tmp_path: Path) -> None:
     with pytest.raises(ProfileError, match="cannot write the profile there"):
         save_profile(make_profile(), tmp_path / "nowhere" / "p.json")
+
+
+# --- the vision section: how fingers are measured, and what calibration detected ----------------
+
+
+def test_the_vision_section_round_trips_and_is_optional(tmp_path: Path) -> None:
+    import dataclasses
+
+    detected = {"base_end": {"left": "flat", "right": "flat"}, "body_in_view": True,
+                "plane": {"depth_mm": 121.5, "normal": [0.1, 0.0, 0.995], "tilt_deg": 5.7}}
+    profile = dataclasses.replace(make_profile(), vision={"base_end": "flat", "finger_relief_mm": 3.5,
+                                                           "detected": detected})
+    loaded = load_profile(save_profile(profile, tmp_path / "p.json"))
+    assert loaded.vision == profile.vision
+    settings = loaded.measure_settings()
+    assert settings.base_end == "flat" and settings.finger_relief_mm == 3.5 and settings.rounded_base is False
+    # without the section: measured automatically
+    plain = load_profile(save_profile(make_profile(), tmp_path / "plain.json"))
+    assert plain.measure_settings().base_end == "auto" and plain.measure_settings().finger_relief_mm is None
+
+
+@pytest.mark.parametrize("vision, field", [
+    ({"base_end": "square"}, "vision.base_end"),
+    ({"finger_relief_mm": -1.0}, "vision.finger_relief_mm"),
+    ({"finger_relief_mm": "deep"}, "vision.finger_relief_mm"),
+    ({"finger_relief": 1.0}, "finger_relief"),
+    ({"detected": [1, 2]}, "vision.detected"),
+])
+def test_a_bad_vision_setting_is_named(tmp_path: Path, vision: dict, field: str) -> None:
+    data = make_profile().to_dict()
+    data["vision"] = vision
+    path = tmp_path / "p.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ProfileError, match=field.replace(".", r"\.")):
+        load_profile(path)
