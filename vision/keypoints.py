@@ -50,6 +50,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from softgrip_jax import SoftgripError
+from vision.coverage import edge_coverage
 from vision.geometry import PlaneCamera
 from vision.segmentation import Segmentation
 
@@ -227,7 +228,7 @@ def resample_polyline(points: ArrayLike, n: int) -> np.ndarray:
 
 
 def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_base: bool | None = None, *,
-                     cut_column: float | None = None) -> FingerKeypoints:
+                     cut_column: float | None = None, coverage: np.ndarray | None = None) -> FingerKeypoints:
     """Base, tip, centreline and half-thickness of the finger in ``mask`` (module docstring).
 
     Args:
@@ -240,6 +241,9 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
             cut, or where it leaves a body in view, is the base).
         cut_column: the column (px) along which segmentation cut this finger from the other one
             (touching fingertips), or None; mask edges on it are not the finger's outline.
+        coverage: (H, W) float, how much of each pixel on the finger's edge the finger covers
+            (:func:`vision.coverage.edge_coverage`), for edges at sub-pixel precision; None reads
+            the mask's edges (halfway between pixel centres).
 
     Raises:
         KeypointError: an empty mask, one too short for its thickness to have two ends, or an end
@@ -269,7 +273,7 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
     if arc[-1] < 4.0 * radius:
         raise KeypointError(f"the {side} finger is too short to find its base and tip ({arc[-1]:.0f} px long "
                             f"for a half-thickness of {radius:.0f} px): is the whole finger in view?")
-    sampler = _Sampler(finger)
+    sampler = _Sampler(finger if coverage is None else np.where(_band(finger), coverage, finger))
     if cut_column is not None:  # the cut is not the finger's outline
         contour = contour[np.abs(contour[:, 0] - cut_column) > 1.0]
     tip = _cap_centre(line[::-1], radius, contour, finger.shape, f"{side} finger's tip")
@@ -290,10 +294,12 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
                            width_edges_px=edges, region=region)
 
 
-def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera,
-                      rounded_base: bool | None = None) -> tuple[FingerKeypoints, FingerKeypoints]:
+def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera, rounded_base: bool | None = None, *,
+                      color: np.ndarray | None = None) -> tuple[FingerKeypoints, FingerKeypoints]:
     """(left, right) keypoints of a segmented frame (see :func:`finger_keypoints`); when segmentation
-    cut the fingers apart at its centre column, edges on that column are not used.
+    cut the fingers apart at its centre column, edges on that column are not used. With the
+    frame's ``color`` (H, W, 3), edges are read at sub-pixel precision from each edge pixel's colour
+    (:func:`vision.coverage.edge_coverage`).
 
     Example (L of both fingers, eq. 5, from the open sample frame, mm):
         >>> from pathlib import Path
@@ -309,8 +315,10 @@ def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera,
         [52, 52]
     """
     cut = _cut_column(segmentation)
-    return (finger_keypoints(segmentation.left_finger, camera, "left", rounded_base, cut_column=cut),
-            finger_keypoints(segmentation.right_finger, camera, "right", rounded_base, cut_column=cut))
+    masks = (segmentation.left_finger, segmentation.right_finger)
+    coverages = [None, None] if color is None else [edge_coverage(color, mask) for mask in masks]
+    return tuple(finger_keypoints(mask, camera, side, rounded_base, cut_column=cut, coverage=coverage)
+                 for mask, side, coverage in zip(masks, ("left", "right"), coverages))
 
 
 def _cut_column(segmentation: Segmentation) -> float | None:
@@ -408,31 +416,37 @@ def _bilinear(image: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 class _Sampler:
-    """Sub-pixel crossings of a mask's 1/2 level along straight lines (bilinear 0/1 mask)."""
+    """Sub-pixel edges of a part along straight lines, from its coverage image (:mod:`vision.coverage`:
+    1 inside, 0 outside, the fraction covered on the edge pixels; or a 0/1 mask)."""
 
-    def __init__(self, mask: np.ndarray) -> None:
-        self.mask = mask.astype(np.float32)
-        self.shape = mask.shape
+    def __init__(self, coverage: np.ndarray) -> None:
+        self.coverage = coverage.astype(np.float32)
+        self.shape = coverage.shape
 
     def exits(self, starts: np.ndarray, direction: np.ndarray, reach: float, entering: bool = False) -> np.ndarray:
-        """(K, 2) the first point where each line from ``starts`` (K, 2) along ``direction`` (2,) or
-        (K, 2) leaves the mask (or enters it, with ``entering``) within ``reach`` px; NaN where it
-        does not, or where the line runs off the image first."""
+        """(K, 2) where each line from ``starts`` (K, 2) along ``direction`` (2,) or (K, 2) leaves the
+        part (or enters it, with ``entering``) within ``reach`` px; NaN where it does not, or where the
+        line runs off the image first.
+
+        The edge is found where the bilinear coverage first drops below 1/2, and placed by the
+        coverage integrated along the line from its start to one pixel past that point: the distance
+        to a step edge whatever its sub-pixel position (the midpoint between pixel centres for a
+        0/1 mask)."""
         starts = np.atleast_2d(np.asarray(starts, np.float64))
         direction = np.broadcast_to(np.asarray(direction, np.float64), starts.shape)
-        steps = np.arange(0.0, reach + _SAMPLE_STEP_PX, _SAMPLE_STEP_PX)
+        steps = np.arange(0.0, reach + 1.0 + _SAMPLE_STEP_PX, _SAMPLE_STEP_PX)
         points = starts[:, None] + steps[None, :, None] * direction[:, None]
-        values = _bilinear(self.mask, points)
+        values = _bilinear(self.coverage, points)
         if entering:
             values = 1.0 - values
         outside = values < 0.5
-        found = outside.any(axis=1) & (values[:, 0] >= 0.5)
-        k = np.argmax(outside, axis=1)
-        k = np.maximum(k, 1)
-        rows = np.arange(len(starts))
-        before, after = values[rows, k - 1], values[rows, k]
-        fraction = np.clip((before - 0.5) / np.maximum(before - after, 1e-9), 0.0, 1.0)
-        hit = points[rows, k - 1] + fraction[:, None] * (points[rows, k] - points[rows, k - 1])
+        first = np.argmax(outside, axis=1)
+        found = outside.any(axis=1) & (values[:, 0] >= 0.5) & (steps[first] <= reach)
+        beyond = np.minimum(first + int(round(1.0 / _SAMPLE_STEP_PX)), len(steps) - 1)
+        upto = np.arange(len(steps))[None, :] <= beyond[:, None]
+        trapezoids = 0.5 * (values[:, 1:] + values[:, :-1]) * _SAMPLE_STEP_PX
+        distance = (trapezoids * upto[:, 1:]).sum(axis=1)
+        hit = starts + distance[:, None] * direction
         off = (hit < 0.0).any(axis=1) | (hit[:, 0] > self.shape[1] - 1) | (hit[:, 1] > self.shape[0] - 1)
         hit[~found | off] = np.nan
         return hit
@@ -580,6 +594,13 @@ def _width_edges(sampler: _Sampler, centreline: np.ndarray, radius: float) -> np
     sides = [sampler.exits(centres, sign * normals, 3.0 * radius) for sign in (1.0, -1.0)]
     pairs = np.stack(sides, axis=1)
     return pairs[np.isfinite(pairs).all(axis=(1, 2))]
+
+
+def _band(mask: np.ndarray) -> np.ndarray:
+    """bool (H, W): the pixels 4-adjacent to the mask's boundary, inside and outside."""
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    u8 = mask.view(np.uint8)
+    return cv2.dilate(u8, cross).view(bool) & ~cv2.erode(u8, cross).view(bool)
 
 
 def _beyond(shape: tuple[int, int], base: np.ndarray, axis: np.ndarray) -> np.ndarray:

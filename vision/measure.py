@@ -175,7 +175,7 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
     """
     settings = settings or MeasureSettings()
     provisional = PlaneCamera.from_frame(frame, segmentation.fingers)  # keypoints are found in pixels
-    keypoints = gripper_keypoints(segmentation, provisional, settings.rounded_base)
+    keypoints = gripper_keypoints(segmentation, provisional, settings.rounded_base, color=frame.color)
     plane = fit_gripper_plane(frame, [k.region for k in keypoints], [k.half_thickness_px for k in keypoints],
                               settings.finger_relief_mm, centrelines_px=[k.centreline_px for k in keypoints],
                               width_edges_px=[k.width_edges_px for k in keypoints])
