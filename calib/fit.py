@@ -416,6 +416,7 @@ def start_from_open_frame(
         segmentation=(settings or SegmentationSettings()).to_dict(),
         camera={"name": camera_name, "intrinsics": open_frame.intrinsics.to_dict()},
         fit=FitEntry(method="least-squares", frames=[]),
+        vision=(measure or MeasureSettings()).to_dict(),
     )
 
 

@@ -72,6 +72,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--base-compliance", action="store_true",
                         help="with --fit --method mechanics, also fit each finger's base compliance (needs 2 or "
                              "more pairs whose fingers touch an object)")
+    parser.add_argument("--base-end", choices=("auto", "rounded", "flat"), default=None,
+                        help="the fingers' base ends: 'flat' where they are cut where they leave the gripper's "
+                             "body (the base is the middle of the cut), 'rounded' for a capped end (the base "
+                             "is the cap's centre), 'auto' to detect it (default: the --profile's, else auto)")
+    parser.add_argument("--finger-relief", type=_relief, default=None, metavar="MM",
+                        help="how far each finger's outline lies behind its nearest front-surface depth reading "
+                             "(about r for a round finger, 0 for a flat front), or 'auto' to measure it from "
+                             "the depth across the fingers (default: the --profile's, else auto)")
     parser.add_argument("--loss", choices=("huber", "cauchy"), default="huber",
                         help="robust loss of the fit (default: huber)")
     parser.add_argument("--loss-scale", type=float, default=1.0, metavar="MM",
@@ -94,6 +102,26 @@ def _n_links(text: str) -> int:
     if value > MAX_N_LINKS:
         raise argparse.ArgumentTypeError(f"at most {MAX_N_LINKS} links, got {value}")
     return value
+
+
+def _relief(text: str):
+    """An argparse type: ``auto`` or a relief in mm (validated by MeasureSettings)."""
+    if text == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or a number of mm, got {text!r}") from None
+
+
+def _measure_settings(args: argparse.Namespace, start=None):
+    """The measurement settings: the --profile's (if any) with --base-end / --finger-relief applied."""
+    from vision.measure import MeasureSettings
+
+    base = start.measure_settings() if start is not None else MeasureSettings()
+    relief = base.finger_relief_mm if args.finger_relief is None else (
+        None if args.finger_relief == "auto" else args.finger_relief)
+    return MeasureSettings(base_end=args.base_end or base.base_end, finger_relief_mm=relief)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -131,7 +159,7 @@ def _one_frame(args: argparse.Namespace):
     return one_frame_from_frames(load_frame(args.closed), load_frame(args.open_frame),
                                  args.n_links or DEFAULT_N_LINKS, label=f"{args.open_frame} + {args.closed}",
                                  camera_name=args.camera or "unspecified",
-                                 names=(str(args.closed), str(args.open_frame)))
+                                 names=(str(args.closed), str(args.open_frame)), measure=_measure_settings(args))
 
 
 def _fit(args: argparse.Namespace):
@@ -159,7 +187,8 @@ def _fit(args: argparse.Namespace):
     else:
         n_links = args.n_links or DEFAULT_N_LINKS
         try:
-            start = start_from_open_frame(load_frame(pairs[0][0]), n_links, camera_name=args.camera or "unspecified")
+            start = start_from_open_frame(load_frame(pairs[0][0]), n_links, camera_name=args.camera or "unspecified",
+                                          measure=_measure_settings(args))
         except SoftgripError as err:  # the starting values come from the first open frame: name it
             message = str(err)
             raise type(err)(message if str(pairs[0][0]) in message else f"{pairs[0][0]}: {message}") from None
@@ -173,9 +202,11 @@ def _fit(args: argparse.Namespace):
     parameters = ["theta_entire"] + [name for name, on in (("base_offset", args.base_offset),
                                                             ("stiffness_ratio", args.stiffness),
                                                             ("base_compliance", args.base_compliance)) if on]
-    observations, skipped = load_observations(pairs, settings, n_links, progress=True)
-    return fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, method=method,
-               skipped=skipped)
+    measure = _measure_settings(args, start)
+    observations, skipped = load_observations(pairs, settings, n_links, progress=True, measure=measure)
+    fitted = fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, method=method,
+                 skipped=skipped)
+    return dataclasses.replace(fitted, vision={**fitted.vision, **measure.to_dict()})
 
 
 def _print_summary(profile, output: Path) -> None:
