@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from calib.one_frame import frame_keypoints, one_frame_from_frames
+from calib.one_frame import frame_measurement, one_frame_from_frames
 from softgrip_jax import CASE_NAMES, ContactConfig, FingerFrame, FingerModel, PolygonSDF, estimate_in_frame
 from vision.keypoints import resample_polyline
 from vision.object_sdf import object_sdf
@@ -237,8 +237,9 @@ def evaluate(trial: Trial, open_frame, profile, n_values, variant_list) -> tuple
     Returns the records and, per variant, the joints estimated from the frames at the largest N
     (for the contact sheet).
     """
-    seg, camera, fingers = frame_keypoints(open_frame, None)
-    sdf_frames = object_sdf(seg.object, camera)
+    measured = frame_measurement(open_frame)
+    fingers = measured.keypoints
+    sdf_frames = object_sdf(measured.segmentation.object, measured.object_camera)
     bases_frames = profile.corrected_bases(np.stack([f.base_mm for f in fingers]))
     sdf_truth = FAR_AWAY if trial.polygon is None else PolygonSDF(jnp.asarray(trial.polygon, jnp.float32))
     bases_truth = trial.centre + np.array([[-SEPARATION / 2, 0.0], [SEPARATION / 2, 0.0]])
