@@ -292,7 +292,7 @@ def test_finger_tip_ends_where_the_centreline_ends():
 
 
 def test_depth_reads_plane_object_and_background():
-    scene = _scene("square", n_depth_holes=0)
+    scene = _scene("square", n_depth_holes=0, object_depth_offset_mm=3.0)
     frame, labels = render(scene, INTR), render_labels(scene, INTR)
     depth_mm = frame.depth.astype(np.float64) * INTR.depth_scale * 1000.0
     gripper = depth_mm[labels >= LABEL_FIRST_FINGER]

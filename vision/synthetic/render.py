@@ -1,22 +1,28 @@
 """Synthetic RGB-D frames of a two-finger soft gripper and an object, as a RealSense D405 sees them.
 
-The camera looks straight at the gripper plane from ``plane_depth_mm`` (the paper's set-up: a D405
-about 120 mm away). Scene geometry is given in millimetres in that plane (x right, y down, the
-finger bases at the top) and projected with the pinhole model at the plane depth,
-``u = fx * x / Z + ppx``, ``v = fy * y / Z + ppy``, pixel centres at integer (u, v). So converting
-pixels back to millimetres at the plane depth recovers the geometry exactly, and a synthetic frame
-goes through the same pipeline as a camera frame (``vision.frames``).
+The camera sees the gripper plane (the plane through the finger centrelines) ``plane_depth_mm``
+away along its optical axis (the paper's set-up: a D405 about 120 mm away), facing it or turned by
+``Scene.tilt_deg``. Scene geometry is given in millimetres in that plane (x right, y down, the finger
+bases at the top). Every pixel is a ray of the pinhole model (pixel centres at integer (u, v)) cast
+into the scene, so a tilted plane, an object face nearer or farther than the fingers and round
+fingers all project as a camera sees them; :func:`project` gives the pixel of any scene point (the
+ground truth of a test). Facing the camera, ``u = fx * x / Z + ppx``, ``v = fy * y / Z + ppy``.
 
 What is drawn, nearest last:
 - background: far (``background_depth_mm``), darker, low saturation, with a smooth texture;
-- object: the filled polygon in a saturated colour, at the plane depth plus a few millimetres;
-- palm (optional): a light bar joining the finger bases, just above them, at the plane depth;
-- fingers: each centreline swept by a disc of radius ``half_thickness`` (a capsule chain) in light,
-  low-saturation silicone, shaded darker toward its edges, at the plane depth.
+- object: the filled polygon in a saturated colour, on its own face plane
+  (``object_depth_offset_mm`` behind the gripper plane);
+- palm (optional, the gripper's body in view): a light bar joining the finger bases, just above
+  them, on the gripper plane;
+- fingers: each centreline swept by a disc of radius ``half_thickness`` in light, low-saturation
+  silicone, shaded darker toward its edges: a flat front on the gripper plane, or a round tube
+  (ray-cast: the depth reads its front surface), with a rounded or flat-cut base end.
 
-Masks are exact point samples at pixel centres (no anti-aliasing): a pixel belongs to a part when
-its centre is inside it. Colour noise, depth noise growing with depth squared (stereo-like) and a
-few small zero-depth holes on the foreground follow, all drawn from ``seed``.
+Labels and depth are point samples at pixel centres: a pixel belongs to a part when its centre's ray
+hits it. Colour is the same point sample, or with ``supersample`` the mean of n x n samples
+(anti-aliased edges). Lighting (gain and a gradient across the image), colour noise, depth noise
+growing with depth squared (stereo-like) and a few small zero-depth holes on the foreground follow,
+all drawn from ``seed``.
 
 Example:
     >>> from vision.synthetic.scenes import gripper_centrelines
@@ -148,8 +154,12 @@ class Scene:
         half_thickness: finger half-thickness r (mm): a finger covers every point within r of its
             centreline.
         object_polygon: the object's outline (V, 2), already placed, or None for no object.
-        plane_depth_mm: depth of the gripper plane; all geometry is projected at this depth.
-        object_depth_offset_mm: the object's depth reading is plane_depth_mm plus this.
+        plane_depth_mm: distance from the camera to the gripper plane (the plane through the finger
+            centrelines) where it crosses the optical axis.
+        object_depth_offset_mm: the object's front face lies on the plane parallel to the gripper
+            plane this far behind it (negative: in front); its outline is drawn there, at its own
+            depth, and ``object_polygon`` gives it in that plane's coordinates (those of the gripper
+            plane moved along the normal).
         background_depth_mm: depth of everything behind, beyond the object.
         gripper_rgb, object_rgb, background_rgb: base colours (the gripper light and unsaturated,
             the object saturated, the background darker and unsaturated).
@@ -160,13 +170,28 @@ class Scene:
             with the square of the depth.
         n_depth_holes: number of small zero-depth blobs, centred on the gripper or object.
         seed: seed of every random draw (texture, noise, holes).
+        tilt_deg: (a, b), the gripper plane turned by a degrees about the camera's x axis, then b
+            about its y axis, about the point where the optical axis meets it (see
+            :func:`plane_rotation`); (0, 0) faces the camera.
+        finger_section: ``"flat"``, a finger whose front face is the gripper plane (depth reads the
+            plane), or ``"round"``, a tube of radius r about its centreline: ray-cast, so the front
+            surface is up to r nearer the camera and the outline is the tube's silhouette.
+        base_end: ``"rounded"``, the finger's base end capped like its tip (a disc of radius r
+            about the first point), or ``"flat"``, cut square across the centreline at the first
+            point (where a finger leaves the gripper's body).
+        supersample: colour samples per pixel side: 1 samples each pixel at its centre (hard edges);
+            n > 1 averages n x n samples (anti-aliased edges, as a lens and sensor give). Labels and
+            depth stay point samples at the pixel centres.
+        light_gain: brightness factor of the whole image (exposure; 1 as given).
+        light_gradient: brightness change across the image's width as a fraction (uneven lighting:
+            0.3 makes the right edge 30 % brighter than the left).
     """
 
     fingers: list[np.ndarray]
     half_thickness: float = 4.0
     object_polygon: np.ndarray | None = None
     plane_depth_mm: float = 120.0
-    object_depth_offset_mm: float = 3.0
+    object_depth_offset_mm: float = 0.0
     background_depth_mm: float = 400.0
     gripper_rgb: tuple[int, int, int] = (225, 225, 220)
     object_rgb: tuple[int, int, int] = (220, 40, 40)
@@ -177,6 +202,12 @@ class Scene:
     depth_noise_sigma_mm: float = 0.3
     n_depth_holes: int = 5
     seed: int = 0
+    tilt_deg: tuple[float, float] = (0.0, 0.0)
+    finger_section: str = "flat"
+    base_end: str = "rounded"
+    supersample: int = 1
+    light_gain: float = 1.0
+    light_gradient: float = 0.0
 
     def __post_init__(self) -> None:
         self.fingers = [_as_polyline(f, f"fingers[{k}]", 2) for k, f in enumerate(self.fingers)]
@@ -187,8 +218,22 @@ class Scene:
         self.background_rgb = _check_rgb(self.background_rgb, "background_rgb")
         for name in ("half_thickness", "plane_depth_mm", "palm_height_mm"):
             _check_number(name, getattr(self, name), 0.0, strict=True)
-        for name in ("object_depth_offset_mm", "color_noise_sigma", "depth_noise_sigma_mm"):
+        for name in ("color_noise_sigma", "depth_noise_sigma_mm"):
             _check_number(name, getattr(self, name), 0.0, strict=False)
+        _check_number("object_depth_offset_mm", self.object_depth_offset_mm, -self.plane_depth_mm, strict=True)
+        _check_number("light_gain", self.light_gain, 0.0, strict=True)
+        if not (math.isfinite(self.light_gradient) and abs(self.light_gradient) < 2.0):
+            raise SoftgripError(f"light_gradient must be a finite fraction in (-2, 2), got {self.light_gradient!r}")
+        tilt = tuple(float(t) for t in np.ravel(self.tilt_deg))
+        if len(tilt) != 2 or not all(math.isfinite(t) and abs(t) < 60.0 for t in tilt):
+            raise SoftgripError(f"tilt_deg must be two angles (degrees, |angle| < 60), got {self.tilt_deg!r}")
+        self.tilt_deg = tilt  # type: ignore[assignment]
+        if self.finger_section not in ("flat", "round"):
+            raise SoftgripError(f"finger_section must be 'flat' or 'round', got {self.finger_section!r}")
+        if self.base_end not in ("rounded", "flat"):
+            raise SoftgripError(f"base_end must be 'rounded' or 'flat', got {self.base_end!r}")
+        if int(self.supersample) != self.supersample or not 1 <= self.supersample <= 8:
+            raise SoftgripError(f"supersample must be a whole number from 1 to 8, got {self.supersample!r}")
         _check_number("background_depth_mm", self.background_depth_mm,
                       self.plane_depth_mm + self.object_depth_offset_mm, strict=True)
         if int(self.n_depth_holes) != self.n_depth_holes or self.n_depth_holes < 0:
@@ -199,54 +244,155 @@ class Scene:
             raise SoftgripError("palm=True needs at least one finger to attach to")
 
 
-class _PixelGrid(NamedTuple):
-    """Pixel centres in mm in the gripper plane: columns xs (W,) and rows ys (H,), both increasing."""
+def plane_rotation(tilt_deg: tuple[float, float]) -> np.ndarray:
+    """(3, 3) rotation whose columns are the gripper plane's x axis, y axis and normal in camera
+    coordinates: R = R_y(b) R_x(a) for ``tilt_deg = (a, b)`` (about the camera's x axis, then y).
 
-    xs: np.ndarray
-    ys: np.ndarray
-
-    @classmethod
-    def of(cls, intrinsics: Intrinsics, depth_mm: float) -> _PixelGrid:
-        u, v = np.arange(intrinsics.width), np.arange(intrinsics.height)
-        columns = px_to_mm(np.column_stack([u, np.zeros_like(u)]), intrinsics, depth_mm)
-        rows = px_to_mm(np.column_stack([np.zeros_like(v), v]), intrinsics, depth_mm)
-        return cls(xs=columns[:, 0], ys=rows[:, 1])
-
-    def window(self, lo: np.ndarray, hi: np.ndarray) -> tuple[slice, slice]:
-        """(rows, cols) slices of the pixel centres inside the box [lo, hi] (mm, (2,) each)."""
-        cols = slice(np.searchsorted(self.xs, lo[0], "left"), np.searchsorted(self.xs, hi[0], "right"))
-        rows = slice(np.searchsorted(self.ys, lo[1], "left"), np.searchsorted(self.ys, hi[1], "right"))
-        return rows, cols
+    Example (no tilt: the camera's own axes):
+        >>> plane_rotation((0.0, 0.0)).tolist()
+        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    """
+    a, b = (math.radians(float(t)) for t in tilt_deg)
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(a), -math.sin(a)], [0.0, math.sin(a), math.cos(a)]])
+    ry = np.array([[math.cos(b), 0.0, math.sin(b)], [0.0, 1.0, 0.0], [-math.sin(b), 0.0, math.cos(b)]])
+    return ry @ rx
 
 
-def _inside_polygon(polygon_mm: np.ndarray, grid: _PixelGrid) -> np.ndarray:
-    """bool (H, W): pixel centres inside a closed polygon (V, 2) in mm, by the even-odd rule."""
-    inside = np.zeros((grid.ys.size, grid.xs.size), dtype=bool)
-    rows, cols = grid.window(polygon_mm.min(axis=0), polygon_mm.max(axis=0))
-    ys, xs = grid.ys[rows], grid.xs[cols]
-    window = inside[rows, cols]
+def plane_points_3d(scene: Scene, points_mm: np.ndarray, offset_mm: float = 0.0) -> np.ndarray:
+    """Camera coordinates (..., 3) in mm of gripper-plane points (..., 2) in mm, on the parallel
+    plane ``offset_mm`` farther from the camera along the plane's normal (e.g. the object's face)."""
+    rotation = plane_rotation(scene.tilt_deg)
+    p = np.asarray(points_mm, dtype=np.float64)
+    origin = np.array([0.0, 0.0, scene.plane_depth_mm]) + offset_mm * rotation[:, 2]
+    return origin + p[..., :1] * rotation[:, 0] + p[..., 1:2] * rotation[:, 1]
+
+
+def project(scene: Scene, points_mm: np.ndarray, intrinsics: Intrinsics, offset_mm: float = 0.0) -> np.ndarray:
+    """Pixels (..., 2) where the camera sees gripper-plane points (..., 2) in mm (on the parallel
+    plane at ``offset_mm``, see :func:`plane_points_3d`): the ground truth of any point a frame
+    shows, e.g. the object's outline with ``offset_mm=scene.object_depth_offset_mm``.
+
+    Example (untilted: the pinhole projection at the plane depth, as :func:`mm_to_px`):
+        >>> scene = Scene([], plane_depth_mm=120.0)
+        >>> project(scene, [[1.0, 0.0]], d405_intrinsics()).round(3).tolist()
+        [[324.808, 238.9]]
+    """
+    xyz = plane_points_3d(scene, points_mm, offset_mm)
+    return np.stack([intrinsics.fx * xyz[..., 0] / xyz[..., 2] + intrinsics.ppx,
+                     intrinsics.fy * xyz[..., 1] / xyz[..., 2] + intrinsics.ppy], axis=-1)
+
+
+class _Samples(NamedTuple):
+    """Sample points of a window of the image: ``rows`` and ``cols`` slices of the (sample) grid and
+    each sample's ray direction (h, w, 3), z = 1 (so a point at ray parameter t has depth t)."""
+
+    rows: slice
+    cols: slice
+    rays: np.ndarray
+
+
+class _Sampler:
+    """Ray directions of every sample of the image, ``factor`` x ``factor`` samples per pixel (at
+    the pixel centre when ``factor`` is 1), and windows of them around projected geometry."""
+
+    def __init__(self, intrinsics: Intrinsics, factor: int):
+        self.intrinsics, self.factor = intrinsics, factor
+        self.shape = (intrinsics.height * factor, intrinsics.width * factor)
+
+    def window(self, box_px: np.ndarray, margin_px: float) -> _Samples | None:
+        """Samples within ``margin_px`` of the box [[u0, v0], [u1, v1]] (px); None when outside."""
+        f = self.factor
+        lo = np.floor((np.min(box_px, axis=0) - margin_px + 0.5) * f).astype(int)
+        hi = np.ceil((np.max(box_px, axis=0) + margin_px + 0.5) * f).astype(int)
+        c0, r0 = np.maximum(lo, 0)
+        c1, r1 = np.minimum(hi, (self.shape[1], self.shape[0]))
+        if c0 >= c1 or r0 >= r1:
+            return None
+        u = (np.arange(c0, c1) + 0.5) / f - 0.5
+        v = (np.arange(r0, r1) + 0.5) / f - 0.5
+        x = (u - self.intrinsics.ppx) / self.intrinsics.fx
+        y = (v - self.intrinsics.ppy) / self.intrinsics.fy
+        rays = np.empty((len(v), len(u), 3))
+        rays[..., 0], rays[..., 1], rays[..., 2] = x[None, :], y[:, None], 1.0
+        return _Samples(slice(r0, r1), slice(c0, c1), rays)
+
+
+def _on_plane(scene: Scene, rays: np.ndarray, offset_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where rays (..., 3) meet the gripper plane's parallel at ``offset_mm``: plane coordinates
+    (..., 2) in mm and the depth (...,) in mm."""
+    rotation = plane_rotation(scene.tilt_deg)
+    normal = rotation[:, 2]
+    origin = np.array([0.0, 0.0, scene.plane_depth_mm]) + offset_mm * normal
+    t = (origin @ normal) / (rays @ normal)
+    relative = t[..., None] * rays - origin
+    return np.stack([relative @ rotation[:, 0], relative @ rotation[:, 1]], axis=-1), t
+
+
+def _inside_polygon(polygon_mm: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """bool (...): points (..., 2) in mm inside a closed polygon (V, 2) in mm, by the even-odd rule."""
+    inside = np.zeros(xy.shape[:-1], dtype=bool)
+    x, y = xy[..., 0], xy[..., 1]
     for (ax, ay), (bx, by) in zip(polygon_mm, np.roll(polygon_mm, -1, axis=0)):
-        crossing = (ay > ys) != (by > ys)  # rows whose centre line crosses this edge
-        if crossing.any():
-            x_cross = ax + (ys[crossing] - ay) * (bx - ax) / (by - ay)
-            window[crossing] ^= xs[None, :] < x_cross[:, None]
+        if ay == by:
+            continue
+        crossing = (ay > y) != (by > y)
+        x_cross = ax + (y - ay) * (bx - ax) / (by - ay)
+        inside ^= crossing & (x < x_cross)
     return inside
 
 
-def _distance_to_polyline(polyline_mm: np.ndarray, grid: _PixelGrid, reach_mm: float) -> np.ndarray:
-    """float (H, W): distance (mm) from each pixel centre to an open polyline (K, 2) in mm.
-
-    Exact within ``reach_mm`` of the polyline; pixels farther away read +inf.
-    """
-    distance = np.full((grid.ys.size, grid.xs.size), np.inf)
+def _distance_in_plane(polyline_mm: np.ndarray, xy: np.ndarray, flat_base: bool) -> np.ndarray:
+    """(...): distance (mm) from plane points (..., 2) to an open polyline (K, 2); with
+    ``flat_base`` the points behind the line across the first point (square to the first
+    segment) read +inf: the finger is cut there."""
+    distance = np.full(xy.shape[:-1], np.inf)
     for a, b in zip(polyline_mm[:-1], polyline_mm[1:]):
-        rows, cols = grid.window(np.minimum(a, b) - reach_mm, np.maximum(a, b) + reach_mm)
-        dx, dy = grid.xs[None, cols] - a[0], grid.ys[rows, None] - a[1]
         ab = b - a
         length2 = float(ab @ ab)
-        t = np.clip((dx * ab[0] + dy * ab[1]) / length2, 0.0, 1.0) if length2 > 0.0 else 0.0
-        np.minimum(distance[rows, cols], np.hypot(dx - t * ab[0], dy - t * ab[1]), out=distance[rows, cols])
+        d = xy - a
+        t = np.clip((d @ ab) / length2, 0.0, 1.0) if length2 > 0.0 else np.zeros(xy.shape[:-1])
+        np.minimum(distance, np.hypot(d[..., 0] - t * ab[0], d[..., 1] - t * ab[1]), out=distance)
+    if flat_base:
+        distance[(xy - polyline_mm[0]) @ (polyline_mm[1] - polyline_mm[0]) < 0.0] = np.inf
     return distance
+
+
+def _distance_to_rays(points_3d: np.ndarray, rays: np.ndarray, radius: float,
+                      flat_base: bool) -> tuple[np.ndarray, np.ndarray]:
+    """For a round finger: each ray's (..., 3) distance (mm) to the centreline polyline (K, 3) in
+    camera coordinates, and the depth (mm) where it enters the tube of ``radius`` around it (+inf
+    for rays that miss). With ``flat_base`` the tube is cut square across its axis at the first
+    point (a ray entering behind the cut misses; the cut face itself, edge-on to a camera facing
+    the plane, is not drawn)."""
+    norm = np.linalg.norm(rays, axis=-1)
+    u = rays / norm[..., None]
+    best = np.full(rays.shape[:-1], np.inf)
+    depth = np.full(rays.shape[:-1], np.inf)
+    for a, b in zip(points_3d[:-1], points_3d[1:]):
+        e = b - a
+        c = float(e @ e)
+        ue = u @ e
+        ua = u @ a
+        denom = c - ue**2
+        # The segment parameter s nearest the ray (a line through the camera): unconstrained
+        # minimiser of |t u - a - s e| over t and s, then clamped to the segment.
+        s_free = np.where(denom > 1e-12, (ue * ua - (a @ e)) / np.where(denom > 1e-12, denom, 1.0), 0.0)
+        s = np.clip(s_free, 0.0, 1.0)
+        q = a + s[..., None] * e
+        t = np.sum(u * q, axis=-1)
+        gap = np.linalg.norm(t[..., None] * u - q, axis=-1)
+        # Entry point: through a cylinder where s is inside the segment, a sphere at its ends.
+        sin_angle = np.sqrt(np.clip(1.0 - ue**2 / c, 1e-12, 1.0))
+        inside_segment = (s_free > 0.0) & (s_free < 1.0)
+        half_chord = np.sqrt(np.clip(radius**2 - gap**2, 0.0, None)) / np.where(inside_segment, sin_angle, 1.0)
+        t_entry = t - half_chord
+        hit_depth = t_entry * u[..., 2]
+        if flat_base:  # the tube is cut square across its axis at the first point
+            gap[(t_entry[..., None] * u - points_3d[0]) @ (points_3d[1] - points_3d[0]) < 0.0] = np.inf
+        closer = (gap <= radius) & (gap < best)
+        best[closer] = gap[closer]
+        depth[closer] = hit_depth[closer]
+    return best, depth
 
 
 def _palm_polygon(scene: Scene) -> np.ndarray:
@@ -258,24 +404,53 @@ def _palm_polygon(scene: Scene) -> np.ndarray:
     return np.array([(x0, y0), (x0, y1), (x1, y1), (x1, y0)])
 
 
-def _layers(scene: Scene, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """Labels (H, W) uint8 (see LABEL_*) and each finger pixel's distance to its centreline over r.
+class _Layers(NamedTuple):
+    """Per sample (H*f, W*f): label (see LABEL_*), depth (mm, of the nearest surface) and, on finger
+    samples, the distance to the centreline over r in [0, 1] (+inf elsewhere)."""
 
-    The second array is (H, W) float in [0, 1] on finger pixels and +inf elsewhere.
-    """
-    grid = _PixelGrid.of(intrinsics, scene.plane_depth_mm)
-    labels = np.full((intrinsics.height, intrinsics.width), LABEL_BACKGROUND, dtype=np.uint8)
+    labels: np.ndarray
+    depth_mm: np.ndarray
+    off_centre: np.ndarray
+
+
+def _layers(scene: Scene, intrinsics: Intrinsics, factor: int = 1) -> _Layers:
+    """Every sample's part, depth and finger shading coordinate; ``factor`` samples per pixel side."""
+    sampler = _Sampler(intrinsics, factor)
+    labels = np.full(sampler.shape, LABEL_BACKGROUND, dtype=np.uint8)
+    depth = np.full(sampler.shape, scene.background_depth_mm)
+    nearest = np.full(sampler.shape, np.inf)
+    px_per_mm = max(intrinsics.fx, intrinsics.fy) / scene.plane_depth_mm
+
+    def paint_polygon(polygon_mm: np.ndarray, offset_mm: float, label: int) -> None:
+        window = sampler.window(project(scene, polygon_mm, intrinsics, offset_mm), 2.0)
+        if window is None:
+            return
+        xy, t = _on_plane(scene, window.rays, offset_mm)
+        inside = _inside_polygon(polygon_mm, xy) & (t > 0.0)
+        labels[window.rows, window.cols][inside] = label
+        depth[window.rows, window.cols][inside] = t[inside]
+
     if scene.object_polygon is not None:
-        labels[_inside_polygon(scene.object_polygon, grid)] = LABEL_OBJECT
+        paint_polygon(scene.object_polygon, scene.object_depth_offset_mm, LABEL_OBJECT)
     if scene.palm:
-        labels[_inside_polygon(_palm_polygon(scene), grid)] = LABEL_PALM
-    nearest = np.full(labels.shape, np.inf)
+        paint_polygon(_palm_polygon(scene), 0.0, LABEL_PALM)
+    r = scene.half_thickness
+    flat_base = scene.base_end == "flat"
     for k, finger in enumerate(scene.fingers):
-        distance = _distance_to_polyline(finger, grid, scene.half_thickness)
-        closer = (distance <= scene.half_thickness) & (distance < nearest)
-        labels[closer] = LABEL_FIRST_FINGER + k
-        nearest[closer] = distance[closer]
-    return labels, nearest / scene.half_thickness
+        window = sampler.window(project(scene, finger, intrinsics), 1.5 * r * px_per_mm + 2.0)
+        if window is None:
+            continue
+        if scene.finger_section == "round":
+            distance, surface = _distance_to_rays(plane_points_3d(scene, finger), window.rays, r, flat_base)
+        else:
+            xy, surface = _on_plane(scene, window.rays, 0.0)
+            distance = _distance_in_plane(finger, xy, flat_base)
+        rows, cols = window.rows, window.cols
+        closer = (distance <= r) & (distance < nearest[rows, cols])
+        labels[rows, cols][closer] = LABEL_FIRST_FINGER + k
+        nearest[rows, cols][closer] = distance[closer]
+        depth[rows, cols][closer] = surface[closer]
+    return _Layers(labels, depth, nearest / r)
 
 
 def render_labels(scene: Scene, intrinsics: Intrinsics) -> np.ndarray:
@@ -317,6 +492,18 @@ def _hole_mask(labels: np.ndarray, n_holes: int, rng: np.random.Generator) -> np
     return mask.astype(bool)
 
 
+def _sample_colors(scene: Scene, layers: _Layers, background: np.ndarray) -> np.ndarray:
+    """float (h, w, 3): each sample's colour before lighting and noise (the background's where
+    nothing covers it; fingers shaded darker toward their edges, like a rounded surface)."""
+    gripper = np.asarray(scene.gripper_rgb, dtype=np.float64)
+    is_finger = layers.labels >= LABEL_FIRST_FINGER
+    color = background.copy()
+    color[layers.labels == LABEL_OBJECT] = scene.object_rgb
+    color[layers.labels == LABEL_PALM] = 0.92 * gripper
+    color[is_finger] = (1.0 - 0.2 * layers.off_centre[is_finger, None] ** 2) * gripper
+    return color
+
+
 def render(scene: Scene, intrinsics: Intrinsics) -> Frame:
     """Render an aligned colour + depth frame of the scene.
 
@@ -342,20 +529,21 @@ def render(scene: Scene, intrinsics: Intrinsics) -> Frame:
             f"depth_scale={intrinsics.depth_scale} m; use a larger depth_scale or a nearer background"
         )
     texture_rng, color_rng, depth_rng, hole_rng = np.random.default_rng(scene.seed).spawn(4)
-    labels, off_centre = _layers(scene, intrinsics)
+    centres = _layers(scene, intrinsics)
+    labels = centres.labels
     shape_hw = labels.shape
-    gripper = np.asarray(scene.gripper_rgb, dtype=np.float64)
-    is_finger = labels >= LABEL_FIRST_FINGER
-
-    color = _background_color(scene, shape_hw, texture_rng)
-    color[labels == LABEL_OBJECT] = scene.object_rgb
-    color[labels == LABEL_PALM] = 0.92 * gripper
-    color[is_finger] = (1.0 - 0.2 * off_centre[is_finger, None] ** 2) * gripper  # rounded-surface shading
+    background = _background_color(scene, shape_hw, texture_rng)
+    if scene.supersample == 1:
+        color = _sample_colors(scene, centres, background)
+    else:
+        f = int(scene.supersample)
+        fine = _sample_colors(scene, _layers(scene, intrinsics, f), np.repeat(np.repeat(background, f, 0), f, 1))
+        color = fine.reshape(shape_hw[0], f, shape_hw[1], f, 3).mean(axis=(1, 3))
+    columns = np.arange(shape_hw[1]) / max(shape_hw[1] - 1, 1) - 0.5
+    color *= scene.light_gain * (1.0 + scene.light_gradient * columns)[None, :, None]
     color += color_rng.normal(scale=scene.color_noise_sigma, size=color.shape)
 
-    depth_mm = np.full(shape_hw, scene.background_depth_mm)
-    depth_mm[labels == LABEL_OBJECT] = scene.plane_depth_mm + scene.object_depth_offset_mm
-    depth_mm[(labels == LABEL_PALM) | is_finger] = scene.plane_depth_mm
+    depth_mm = centres.depth_mm.copy()
     sigma = scene.depth_noise_sigma_mm * (depth_mm / scene.plane_depth_mm) ** 2
     depth_mm += sigma * depth_rng.standard_normal(shape_hw)
     depth = np.clip(np.rint(depth_mm / mm_per_unit), 1, _UINT16_MAX).astype(np.uint16)
