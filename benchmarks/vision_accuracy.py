@@ -36,7 +36,7 @@ from vision.geometry import PlaneCamera
 from vision.keypoints import gripper_keypoints, resample_polyline
 from vision.object_sdf import object_sdf
 from vision.segmentation import segment, segment_batch
-from vision.synthetic.render import LABEL_FIRST_FINGER, Scene, d405_intrinsics, mm_to_px, render, render_labels
+from vision.synthetic.render import LABEL_FIRST_FINGER, Scene, d405_intrinsics, mm_to_px, project, render, render_labels
 from vision.synthetic.rod import free_arc_points
 from vision.synthetic.scenes import gripper_centrelines
 from vision.synthetic.shapes import SHAPES, shape
@@ -256,6 +256,139 @@ def _sdf_errors(grid: SDFGrid, camera: PlaneCamera, outline_px: np.ndarray) -> t
     else:
         near_apex = np.zeros(len(samples), bool)
     return zero_level, float(at_outline[~near_apex].max()), float(at_outline.max())
+
+
+# ---------------------------------------------------------------------------------------------
+# Renderer variants: what real set-ups have that the default synthetic frame does not
+
+
+#: Each variant's changes to the rendered scene (``vision.synthetic.render.Scene`` fields), plus
+#: ``"touching"``: the closed frame's fingertips overlap by that many mm (the bases moved together).
+VARIANTS: dict[str, dict] = {
+    "default": {},
+    "flat base": {"base_end": "flat"},
+    "flat base, body in view": {"base_end": "flat", "palm": True},
+    "round fingers": {"finger_section": "round"},
+    "round fingers, flat base": {"finger_section": "round", "base_end": "flat"},
+    "object face -3 mm": {"object_depth_offset_mm": -3.0},
+    "object face +3 mm": {"object_depth_offset_mm": 3.0},
+    "tips touching": {"touching": 0.3},
+    "tilt 5 deg": {"tilt_deg": (4.0, -3.0)},
+    "tilt 10 deg": {"tilt_deg": (7.0, 7.0)},
+    "anti-aliased": {"supersample": 4},
+    "lighting and noise": {"light_gain": 0.8, "light_gradient": 0.3, "color_noise_sigma": 6.0,
+                           "depth_noise_sigma_mm": 0.6, "n_depth_holes": 12},
+    "all together": {"finger_section": "round", "base_end": "flat", "palm": True, "object_depth_offset_mm": -3.0,
+                     "touching": 0.3, "tilt_deg": (5.0, 4.0), "supersample": 3, "light_gradient": 0.3},
+}
+
+#: The issue's goals for each variant (mm, rad, percent).
+VARIANT_GOALS = {"theta_rad": 0.01, "length_pct": 1.0, "separation_pct": 0.5, "half_thickness_mm": 0.3,
+                 "sdf_mean_mm": 0.1, "closure_mid_mm": 0.3, "closure_tip_mm": 0.3}
+
+
+@dataclass(frozen=True)
+class VariantErrors:
+    """One scene of one variant through one-frame calibration (both fingers' worst).
+
+    Attributes:
+        theta_rad: |Theta - truth| (eq. 4 on the closed frame).
+        length_pct: |L - truth| / truth, percent (eq. 5 on the open frame).
+        separation_pct: |W - truth| / truth, percent (the bases of the open frame).
+        half_thickness_mm: |r - truth|.
+        sdf_mean_mm: mean |SDF| on the true outline of the object (its face), mm.
+        closure_mid_mm, closure_tip_mm: distance between the calibrated model's closure without an
+            object and the true one, at joint N/2 and N (from the base, along the gripper's axes).
+        detected: what the measurement detected in the open frame (profile ``vision.detected``).
+    """
+
+    theta_rad: float
+    length_pct: float
+    separation_pct: float
+    half_thickness_mm: float
+    sdf_mean_mm: float
+    closure_mid_mm: float
+    closure_tip_mm: float
+    detected: dict
+
+
+def variant_scenes(scene: AccuracyScene, variant: str) -> tuple[Scene, Scene]:
+    """(open frame with the object, closed frame without) of a scene rendered as ``variant``."""
+    changes = dict(VARIANTS[variant])
+    overlap = changes.pop("touching", None)
+    separation = scene.base_separation_mm
+    polygon = scene.object_polygon()
+    if overlap is not None:
+        tip_x = float(scene.arc_offsets(np.array([LENGTH_MM]))[0, 0])
+        separation = 2.0 * (tip_x + HALF_THICKNESS_MM) - overlap
+        room = separation - 2.0 * HALF_THICKNESS_MM - 6.0  # the object still fits between the open fingers
+        centroid = polygon.mean(axis=0)
+        size = 2.0 * np.hypot(*(polygon - centroid).T).max()
+        if size > room:
+            polygon = centroid + (polygon - centroid) * room / size
+        polygon = polygon + (scene.center_mm[0] - centroid[0], 0.0)
+    arc = scene.arc_offsets(np.linspace(0.0, LENGTH_MM, 257))
+    common = dict(half_thickness=HALF_THICKNESS_MM, plane_depth_mm=scene.plane_depth_mm,
+                  color_noise_sigma=scene.color_noise_sigma, n_depth_holes=scene.n_depth_holes)
+    common.update(changes)
+    opened = Scene(gripper_centrelines(scene.center_mm, separation, LENGTH_MM, 64), object_polygon=polygon,
+                   seed=2 * scene.index, **common)
+    closed = Scene(gripper_centrelines(scene.center_mm, separation, LENGTH_MM, 64, left_shape=arc, right_shape=arc),
+                   seed=2 * scene.index + 1, **common)
+    return opened, closed
+
+
+def variant_errors(scene: AccuracyScene, variant: str) -> VariantErrors:
+    """Render the scene as ``variant``, calibrate from it (one frame) and compare with the truth.
+
+    A segmentation or keypoint error is not caught: it fails the run (and the tests) loudly.
+    """
+    from calib.one_frame import frame_measurement, free_closure_joints, one_frame_from_frames
+    from calib.profile import FingerEntry
+
+    opened, closed = variant_scenes(scene, variant)
+    open_frame, closed_frame = render(opened, INTRINSICS), render(closed, INTRINSICS)
+    profile = one_frame_from_frames(closed_frame, open_frame, N_LINKS)
+    separation = float(np.hypot(*(opened.fingers[1][0] - opened.fingers[0][0])))
+    truth = FingerEntry(LENGTH_MM, scene.theta, HALF_THICKNESS_MM, N_LINKS)
+    errors: dict[str, list[float]] = {"theta": [], "length": [], "r": [], "mid": [], "tip": []}
+    for side in ("left", "right"):
+        entry = profile.fingers[side]
+        errors["theta"].append(abs(entry.theta_entire - scene.theta))
+        errors["length"].append(100.0 * abs(entry.length - LENGTH_MM) / LENGTH_MM)
+        errors["r"].append(abs(entry.half_thickness - HALF_THICKNESS_MM))
+        gap = np.hypot(*(free_closure_joints(entry, np.zeros(2), side) - free_closure_joints(truth, np.zeros(2), side)).T)
+        errors["mid"].append(float(gap[N_LINKS // 2]))
+        errors["tip"].append(float(gap[N_LINKS]))
+    measured = frame_measurement(open_frame)
+    outline = opened.object_polygon
+    samples = resample_polyline(np.vstack([outline, outline[:1]]), 4096)
+    seen_px = project(opened, samples, INTRINSICS, opened.object_depth_offset_mm)
+    grid = object_sdf(measured.segmentation.object, measured.object_camera)
+    sdf = np.asarray(sdf_lookup(grid, jnp.asarray(measured.object_camera.px_to_mm(seen_px), jnp.float32)))
+    return VariantErrors(
+        theta_rad=max(errors["theta"]), length_pct=max(errors["length"]),
+        separation_pct=100.0 * abs(profile.base_separation - separation) / separation,
+        half_thickness_mm=max(errors["r"]), sdf_mean_mm=float(np.abs(sdf).mean()),
+        closure_mid_mm=max(errors["mid"]), closure_tip_mm=max(errors["tip"]),
+        detected=profile.vision.get("detected", {}).get("open", {}),
+    )
+
+
+def variant_table(n_scenes: int) -> list[str]:
+    """Markdown rows: per variant, the worst of each error over ``n_scenes`` scenes."""
+    scenes = [s for s in accuracy_scenes(4 * n_scenes) if s.object_name is not None][:n_scenes]
+    fields = list(VARIANT_GOALS)
+    lines = ["| variant | " + " | ".join(fields) + " |", "| --- " * (len(fields) + 1) + "|",
+             "| goal | " + " | ".join(f"{VARIANT_GOALS[f]:g}" for f in fields) + " |"]
+    for variant in VARIANTS:
+        results = [variant_errors(scene, variant) for scene in scenes]
+        cells = []
+        for f in fields:
+            worst = max(getattr(r, f) for r in results)
+            cells.append(f"{worst:.3f}" + ("" if worst <= VARIANT_GOALS[f] else " (over)"))
+        lines.append(f"| {variant} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def time_backends(frames: list[Frame], repeats: int = 3) -> dict[str, float]:

@@ -265,7 +265,8 @@ class PlaneFit:
         camera: the plane through the fingers' outlines (where their silhouettes lie), tilted as
             measured: the millimetre frame of everything else.
         relief_mm: per finger region, how far its outline lies behind its nearest front-surface
-            reading (at its ridge): about r for a finger of round cross-section, 0 for a flat front.
+            reading (at its ridge): about r for a finger of round cross-section, 0 for a flat front
+            (one value measured for all the fingers, repeated per region).
         relief_measured: True when ``relief_mm`` was measured from the depth across the fingers,
             False when it was given.
         readings: number of depth readings the fit used.
@@ -298,8 +299,10 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
     pixels mix finger and background, are left out:
     a finger of round cross-section has relief r, a flat front relief 0, and either way its outline
     (the widest part of its cross-section) lies in the plane n . P = c. The plane's two tilt angles,
-    c and each finger's relief are found together by robust least squares (scipy's soft-L1 loss), so
-    depth holes, flying pixels and a few wrong readings do not pull the plane.
+    c and the relief are found together by robust least squares (scipy's soft-L1 loss), so depth
+    holes, flying pixels and a few wrong readings do not pull the plane. One relief serves every
+    finger (a gripper's fingers are alike): a relief per finger would trade off against the tilt
+    about the axis between them (a nearer right finger reads as a tilt or as a larger relief alike).
 
     Args:
         frame: the RGB-D frame.
@@ -368,7 +371,7 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
     def unpack(p: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
         a, b = (p[0], p[1]) if tilted else (0.0, 0.0)
         normal = np.array([math.cos(a) * math.sin(b), -math.sin(a), math.cos(a) * math.cos(b)])
-        relief = np.full(n_regions, fixed) if fixed is not None else p[3:]
+        relief = np.full(n_regions, fixed if fixed is not None else p[3])
         return normal, p[2], relief
 
     def residuals(p: np.ndarray) -> np.ndarray:
@@ -376,7 +379,7 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
         return points @ normal - c + relief[label] * bulge
 
     start = np.concatenate([[0.0, 0.0, float(np.median(points[:, 2]))],
-                            [] if fixed is not None else np.zeros(n_regions)])
+                            [] if fixed is not None else [0.0]])
     solution = least_squares(residuals, start, loss="soft_l1", f_scale=1.0, x_scale="jac")
     spread_mm = 1.4826 * float(np.median(np.abs(residuals(solution.x))))
     solution = least_squares(residuals, solution.x, loss="soft_l1", f_scale=max(2.0 * spread_mm, 0.02),

@@ -64,6 +64,13 @@ _SAMPLE_STEP_PX = 0.25  # step of the line sampling
 _BODY_GROWTH = 1.3  # distance transform over r at which the ridge is inside something wider: the body
 _LINES = 17  # lines across a cap or a cut end
 _CAP_REACH = 0.85  # their spread across the finger, as a fraction of r
+_CAP_ACROSS = np.linspace(-_CAP_REACH, _CAP_REACH, _LINES)
+#: Height of a round finger's front surface (a fraction of its relief) where the median of the lines
+#: across a cut end meets it: the relief of the middle-ranked line, sqrt(1 - x^2) at its offset x.
+_CUT_FRONT = float(np.median(np.sqrt(1.0 - _CAP_ACROSS**2)))
+#: The quadratic coefficient a least-squares fit gives a half circle of radius 1 sampled on the lines
+#: across a cap (about -0.67; -0.5 at the apex alone): the curvature of a rounded end.
+_HALF_CIRCLE_CURVATURE = float(np.polyfit(_CAP_ACROSS, np.sqrt(1.0 - _CAP_ACROSS**2), 2)[0])
 
 
 class KeypointError(SoftgripError):
@@ -100,11 +107,31 @@ class FingerKeypoints:
     width_edges_px: np.ndarray | None = None
     region: np.ndarray | None = None
 
-    def with_camera(self, camera: PlaneCamera) -> FingerKeypoints:
-        """The same keypoints, in millimetres through another camera (e.g. a fitted plane)."""
+    def with_camera(self, camera: PlaneCamera, relief_mm: float = 0.0) -> FingerKeypoints:
+        """The same keypoints, in millimetres through another camera (e.g. a fitted plane).
+
+        ``relief_mm``: how far the finger's front surface lies in front of ``camera``'s plane (a
+        round finger's, about r). A flat-cut base is seen where the cut meets the front surface,
+        so that nearer point is moved along the plane's normal onto the plane (in perspective, the
+        cut edge seen lies farther from the image centre than the base itself: r / depth of its
+        distance from the optical axis). A rounded end's outline is centred on its centre's
+        projection and needs nothing.
+        """
         import dataclasses
 
-        return dataclasses.replace(self, camera=camera)
+        if self.base_end != "flat" or relief_mm == 0.0:
+            return dataclasses.replace(self, camera=camera)
+        # The cut is found along lines across the finger (median over them), where the front surface
+        # stands _CUT_FRONT of the relief before the plane; across, the base is the middle of the sides
+        # (the silhouette, on the plane), so only the shift along the finger applies.
+        seen_at_front = camera.parallel(-_CUT_FRONT * relief_mm).px_to_mm(self.base_px)
+        shift = camera.mm_to_px(seen_at_front) - self.base_px
+        along = self.centreline_px[min(8, len(self.centreline_px) - 1)] - self.centreline_px[0]
+        along = along / max(float(np.hypot(*along)), 1e-9)
+        base_px = self.base_px + (shift @ along) * along
+        centreline = self.centreline_px.copy()
+        centreline[0] = base_px
+        return dataclasses.replace(self, camera=camera, base_px=base_px, centreline_px=centreline)
 
     @property
     def base_mm(self) -> np.ndarray:
@@ -277,8 +304,9 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
     if cut_column is not None:  # the cut is not the finger's outline
         contour = contour[np.abs(contour[:, 0] - cut_column) > 1.0]
     tip = _cap_centre(line[::-1], radius, contour, finger.shape, f"{side} finger's tip")
+    intr = camera.intrinsics
     base, end, body = _base(sampler, line, arc, clearance, radius, rounded_base, contour,
-                            f"{side} finger's base")
+                            f"{side} finger's base", (np.array([intr.ppx, intr.ppy]), 0.5 * (intr.fx + intr.fy)))
     first = int(np.argmin(np.hypot(*(line - base).T)))
     last = int(np.argmin(np.hypot(*(line - tip).T)))
     if last <= first + 1:
@@ -504,8 +532,16 @@ def _cap_centre(line: np.ndarray, radius: float, contour: np.ndarray, shape: tup
 
 
 def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.ndarray, radius: float,
-          rounded: bool | None, contour: np.ndarray, what: str) -> tuple[np.ndarray, BaseEnd, bool]:
-    """(base point (2,), base end kind, body in view) at the top end of ``line``."""
+          rounded: bool | None, contour: np.ndarray, what: str,
+          optics: tuple[np.ndarray, float]) -> tuple[np.ndarray, BaseEnd, bool]:
+    """(base point (2,), base end kind, body in view) at the top end of ``line``.
+
+    ``optics``: the principal point (2,) and focal length, px. The end is told by the curvature of
+    its outline across the finger: a rounded cap's is a half circle's; a flat cut's is 0, except that
+    the cut's edge on a round finger's front surface (nearer the camera than its sides) bulges
+    outward in perspective, by the fraction q = (distance of the end from the principal point
+    outward along the finger) / focal length of a half circle; the threshold lies midway.
+    """
     wide = np.flatnonzero(clearance[: len(line) // 2] > _BODY_GROWTH * radius)
     if wide.size:  # the ridge runs out of something wider than the finger: the gripper's body
         s_finger = arc[wide.max()] + 2.0 * radius
@@ -531,11 +567,16 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
         if points is not None:
             across = (points - top) @ np.array([-axis[1], axis[0]])
             along = (points - top) @ axis
-            curvature = np.polyfit(across, along, 2)[0]  # a half-circle of radius r: about -1 / (2 r)
-            if rounded or curvature < -0.25 / radius:
+            curvature = np.polyfit(across, along, 2)[0]
+            principal, focal = optics
+            q = max(0.0, float((top - principal) @ axis) / focal)
+            if rounded or curvature < 0.5 * (1.0 + q) * _HALF_CIRCLE_CURVATURE / radius:
                 return _cap_centre(line, radius, contour, sampler.shape, what), "rounded", False
-    s_in = 2.0 * radius
-    centre = _CentreCurve(sampler, line, arc, 1.5 * radius, 5.0 * radius, radius, what)
+    # Stations from 2.5 r on: nearer the cut the distance transform's ridge forks toward its corners
+    # (more so when a round finger's cut bulges in perspective), and its direction there would
+    # tilt the lines across the finger.
+    s_in = 2.5 * radius
+    centre = _CentreCurve(sampler, line, arc, 2.5 * radius, 6.0 * radius, radius, what)
     up, _ = centre.frame(s_in)
     hits = sampler.exits(_lines_across(centre(s_in), up, radius), up, 3.0 * radius)
     if (hits[:, 1] < 1.0).any() or np.isnan(hits).sum() > 2 * (_LINES // 2):

@@ -181,7 +181,8 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
                               width_edges_px=[k.width_edges_px for k in keypoints])
     offset = face_offset_mm(frame, segmentation.object, plane.camera) if segmentation.object.any() else None
     return GripperMeasurement(segmentation=segmentation, plane=plane,
-                              keypoints=tuple(k.with_camera(plane.camera) for k in keypoints),
+                              keypoints=tuple(k.with_camera(plane.camera, relief)
+                                              for k, relief in zip(keypoints, plane.relief_mm)),
                               object_offset_mm=offset)
 
 
