@@ -59,6 +59,9 @@ Split = Literal["components", "center_column", "center_hint", "neck"]
 #: A neck is at most this fraction of the smaller of the column counts (px per column) of the two
 #: halves' peaks: the region is much thinner there than across either finger.
 NECK_MAX_FRACTION = 0.5
+#: Below the region's middle row, the region is at most this many finger widths tall at a neck
+#: (a pinch where two fingertips touch, not the bottom of one curled finger).
+NECK_MAX_PINCH = 0.75
 #: Each side of a cut has at least this fraction of the other side's area (two fingers of one gripper).
 CUT_MIN_BALANCE = 0.25
 
@@ -506,7 +509,10 @@ def neck_column(region: np.ndarray) -> float | None:
     middle of the point where two fingertips touch, or of the gap between two fingers joined by the
     gripper's body. There is no clear neck (None) when ``n_min`` exceeds ``NECK_MAX_FRACTION`` (1/2)
     of the smaller peak: a single finger's column counts fall off toward its tip without rising
-    again. :func:`segment` further requires each side of the cut to hold at least
+    again; nor when the region is at least ``NECK_MAX_PINCH`` (3/4) of a finger's width (twice the
+    median over rows of the largest distance-transform value) tall in the neck's column below the
+    region's middle row: that is one finger curled into a U, not two fingertips touching (a pinch)
+    or the gripper's body joining the bases (above the middle). :func:`segment` further requires each side of the cut to hold at least
     ``min_finger_px`` px and at least ``CUT_MIN_BALANCE`` (1/4) of the other side's area.
 
     Args:
@@ -543,7 +549,25 @@ def neck_column(region: np.ndarray) -> float | None:
     starts, stops = edges[0::2], edges[1::2] - 1  # inclusive runs, indices into ``between``
     middles = first + 0.5 * (starts + stops)
     best = min(range(len(starts)), key=lambda i: (-(stops[i] - starts[i]), abs(middles[i] - centroid)))
-    return float(middles[best])
+    neck = float(middles[best])
+    return neck if _neck_is_a_junction(region, neck) else None
+
+
+def _neck_is_a_junction(region: np.ndarray, neck: float) -> bool:
+    """Whether the region's pixels in the neck's column could join two fingers: each vertical run
+    of them is a pinch (shorter than ``NECK_MAX_PINCH`` finger widths: fingertips touching) or lies
+    in the upper half of the region (the gripper's body above the bases). A run as thick as a
+    finger low in the region is the bottom of one finger curled into a U."""
+    column = region[:, int(math.floor(neck))] | region[:, int(math.ceil(neck))]
+    distance = cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    rows = np.flatnonzero(region.any(axis=1))
+    width = 2.0 * float(np.median(distance[rows].max(axis=1)))  # a finger's width (px)
+    middle = 0.5 * (rows[0] + rows[-1])
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], column.view(np.int8), [0]])))
+    for start, stop in zip(edges[0::2], edges[1::2]):  # rows start..stop-1
+        if stop - start >= NECK_MAX_PINCH * width and 0.5 * (start + stop - 1) > middle:
+            return False
+    return True
 
 
 def _cut_region(region: np.ndarray, center: float, min_px: int, where: str,
