@@ -219,7 +219,10 @@ def segment(frame: Frame, settings: SegmentationSettings | None = None, *,
         center_hint: image column (px) of the gripper's centre line found in another frame of the
             same set-up (e.g. the open frame's ``center_column``), used to cut the gripper region
             when the fingers form one region; None to find the cut (the neck) in this frame.
-            ``settings.center_column``, when set, takes precedence.
+            ``settings.center_column``, when set, takes precedence. The hint must cut the region
+            where it could join two fingers (a pinch, or the body in the region's upper half, as
+            for a neck: :func:`neck_column`) into two sides of at least ``min_finger_px`` px and
+            1/4 of each other's area, else the frame is refused.
 
     Raises:
         SegmentationError: no gripper, only one finger, no depth in the gripper region, or a
@@ -475,6 +478,12 @@ def _components(frame: Frame, settings: SegmentationSettings, cutoff_mm: float, 
             if center_hint is not None:
                 center, split = center_hint, "center_hint"
                 source = f"center_hint={center_hint:g} (the centre line of another frame)"
+                if not 0.0 <= center < width or not _neck_is_a_junction(region, center):
+                    raise SegmentationError(
+                        f"only one finger found ({where}), and the region is as thick as a finger where "
+                        f"{source} would cut it (or the hint is outside the frame, width {width} px): "
+                        f"expected two fingers touching there; check that both fingers are in view, or "
+                        f"set center_column to a column between them")
             else:
                 neck = neck_column(region)
                 if neck is None:
@@ -510,10 +519,11 @@ def neck_column(region: np.ndarray) -> float | None:
     gripper's body. There is no clear neck (None) when ``n_min`` exceeds ``NECK_MAX_FRACTION`` (1/2)
     of the smaller peak: a single finger's column counts fall off toward its tip without rising
     again; nor when the region is at least ``NECK_MAX_PINCH`` (3/4) of a finger's width (twice the
-    median over rows of the largest distance-transform value) tall in the neck's column below the
-    region's middle row: that is one finger curled into a U, not two fingertips touching (a pinch)
-    or the gripper's body joining the bases (above the middle). :func:`segment` further requires each side of the cut to hold at least
-    ``min_finger_px`` px and at least ``CUT_MIN_BALANCE`` (1/4) of the other side's area.
+    median over rows of the largest distance-transform value) tall in the neck's column in a run
+    reaching below the region's middle row: that is one finger curled into a U, not two fingertips
+    touching (a pinch) or the gripper's body joining the bases (wholly above the middle).
+    :func:`segment` further requires each side of the cut to hold at least ``min_finger_px`` px and
+    at least ``CUT_MIN_BALANCE`` (1/4) of the other side's area.
 
     Args:
         region: bool (H, W), one connected region.
@@ -554,18 +564,20 @@ def neck_column(region: np.ndarray) -> float | None:
 
 
 def _neck_is_a_junction(region: np.ndarray, neck: float) -> bool:
-    """Whether the region's pixels in the neck's column could join two fingers: each vertical run
-    of them is a pinch (shorter than ``NECK_MAX_PINCH`` finger widths: fingertips touching) or lies
-    in the upper half of the region (the gripper's body above the bases). A run as thick as a
-    finger low in the region is the bottom of one finger curled into a U."""
-    column = region[:, int(math.floor(neck))] | region[:, int(math.ceil(neck))]
+    """Whether the region's pixels in column ``neck`` (px; both columns next to a half-integer)
+    could join two fingers: each vertical run of them is a pinch (shorter than ``NECK_MAX_PINCH``
+    finger widths: fingertips touching) or lies wholly in the upper half of the region (the
+    gripper's body above the bases). A run as thick as a finger low in the region is the bottom of one finger
+    curled into a U (or a cut through a finger)."""
+    last = region.shape[1] - 1
+    column = region[:, min(int(math.floor(neck)), last)] | region[:, min(int(math.ceil(neck)), last)]
     distance = cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     rows = np.flatnonzero(region.any(axis=1))
     width = 2.0 * float(np.median(distance[rows].max(axis=1)))  # a finger's width (px)
     middle = 0.5 * (rows[0] + rows[-1])
     edges = np.flatnonzero(np.diff(np.concatenate([[0], column.view(np.int8), [0]])))
     for start, stop in zip(edges[0::2], edges[1::2]):  # rows start..stop-1
-        if stop - start >= NECK_MAX_PINCH * width and 0.5 * (start + stop - 1) > middle:
+        if stop - start >= NECK_MAX_PINCH * width and stop - 1 > middle:
             return False
     return True
 
