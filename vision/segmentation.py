@@ -219,10 +219,12 @@ def segment(frame: Frame, settings: SegmentationSettings | None = None, *,
         center_hint: image column (px) of the gripper's centre line found in another frame of the
             same set-up (e.g. the open frame's ``center_column``), used to cut the gripper region
             when the fingers form one region; None to find the cut (the neck) in this frame.
-            ``settings.center_column``, when set, takes precedence. The hint must cut the region
-            where it could join two fingers (a pinch, or the body in the region's upper half, as
-            for a neck: :func:`neck_column`) into two sides of at least ``min_finger_px`` px and
-            1/4 of each other's area, else the frame is refused.
+            ``settings.center_column``, when set, takes precedence. The hint is used where its
+            column could join two fingers (a pinch, or the body in the region's upper half, as at
+            a neck: :func:`neck_column`); where it would cut through a finger (e.g. the tips of
+            fingers of unequal Theta meet off the centre line) the region's neck is used instead
+            (split ``"neck"``). Either cut must leave two sides of at least ``min_finger_px`` px
+            and 1/4 of each other's area, else the frame is refused.
 
     Raises:
         SegmentationError: no gripper, only one finger, no depth in the gripper region, or a
@@ -475,24 +477,22 @@ def _components(frame: Frame, settings: SegmentationSettings, cutoff_mm: float, 
             k = big[0]
             region = labels == k
             where = f"{stats[k, cv2.CC_STAT_AREA]} px around column {centroids[k, 0]:.0f}"
-            if center_hint is not None:
+            hint_cuts = center_hint is not None and 0.0 <= center_hint < width \
+                and _neck_is_a_junction(region, center_hint)
+            if center_hint is not None and hint_cuts:
                 center, split = center_hint, "center_hint"
                 source = f"center_hint={center_hint:g} (the centre line of another frame)"
-                if not 0.0 <= center < width or not _neck_is_a_junction(region, center):
-                    raise SegmentationError(
-                        f"only one finger found ({where}), and the region is as thick as a finger where "
-                        f"{source} would cut it (or the hint is outside the frame, width {width} px): "
-                        f"expected two fingers touching there; check that both fingers are in view, or "
-                        f"set center_column to a column between them")
-            else:
+            else:  # no hint, or one that would cut through a finger (e.g. fingers of unequal Theta)
                 neck = neck_column(region)
                 if neck is None:
+                    hint_note = "" if center_hint is None else (
+                        f", and center_hint={center_hint:g} does not cut it where two fingers could meet")
                     raise SegmentationError(
-                        f"only one finger found ({where}, no neck where two fingers would meet); expected "
-                        f"two separate finger regions of at least min_finger_px={settings.min_finger_px} px: "
-                        f"check that both fingers are in view; if they touch each other or the gripper's "
-                        f"body joins them, set center_column to a column between them or roi to leave the "
-                        f"body out")
+                        f"only one finger found ({where}, no neck where two fingers would meet{hint_note}); "
+                        f"expected two separate finger regions of at least min_finger_px="
+                        f"{settings.min_finger_px} px: check that both fingers are in view; if they touch "
+                        f"each other or the gripper's body joins them, set center_column to a column "
+                        f"between them or roi to leave the body out")
                 center, split = neck, "neck"
                 source = f"its neck at column {neck:.1f}"
             left, right = _cut_region(region, center, settings.min_finger_px, where, source)

@@ -121,6 +121,14 @@ def test_a_single_finger_is_never_split(theta: float, palm: bool) -> None:
         segment(frame, center_hint=truth_column())  # the whole region is on one side
 
 
+def test_a_hint_through_a_fingertip_falls_back_to_the_neck() -> None:
+    scene = Scene(touching(0.55, 0.55, 1), half_thickness=HALF_THICKNESS, seed=8)
+    frame, labels = render(scene, INTR), render_labels(scene, INTR)
+    seg = segment(frame, center_hint=truth_column() + 12.0)  # a finger width off: inside the right tip
+    assert seg.split == "neck" and seg.center_column == pytest.approx(truth_column(), abs=1.5)
+    check_split(seg, labels)
+
+
 def test_center_hints_of_a_batch() -> None:
     frames = [render(Scene(touching(0.55, 0.55, 1), half_thickness=HALF_THICKNESS, seed=s), INTR) for s in (4, 5)]
     segs = segment_batch(frames, center_hints=[None, truth_column()])
@@ -131,11 +139,13 @@ def test_center_hints_of_a_batch() -> None:
         segment_batch(frames, center_hints=[None, math.nan])
 
 
-@pytest.mark.parametrize("palm", [False, True], ids=["no_palm", "palm"])
-def test_one_frame_calibration_with_touching_tips(palm: bool) -> None:
-    # The body is 12 mm tall here: keypoints recognise a body wider than the finger (a 6 mm bar
-    # around 8 mm thick fingers reads as neither a body nor a finger end).
-    thetas = (0.55, 0.55)
+@pytest.mark.parametrize(("thetas", "palm"), [((0.55, 0.55), False), ((0.55, 0.55), True),
+                                             ((0.55, 0.45), False)], ids=["equal", "equal_palm", "unequal"])
+def test_one_frame_calibration_with_touching_tips(thetas: tuple[float, float], palm: bool) -> None:
+    # Unequal Theta: the tips meet off the open frame's centre line, whose column would cut through
+    # a fingertip, so the closed frame is cut at its neck. The body is 12 mm tall here: keypoints
+    # recognise a body wider than the finger (a 6 mm bar around 8 mm thick fingers reads as neither
+    # a body nor a finger end).
     body = {"palm": palm, "palm_height_mm": 12.0}
     closed = Scene(touching(*thetas, overlap_px=1), half_thickness=HALF_THICKNESS, seed=6, **body)
     separation = closed.fingers[1][0, 0] - closed.fingers[0][0, 0]
@@ -143,5 +153,7 @@ def test_one_frame_calibration_with_touching_tips(palm: bool) -> None:
                    seed=7, **body)
     closed_frame, open_frame = render(closed, INTR), render(opened, INTR)
     assert segment(closed_frame).split == "neck"  # the closed frame's fingers form one region
+    hint = segment(open_frame).center_column
+    assert segment(closed_frame, center_hint=hint).split == ("center_hint" if thetas[0] == thetas[1] else "neck")
     profile = one_frame_from_frames(closed_frame, open_frame, 10)
     np.testing.assert_allclose([profile.fingers[s].theta_entire for s in ("left", "right")], thetas, atol=0.01)
