@@ -149,19 +149,11 @@ def frame_measurement(frame: Frame, settings: SegmentationSettings | None = None
     """
     import warnings
 
-    seg = segment(frame, settings) if center_hint is None else _segment_with_hint(frame, settings, center_hint)
+    seg = segment(frame, settings, center_hint=center_hint)
     measurement = measure_gripper(frame, seg, measure)
     for note in measurement.warnings():
         warnings.warn(note, MeasurementWarning, stacklevel=2)
     return measurement
-
-
-def _segment_with_hint(frame: Frame, settings: SegmentationSettings | None, center_hint: float):
-    """``segment`` with a centre-line hint, where segmentation takes one (else without it)."""
-    try:
-        return segment(frame, settings, center_hint=center_hint)
-    except TypeError:
-        return segment(frame, settings)
 
 
 def frame_keypoints(

@@ -350,13 +350,9 @@ def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera, rounded_b
 
 
 def _cut_column(segmentation: Segmentation) -> float | None:
-    """The column segmentation cut the fingers apart at, when the two masks meet there."""
-    split = getattr(segmentation, "split", None)
-    if split is not None:
-        return None if split == "components" else float(segmentation.center_column)
-    left, right = segmentation.left_finger, segmentation.right_finger
-    touching = cv2.dilate(left.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool) & right
-    return float(segmentation.center_column) if touching.any() else None
+    """The column (px) segmentation cut the fingers apart at (every split but two separate
+    components), None when the fingers were separate regions."""
+    return None if segmentation.split == "components" else float(segmentation.center_column)
 
 
 def _sign(side: str) -> float:

@@ -19,6 +19,10 @@ Every pixel is classified in two stages:
    components (at least ``min_finger_px`` each), the left one being the one whose centroid is
    further left; with ``center_column`` set, the gripper mask is cut at that column instead and each
    finger is the largest component on its side (this separates fingers that touch each other).
+   When only one component is big enough (fingertips touching, or the gripper's body joining the
+   finger bases), that region is cut at a column: the caller's ``center_hint`` (where another frame
+   of the same set-up put the centre line), else the region's **neck** (see :func:`neck_column`);
+   a region without a clear neck (e.g. one finger in view) is an error, never a guessed split.
    Object components smaller than ``min_object_px`` are dropped. An empty object mask is not an
    error: the scene has no object (contact case (a)).
 
@@ -50,6 +54,16 @@ from softgrip_jax import SoftgripError
 from vision.frames import Frame
 
 Backend = Literal["opencv", "kornia"]
+Split = Literal["components", "center_column", "center_hint", "neck"]
+
+#: A neck is at most this fraction of the smaller of the column counts (px per column) of the two
+#: halves' peaks: the region is much thinner there than across either finger.
+NECK_MAX_FRACTION = 0.5
+#: Below the region's middle row, the region is at most this many finger widths tall at a neck
+#: (a pinch where two fingertips touch, not the bottom of one curled finger).
+NECK_MAX_PINCH = 0.75
+#: Each side of a cut has at least this fraction of the other side's area (two fingers of one gripper).
+CUT_MIN_BALANCE = 0.25
 
 
 #: Largest side (px) of the dilation and opening kernels: a kernel is side x side bytes, and one
@@ -171,7 +185,14 @@ class Segmentation:
         left_finger, right_finger: the two finger components (disjoint subsets of ``gripper``).
         object: the object's pixels; all False when there is no object.
         background_cutoff_mm: the depth cut-off used (mm); inf when no background was found.
-        center_column: the column (px) separating the fingers.
+        center_column: the column (px) separating the fingers: the midpoint of the two fingers'
+            centroids (split ``"components"``), else the column the gripper region was cut at
+            (pixel columns ``u < center_column`` went left).
+        split: how the fingers were separated: ``"components"`` (two separate gripper regions),
+            ``"center_column"`` (cut at ``SegmentationSettings.center_column``), ``"center_hint"``
+            (one region, cut at the caller's ``center_hint``) or ``"neck"`` (one region, cut at its
+            neck found in this frame, :func:`neck_column`). For every split but ``"components"``
+            the two masks may meet along ``center_column``, which is then not a finger outline.
     """
 
     gripper: np.ndarray
@@ -180,6 +201,7 @@ class Segmentation:
     object: np.ndarray
     background_cutoff_mm: float
     center_column: float
+    split: Split = "components"
 
     @property
     def fingers(self) -> np.ndarray:
@@ -187,8 +209,22 @@ class Segmentation:
         return self.left_finger | self.right_finger
 
 
-def segment(frame: Frame, settings: SegmentationSettings | None = None) -> Segmentation:
+def segment(frame: Frame, settings: SegmentationSettings | None = None, *,
+            center_hint: float | None = None) -> Segmentation:
     """Segment one frame with the OpenCV backend (see the module docstring).
+
+    Args:
+        frame: the RGB-D frame.
+        settings: thresholds (defaults if None).
+        center_hint: image column (px) of the gripper's centre line found in another frame of the
+            same set-up (e.g. the open frame's ``center_column``), used to cut the gripper region
+            when the fingers form one region; None to find the cut (the neck) in this frame.
+            ``settings.center_column``, when set, takes precedence. The hint is used where its
+            column could join two fingers (a pinch, or the body in the region's upper half, as at
+            a neck: :func:`neck_column`); where it would cut through a finger (e.g. the tips of
+            fingers of unequal Theta meet off the centre line) the region's neck is used instead
+            (split ``"neck"``). Either cut must leave two sides of at least ``min_finger_px`` px
+            and 1/4 of each other's area, else the frame is refused.
 
     Raises:
         SegmentationError: no gripper, only one finger, no depth in the gripper region, or a
@@ -203,7 +239,7 @@ def segment(frame: Frame, settings: SegmentationSettings | None = None) -> Segme
         >>> seg.object.shape, bool(seg.object.any()), bool((seg.left_finger & seg.right_finger).any())
         ((480, 640), True, False)
     """
-    return segment_batch([frame], settings)[0]
+    return segment_batch([frame], settings, center_hints=[center_hint])[0]
 
 
 def segment_batch(
@@ -211,6 +247,8 @@ def segment_batch(
     settings: SegmentationSettings | None = None,
     backend: Backend = "opencv",
     device: str = "cpu",
+    *,
+    center_hints: Sequence[float | None] | None = None,
 ) -> list[Segmentation]:
     """Segment several frames.
 
@@ -221,13 +259,16 @@ def segment_batch(
             tensors on ``device``, meant for a GPU: on a CPU it is 20-40x slower than OpenCV, see
             benchmarks/vision_accuracy.py).
         device: torch device of the kornia backend, e.g. ``"cpu"`` or ``"cuda"``.
+        center_hints: one centre-line column (px) or None per frame (see :func:`segment`), or None
+            for no hints.
 
     Returns:
         One :class:`Segmentation` per frame, in order.
 
     Raises:
         SegmentationError: as :func:`segment`, naming the frame's index; also a bad backend,
-            frames of different sizes for kornia, or kornia not installed.
+            frames of different sizes for kornia, kornia not installed, or ``center_hints`` not
+            one finite column (or None) per frame.
 
     Example:
         >>> from pathlib import Path
@@ -240,6 +281,7 @@ def segment_batch(
     """
     settings = SegmentationSettings() if settings is None else settings
     frames = list(frames)
+    hints = _check_hints(center_hints, len(frames))
     cutoffs = [background_cutoff_mm(frame, settings) for frame in frames]
     rois = [_roi_mask(frame.depth.shape, settings.roi) for frame in frames]
     if backend == "opencv":
@@ -249,9 +291,9 @@ def segment_batch(
     else:
         raise SegmentationError(f"unknown segmentation backend {backend!r}: use 'opencv' or 'kornia'")
     results = []
-    for index, (frame, cutoff, roi, (gripper, obj)) in enumerate(zip(frames, cutoffs, rois, raw)):
+    for index, (frame, cutoff, roi, (gripper, obj), hint) in enumerate(zip(frames, cutoffs, rois, raw, hints)):
         try:
-            results.append(_components(frame, settings, cutoff, roi, gripper, obj))
+            results.append(_components(frame, settings, cutoff, roi, gripper, obj, hint))
         except SegmentationError as err:
             if len(frames) == 1:
                 raise
@@ -383,10 +425,26 @@ def _roi_mask(shape: tuple[int, int], roi: tuple[int, int, int, int] | None) -> 
     return inside
 
 
+def _check_hints(center_hints: Sequence[float | None] | None, n_frames: int) -> list[float | None]:
+    """The centre-line hints as one float (px) or None per frame."""
+    if center_hints is None:
+        return [None] * n_frames
+    hints = list(center_hints)
+    if len(hints) != n_frames:
+        raise SegmentationError(f"center_hints must give one column (or None) per frame: got {len(hints)} "
+                                f"for {n_frames} frame(s)")
+    for index, hint in enumerate(hints):
+        if hint is not None and not (_is_real(hint) and math.isfinite(hint)):
+            raise SegmentationError(f"center_hints[{index}] must be a finite image column (px) or None, "
+                                    f"got {hint!r}")
+    return [None if hint is None else float(hint) for hint in hints]
+
+
 def _components(frame: Frame, settings: SegmentationSettings, cutoff_mm: float, roi: np.ndarray,
-                gripper: np.ndarray, obj: np.ndarray) -> Segmentation:
+                gripper: np.ndarray, obj: np.ndarray, center_hint: float | None = None) -> Segmentation:
     """Stage 2: split the gripper into fingers and clean the object mask."""
     width = gripper.shape[1]
+    split: Split
     if settings.center_column is not None:
         center = float(settings.center_column)
         if center >= width:
@@ -403,23 +461,41 @@ def _components(frame: Frame, settings: SegmentationSettings, cutoff_mm: float, 
                     f"only one finger found: no gripper region of at least min_finger_px="
                     f"{settings.min_finger_px} px {side} of center_column={center:g}; expected one finger "
                     f"on each side: check that both fingers are in view, or move center_column between them")
+        split = "center_column"
     else:
         _, labels, stats, centroids = cv2.connectedComponentsWithStats(gripper.view(np.uint8), connectivity=8)
         order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA], kind="stable")
         big = [k for k in order if stats[k, cv2.CC_STAT_AREA] >= settings.min_finger_px]
         if not big:
             _raise_no_gripper(frame, settings, cutoff_mm, roi)
-        if len(big) == 1:
+        if len(big) >= 2:
+            first, second = sorted(big[:2], key=lambda k: centroids[k, 0])
+            left, right = labels == first, labels == second
+            center = 0.5 * float(centroids[first, 0] + centroids[second, 0])
+            split = "components"
+        else:
             k = big[0]
-            raise SegmentationError(
-                f"only one finger found ({stats[k, cv2.CC_STAT_AREA]} px around column "
-                f"{centroids[k, 0]:.0f}); expected two separate finger regions of at least min_finger_px="
-                f"{settings.min_finger_px} px: check that both fingers are in view; if they touch each "
-                f"other or the gripper's body joins them, set center_column to a column between them "
-                f"or roi to leave the body out")
-        first, second = sorted(big[:2], key=lambda k: centroids[k, 0])
-        left, right = labels == first, labels == second
-        center = 0.5 * float(centroids[first, 0] + centroids[second, 0])
+            region = labels == k
+            where = f"{stats[k, cv2.CC_STAT_AREA]} px around column {centroids[k, 0]:.0f}"
+            hint_cuts = center_hint is not None and 0.0 <= center_hint < width \
+                and _neck_is_a_junction(region, center_hint)
+            if center_hint is not None and hint_cuts:
+                center, split = center_hint, "center_hint"
+                source = f"center_hint={center_hint:g} (the centre line of another frame)"
+            else:  # no hint, or one that would cut through a finger (e.g. fingers of unequal Theta)
+                neck = neck_column(region)
+                if neck is None:
+                    hint_note = "" if center_hint is None else (
+                        f", and center_hint={center_hint:g} does not cut it where two fingers could meet")
+                    raise SegmentationError(
+                        f"only one finger found ({where}, no neck where two fingers would meet{hint_note}); "
+                        f"expected two separate finger regions of at least min_finger_px="
+                        f"{settings.min_finger_px} px: check that both fingers are in view; if they touch "
+                        f"each other or the gripper's body joins them, set center_column to a column "
+                        f"between them or roi to leave the body out")
+                center, split = neck, "neck"
+                source = f"its neck at column {neck:.1f}"
+            left, right = _cut_region(region, center, settings.min_finger_px, where, source)
     return Segmentation(
         gripper=gripper,
         left_finger=left,
@@ -427,7 +503,102 @@ def _components(frame: Frame, settings: SegmentationSettings, cutoff_mm: float, 
         object=_drop_small(obj, settings.min_object_px),
         background_cutoff_mm=cutoff_mm,
         center_column=center,
+        split=split,
     )
+
+
+def neck_column(region: np.ndarray) -> float | None:
+    """The column (px) where one region made of two fingers is thinnest between them, or None.
+
+    The region's column counts ``n(u)`` (pixels per column) are split at its centroid column; the
+    highest column of each half is that half's peak (across a finger's straight stretch near its
+    base). The neck is the thinnest column between the two peaks: the columns within
+    ``max(1, n_min / 10)`` px of the smallest count ``n_min`` there form runs, and the neck is the
+    middle of the longest run (of the one nearest the centroid among equally long ones), e.g. the
+    middle of the point where two fingertips touch, or of the gap between two fingers joined by the
+    gripper's body. There is no clear neck (None) when ``n_min`` exceeds ``NECK_MAX_FRACTION`` (1/2)
+    of the smaller peak: a single finger's column counts fall off toward its tip without rising
+    again; nor when the region is at least ``NECK_MAX_PINCH`` (3/4) of a finger's width (twice the
+    median over rows of the largest distance-transform value) tall in the neck's column in a run
+    reaching below the region's middle row: that is one finger curled into a U, not two fingertips
+    touching (a pinch) or the gripper's body joining the bases (wholly above the middle).
+    :func:`segment` further requires each side of the cut to hold at least ``min_finger_px`` px and
+    at least ``CUT_MIN_BALANCE`` (1/4) of the other side's area.
+
+    Args:
+        region: bool (H, W), one connected region.
+
+    Returns:
+        The neck's column u (px, pixel centres at integers; a half-integer between two columns),
+        or None.
+
+    Example (two 6-px-wide blocks joined by a 1-px bridge across columns 8-11):
+        >>> m = np.zeros((10, 20), bool)
+        >>> m[:, 2:8] = m[:, 12:18] = True
+        >>> m[4, 8:12] = True
+        >>> neck_column(m), neck_column(m[:, :8])
+        (9.5, None)
+    """
+    counts = region.sum(axis=0).astype(np.float64)
+    columns = np.nonzero(counts)[0]
+    if columns.size < 3:
+        return None
+    u = np.arange(counts.size, dtype=np.float64)
+    centroid = float((counts * u).sum() / counts.sum())
+    halves = u < centroid
+    if not halves.any() or halves.all():
+        return None
+    first = int(np.argmax(np.where(halves, counts, -1.0)))
+    second = int(np.argmax(np.where(halves, -1.0, counts)))
+    between = counts[first:second + 1]
+    smallest = float(between.min())
+    if second - first < 2 or smallest > NECK_MAX_FRACTION * min(counts[first], counts[second]):
+        return None
+    near = np.concatenate([[False], between <= smallest + max(1.0, 0.1 * smallest), [False]])
+    edges = np.flatnonzero(np.diff(near.astype(np.int8)))
+    starts, stops = edges[0::2], edges[1::2] - 1  # inclusive runs, indices into ``between``
+    middles = first + 0.5 * (starts + stops)
+    best = min(range(len(starts)), key=lambda i: (-(stops[i] - starts[i]), abs(middles[i] - centroid)))
+    neck = float(middles[best])
+    return neck if _neck_is_a_junction(region, neck) else None
+
+
+def _neck_is_a_junction(region: np.ndarray, neck: float) -> bool:
+    """Whether the region's pixels in column ``neck`` (px; both columns next to a half-integer)
+    could join two fingers: each vertical run of them is a pinch (shorter than ``NECK_MAX_PINCH``
+    finger widths: fingertips touching) or lies wholly in the upper half of the region (the
+    gripper's body above the bases). A run as thick as a finger low in the region is the bottom of one finger
+    curled into a U (or a cut through a finger)."""
+    last = region.shape[1] - 1
+    column = region[:, min(int(math.floor(neck)), last)] | region[:, min(int(math.ceil(neck)), last)]
+    distance = cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    rows = np.flatnonzero(region.any(axis=1))
+    width = 2.0 * float(np.median(distance[rows].max(axis=1)))  # a finger's width (px)
+    middle = 0.5 * (rows[0] + rows[-1])
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], column.view(np.int8), [0]])))
+    for start, stop in zip(edges[0::2], edges[1::2]):  # rows start..stop-1
+        if stop - start >= NECK_MAX_PINCH * width and stop - 1 > middle:
+            return False
+    return True
+
+
+def _cut_region(region: np.ndarray, center: float, min_px: int, where: str,
+                source: str) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) bool (H, W): the largest component of ``region`` on each side of column
+    ``center`` (columns u < center go left); each must hold at least ``min_px`` px and at least
+    ``CUT_MIN_BALANCE`` of the other's area, or the cut does not separate two fingers."""
+    left_side = np.arange(region.shape[1]) < center
+    left = _largest_component(region & left_side, 1)
+    right = _largest_component(region & ~left_side, 1)
+    areas = [0 if m is None else int(m.sum()) for m in (left, right)]
+    if min(areas) < min_px or min(areas) < CUT_MIN_BALANCE * max(areas):
+        raise SegmentationError(
+            f"only one finger found: the one gripper region ({where}) cut at {source} leaves "
+            f"{areas[0]} px on the left and {areas[1]} px on the right; expected a finger of at least "
+            f"min_finger_px={min_px} px on each side, neither under {CUT_MIN_BALANCE:g} of the other: check "
+            f"that both fingers are in view; if they touch each other or the gripper's body joins them, "
+            f"set center_column to a column between them or roi to leave the body out")
+    return left, right
 
 
 def _largest_component(mask: np.ndarray, min_px: int) -> np.ndarray | None:
