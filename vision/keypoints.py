@@ -126,7 +126,8 @@ class FingerKeypoints:
         # (the silhouette, on the plane), so only the shift along the finger applies.
         seen_at_front = camera.parallel(-_CUT_FRONT * relief_mm).px_to_mm(self.base_px)
         shift = camera.mm_to_px(seen_at_front) - self.base_px
-        along = self.centreline_px[min(8, len(self.centreline_px) - 1)] - self.centreline_px[0]
+        arc = _arc(self.centreline_px)  # the direction over 4 r: the first pixels may bend to a corner
+        along = _at(self.centreline_px, arc, min(4.0 * self.half_thickness_px, arc[-1])) - self.centreline_px[0]
         along = along / max(float(np.hypot(*along)), 1e-9)
         base_px = self.base_px + (shift @ along) * along
         centreline = self.centreline_px.copy()
