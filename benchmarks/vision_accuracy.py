@@ -267,7 +267,7 @@ def _sdf_errors(grid: SDFGrid, camera: PlaneCamera, outline_px: np.ndarray) -> t
 VARIANTS: dict[str, dict] = {
     "default": {},
     "flat base": {"base_end": "flat"},
-    "flat base, body in view": {"base_end": "flat", "palm": True},
+    "flat base, body in view": {"base_end": "flat", "palm": True, "palm_height_mm": 20.0},
     "round fingers": {"finger_section": "round"},
     "round fingers, flat base": {"finger_section": "round", "base_end": "flat"},
     "object face -3 mm": {"object_depth_offset_mm": -3.0},
@@ -278,7 +278,8 @@ VARIANTS: dict[str, dict] = {
     "anti-aliased": {"supersample": 4},
     "lighting and noise": {"light_gain": 0.8, "light_gradient": 0.3, "color_noise_sigma": 6.0,
                            "depth_noise_sigma_mm": 0.6, "n_depth_holes": 12},
-    "all together": {"finger_section": "round", "base_end": "flat", "palm": True, "object_depth_offset_mm": -3.0,
+    "all together": {"finger_section": "round", "base_end": "flat", "palm": True, "palm_height_mm": 20.0,
+                     "object_depth_offset_mm": -3.0,
                      "touching": 0.3, "tilt_deg": (5.0, 4.0), "supersample": 3, "light_gradient": 0.3},
 }
 

@@ -65,6 +65,7 @@ _BODY_GROWTH = 1.3  # distance transform over r at which the ridge is inside som
 _LINES = 17  # lines across a cap or a cut end
 _CAP_REACH = 0.85  # their spread across the finger, as a fraction of r
 _CAP_ACROSS = np.linspace(-_CAP_REACH, _CAP_REACH, _LINES)
+_CAP_FAN = np.radians(80.0)  # rays from a rounded end's rough centre fan over +-80 degrees
 #: Height of a round finger's front surface (a fraction of its relief) where the median of the lines
 #: across a cut end meets it: the relief of the middle-ranked line, sqrt(1 - x^2) at its offset x.
 _CUT_FRONT = float(np.median(np.sqrt(1.0 - _CAP_ACROSS**2)))
@@ -94,6 +95,8 @@ class FingerKeypoints:
         width_edges_px: (S, 2, 2) pairs of points on the finger's two sides, px, across the
             finger at S stations (for the half-thickness in mm).
         region: (H, W) bool, the finger alone: its mask without the body (for depth fits).
+        tip_cap_px, base_cap_px: (K, 2) outline points of the rounded tip and base ends, px (None
+            for a flat base), to place the ends again once the finger's relief is known.
     """
 
     side: Side
@@ -106,6 +109,8 @@ class FingerKeypoints:
     body_in_view: bool = False
     width_edges_px: np.ndarray | None = None
     region: np.ndarray | None = None
+    tip_cap_px: np.ndarray | None = None
+    base_cap_px: np.ndarray | None = None
 
     def with_camera(self, camera: PlaneCamera, relief_mm: float = 0.0) -> FingerKeypoints:
         """The same keypoints, in millimetres through another camera (e.g. a fitted plane).
@@ -119,6 +124,19 @@ class FingerKeypoints:
         """
         import dataclasses
 
+        if relief_mm > 0.5 * self.half_thickness_px * camera.local_mm_per_px(self.tip_px):
+            # A round finger: its rounded ends are half spheres, whose outlines perspective stretches
+            # away from the image centre (by 1 / cos of the view angle); fit them as spheres.
+            ends = {}
+            if self.tip_cap_px is not None:
+                ends["tip_px"] = _sphere_centre_px(self.tip_cap_px, camera.intrinsics)
+            if self.base_end == "rounded" and self.base_cap_px is not None:
+                ends["base_px"] = _sphere_centre_px(self.base_cap_px, camera.intrinsics)
+            if ends:
+                centreline = self.centreline_px.copy()
+                centreline[0] = ends.get("base_px", centreline[0])
+                centreline[-1] = ends.get("tip_px", centreline[-1])
+                self = dataclasses.replace(self, centreline_px=centreline, **ends)
         if self.base_end != "flat" or relief_mm == 0.0:
             return dataclasses.replace(self, camera=camera)
         # The cut is found along lines across the finger (median over them), where the front surface
@@ -304,9 +322,9 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
     sampler = _Sampler(finger if coverage is None else np.where(_band(finger), coverage, finger))
     if cut_column is not None:  # the cut is not the finger's outline
         contour = contour[np.abs(contour[:, 0] - cut_column) > 1.0]
-    tip = _cap_centre(line[::-1], radius, contour, finger.shape, f"{side} finger's tip")
+    tip, tip_cap = _cap_centre(line[::-1], radius, contour, sampler, f"{side} finger's tip", cut_column)
     intr = camera.intrinsics
-    base, end, body = _base(sampler, line, arc, clearance, radius, rounded_base, contour,
+    base, end, body, base_cap = _base(sampler, line, arc, clearance, radius, rounded_base, contour,
                             f"{side} finger's base", (np.array([intr.ppx, intr.ppy]), 0.5 * (intr.fx + intr.fy)))
     first = int(np.argmin(np.hypot(*(line - base).T)))
     last = int(np.argmin(np.hypot(*(line - tip).T)))
@@ -320,7 +338,7 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
     region = finger & _beyond(finger.shape, base, axis)
     return FingerKeypoints(side=side, base_px=base, tip_px=tip, centreline_px=centreline,
                            half_thickness_px=half_thickness, camera=camera, base_end=end, body_in_view=body,
-                           width_edges_px=edges, region=region)
+                           width_edges_px=edges, region=region, tip_cap_px=tip_cap, base_cap_px=base_cap)
 
 
 def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera, rounded_base: bool | None = None, *,
@@ -484,6 +502,21 @@ def _circle_centre(points: np.ndarray) -> np.ndarray:
     return solution[:2]
 
 
+def _sphere_centre_px(outline_px: np.ndarray, intrinsics) -> np.ndarray:
+    """(2,) the pixel of the centre of a sphere whose outline passes through ``outline_px`` (K, 2).
+
+    A sphere's outline is a cone of rays about the ray to its centre: unit rays d_k with
+    d_k . c = cos(alpha), a plane through their tips. So w solving d_k . w = 1 by least squares is
+    that plane's normal, and the centre's ray is w / |w| (exact in perspective, where a circle fitted
+    to the outline in pixels lies off-centre by up to the outline's stretch, a pixel here).
+    """
+    rays = np.column_stack([(outline_px[:, 0] - intrinsics.ppx) / intrinsics.fx,
+                            (outline_px[:, 1] - intrinsics.ppy) / intrinsics.fy, np.ones(len(outline_px))])
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    w, *_ = np.linalg.lstsq(rays, np.ones(len(rays)), rcond=None)
+    return np.array([intrinsics.fx * w[0] / w[2] + intrinsics.ppx, intrinsics.fy * w[1] / w[2] + intrinsics.ppy])
+
+
 def _lines_across(centre: np.ndarray, axis: np.ndarray, radius: float, reach: float = _CAP_REACH) -> np.ndarray:
     """(_LINES, 2) starts of lines parallel to ``axis`` spread over +-reach r across the finger."""
     normal = np.array([-axis[1], axis[0]])
@@ -506,32 +539,46 @@ def _end_points(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, s_in: floa
     return hits[keep], axis
 
 
-def _cap_centre(line: np.ndarray, radius: float, contour: np.ndarray, shape: tuple[int, int],
-                what: str) -> np.ndarray:
-    """(2,) centre of the rounded end at ``line[0]``: a circle fitted to the contour beyond it.
+def _cap_centre(line: np.ndarray, radius: float, contour: np.ndarray, sampler: _Sampler,
+                what: str, cut_column: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(2,) centre of the rounded end at ``line[0]``: a circle fitted to its outline; and the
+    outline points (K, 2) it was fitted to.
 
     ``line`` (K, 2) is the smoothed ridge starting at that end. The cap's centre lies about
     ``radius`` inside the end, and the ridge's direction another radius further in points out of
-    the cap; the contour points ahead of the rough centre along it are the cap's half-circle. They
-    are the mask's boundary pixels, a circle about half a pixel smaller than the cap around the
-    same centre. ``shape`` (H, W) is the image's: a cap touching the image border is cut off.
+    the cap. The outline is read at sub-pixel level (``sampler``) along rays from that rough centre
+    fanned over the cap's half circle, so a mask's staircase or pixel phase does not bias the
+    centre; rays that end on the cut column (where segmentation cut touching fingers apart) are not
+    used. The mask's boundary pixels ahead of the rough centre (``contour``) tell whether the cap
+    touches the image border, and stand in if too few rays find the outline.
     """
     arc = _arc(line)
     rough, inner = _at(line, arc, radius), _at(line, arc, 2.0 * radius)
     outward = (rough - inner) / np.hypot(*(rough - inner))
     offset = contour - rough
     cap = contour[(offset @ outward > 0.0) & (np.hypot(*offset.T) < 2.0 * radius)]
-    on_border = len(cap) and ((cap.min(axis=0) <= 0).any() or (cap.max(axis=0) >= np.array(shape[::-1]) - 1).any())
+    on_border = len(cap) and ((cap.min(axis=0) <= 0).any() or
+                              (cap.max(axis=0) >= np.array(sampler.shape[::-1]) - 1).any())
     if len(cap) < 5 or on_border:
         raise KeypointError(f"the {what} is cut off by the image border (or hidden), so its rounded end "
                             f"cannot be found: keep the whole finger in view")
-    return _circle_centre(cap)
+    angles = np.linspace(-_CAP_FAN, _CAP_FAN, _LINES)
+    across = np.array([-outward[1], outward[0]])
+    directions = np.cos(angles)[:, None] * outward + np.sin(angles)[:, None] * across
+    hits = sampler.exits(np.broadcast_to(rough, directions.shape), directions, 3.0 * radius)
+    keep = np.isfinite(hits).all(axis=1)
+    if cut_column is not None:
+        keep &= np.abs(hits[:, 0] - cut_column) > 1.0
+    if keep.sum() >= _LINES // 2:
+        cap = hits[keep]
+    return _circle_centre(cap), cap
 
 
 def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.ndarray, radius: float,
           rounded: bool | None, contour: np.ndarray, what: str,
-          optics: tuple[np.ndarray, float]) -> tuple[np.ndarray, BaseEnd, bool]:
-    """(base point (2,), base end kind, body in view) at the top end of ``line``.
+          optics: tuple[np.ndarray, float]) -> tuple[np.ndarray, BaseEnd, bool, np.ndarray | None]:
+    """(base point (2,), base end kind, body in view, a rounded end's outline points (K, 2) or None)
+    at the top end of ``line``.
 
     ``optics``: the principal point (2,) and focal length, px. The end is told by the curvature of
     its outline across the finger: a rounded cap's is a half circle's; a flat cut's is 0, except that
@@ -552,7 +599,7 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
         if reach.size < 2:
             raise KeypointError(f"the {what} meets the gripper's body, but the body's edge beside the finger "
                                 f"cannot be found: keep the finger's base in view")
-        return centre.reach(s_finger, float(np.median(reach))), "flat", True
+        return centre.reach(s_finger, float(np.median(reach))), "flat", True, None
     top = _at(line, arc, 0.0)
     if rounded is None or rounded:
         try:
@@ -568,7 +615,8 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
             principal, focal = optics
             q = max(0.0, float((top - principal) @ axis) / focal)
             if rounded or curvature < 0.5 * (1.0 + q) * _HALF_CIRCLE_CURVATURE / radius:
-                return _cap_centre(line, radius, contour, sampler.shape, what), "rounded", False
+                centre, cap = _cap_centre(line, radius, contour, sampler, what)
+                return centre, "rounded", False, cap
     # Stations from 2.5 r on: nearer the cut the distance transform's ridge forks toward its corners
     # (more so when a round finger's cut bulges in perspective), and its direction there would
     # tilt the lines across the finger.
@@ -579,7 +627,7 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
     if (hits[:, 1] < 1.0).any() or np.isnan(hits).sum() > 2 * (_LINES // 2):
         raise KeypointError(f"the {what} is cut off by the image border: keep the whole finger in view")
     reach = (hits - centre(s_in)) @ up
-    return centre.reach(s_in, float(np.nanmedian(reach))), "flat", False
+    return centre.reach(s_in, float(np.nanmedian(reach))), "flat", False, None
 
 
 class _CentreCurve:
