@@ -124,19 +124,27 @@ class FingerKeypoints:
         """
         import dataclasses
 
-        if relief_mm > 0.5 * self.half_thickness_px * camera.local_mm_per_px(self.tip_px):
-            # A round finger: its rounded ends are half spheres, whose outlines perspective stretches
-            # away from the image centre (by 1 / cos of the view angle); fit them as spheres.
-            ends = {}
-            if self.tip_cap_px is not None:
-                ends["tip_px"] = _sphere_centre_px(self.tip_cap_px, camera.intrinsics)
-            if self.base_end == "rounded" and self.base_cap_px is not None:
-                ends["base_px"] = _sphere_centre_px(self.base_cap_px, camera.intrinsics)
-            if ends:
-                centreline = self.centreline_px.copy()
-                centreline[0] = ends.get("base_px", centreline[0])
-                centreline[-1] = ends.get("tip_px", centreline[-1])
-                self = dataclasses.replace(self, centreline_px=centreline, **ends)
+        # The rounded ends again, in the geometry of this camera: on a round finger they are half
+        # spheres, whose outlines perspective stretches away from the image centre (by 1 / cos of the
+        # view angle): fitted as spheres; on a flat front they are half discs in the plane, which a
+        # tilted plane draws as half ellipses (off the optical axis, by several percent): fitted as
+        # circles in the plane's millimetres. Facing the camera, the latter is the pixel fit.
+        if relief_mm > 0.5 * self.half_thickness_px * float(camera.local_mm_per_px(self.tip_px)):
+            def centre(outline):
+                return _sphere_centre_px(outline, camera.intrinsics)
+        else:
+            def centre(outline):
+                return camera.mm_to_px(_circle_centre(camera.px_to_mm(outline)))
+        ends = {}
+        if self.tip_cap_px is not None:
+            ends["tip_px"] = centre(self.tip_cap_px)
+        if self.base_end == "rounded" and self.base_cap_px is not None:
+            ends["base_px"] = centre(self.base_cap_px)
+        if ends:
+            centreline = self.centreline_px.copy()
+            centreline[0] = ends.get("base_px", centreline[0])
+            centreline[-1] = ends.get("tip_px", centreline[-1])
+            self = dataclasses.replace(self, centreline_px=centreline, **ends)
         if self.base_end != "flat" or relief_mm == 0.0:
             return dataclasses.replace(self, camera=camera)
         # The cut is found along lines across the finger (median over them), where the front surface
