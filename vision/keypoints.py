@@ -112,15 +112,17 @@ class FingerKeypoints:
     tip_cap_px: np.ndarray | None = None
     base_cap_px: np.ndarray | None = None
 
-    def with_camera(self, camera: PlaneCamera, relief_mm: float = 0.0) -> FingerKeypoints:
+    def with_camera(self, camera: PlaneCamera, relief_mm: float = 0.0,
+                    base_relief_mm: float | None = None) -> FingerKeypoints:
         """The same keypoints, in millimetres through another camera (e.g. a fitted plane).
 
         ``relief_mm``: how far the finger's front surface lies in front of ``camera``'s plane (a
         round finger's, about r). A flat-cut base is seen where the cut meets the front surface,
         so that nearer point is moved along the plane's normal onto the plane (in perspective, the
         cut edge seen lies farther from the image centre than the base itself: r / depth of its
-        distance from the optical axis). A rounded end's outline is centred on its centre's
-        projection and needs nothing.
+        distance from the optical axis). With the gripper's body in view, the base is read on the
+        body's edge instead: ``base_relief_mm`` says how far the body's face lies in front of the
+        plane (None: on it).
         """
         import dataclasses
 
@@ -145,12 +147,17 @@ class FingerKeypoints:
             centreline[0] = ends.get("base_px", centreline[0])
             centreline[-1] = ends.get("tip_px", centreline[-1])
             self = dataclasses.replace(self, centreline_px=centreline, **ends)
-        if self.base_end != "flat" or relief_mm == 0.0:
+        if self.body_in_view:
+            front = base_relief_mm or 0.0
+        else:
+            # The cut is found along lines across the finger (median over them), where the front
+            # surface stands _CUT_FRONT of the relief before the plane.
+            front = _CUT_FRONT * relief_mm
+        if self.base_end != "flat" or front == 0.0:
             return dataclasses.replace(self, camera=camera)
-        # The cut is found along lines across the finger (median over them), where the front surface
-        # stands _CUT_FRONT of the relief before the plane; across, the base is the middle of the sides
-        # (the silhouette, on the plane), so only the shift along the finger applies.
-        seen_at_front = camera.parallel(-_CUT_FRONT * relief_mm).px_to_mm(self.base_px)
+        # Across, the base is the middle of the sides (the silhouette, on the plane), so only the
+        # shift along the finger applies.
+        seen_at_front = camera.parallel(-front).px_to_mm(self.base_px)
         shift = camera.mm_to_px(seen_at_front) - self.base_px
         arc = _arc(self.centreline_px)  # the direction over 4 r: the first pixels may bend to a corner
         along = _at(self.centreline_px, arc, min(4.0 * self.half_thickness_px, arc[-1])) - self.centreline_px[0]

@@ -33,9 +33,12 @@ import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
+import numpy as np
+
 from softgrip_jax import SoftgripError
 from vision.frames import Frame
 from vision.geometry import TILT_WARN_DEG, PlaneCamera, PlaneFit, face_offset_mm, fit_gripper_plane
+
 from vision.keypoints import FingerKeypoints, gripper_keypoints
 from vision.segmentation import Segmentation
 
@@ -180,8 +183,13 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
                               settings.finger_relief_mm, centrelines_px=[k.centreline_px for k in keypoints],
                               width_edges_px=[k.width_edges_px for k in keypoints])
     offset = face_offset_mm(frame, segmentation.object, plane.camera) if segmentation.object.any() else None
+    body_front = None
+    if any(k.body_in_view for k in keypoints):  # the body's edge gives the bases: at its face's depth
+        body = segmentation.fingers & ~np.logical_or.reduce([k.region for k in keypoints])
+        body_offset = face_offset_mm(frame, body, plane.camera)
+        body_front = None if body_offset is None else -body_offset
     return GripperMeasurement(segmentation=segmentation, plane=plane,
-                              keypoints=tuple(k.with_camera(plane.camera, relief)
+                              keypoints=tuple(k.with_camera(plane.camera, relief, body_front)
                                               for k, relief in zip(keypoints, plane.relief_mm)),
                               object_offset_mm=offset)
 
