@@ -607,14 +607,19 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
         centre = _CentreCurve(sampler, line, arc, s_finger, s_finger + 4.0 * radius, radius, what)
         up, normal = centre.frame(s_finger)
         start = centre(s_finger)
-        offsets = np.concatenate([np.linspace(1.2, 1.8, 4), -np.linspace(1.2, 1.8, 4)]) * radius
+        offsets = np.concatenate([np.linspace(1.2, 3.0, 8), -np.linspace(1.2, 3.0, 8)]) * radius
         hits = sampler.exits(start + offsets[:, None] * normal, up, 6.0 * radius, entering=True)
-        reach = (hits - start) @ up
-        reach = reach[np.isfinite(reach)]
-        if reach.size < 2:
+        found = np.isfinite(hits).all(axis=1)
+        if found.sum() < 2:
             raise KeypointError(f"the {what} meets the gripper's body, but the body's edge beside the finger "
                                 f"cannot be found: keep the finger's base in view")
-        return centre.reach(s_finger, float(np.median(reach))), "flat", True, None
+        # The body's edge is the line through the points found (on one side or both: a body may end
+        # flush with a finger's outer side); the base is where the finger's centre curve crosses it,
+        # which holds for a finger leaving the body at an angle as for a straight one.
+        edge = hits[found]
+        direction = np.linalg.svd(edge - edge.mean(axis=0))[2][0]
+        return centre.crossing(s_finger, edge.mean(axis=0), np.array([-direction[1], direction[0]]),
+                               6.0 * radius), "flat", True, None
     top = _at(line, arc, 0.0)
     if rounded is None or rounded:
         try:
@@ -675,6 +680,17 @@ class _CentreCurve:
         trial = s - np.linspace(0.0, 3.0 * abs(distance) + 3.0, 200)
         along = (np.stack([self(t) for t in trial]) - self(s)) @ up
         return self(float(np.interp(distance, along, trial)))
+
+    def crossing(self, s: float, point: np.ndarray, normal: np.ndarray, reach: float) -> np.ndarray:
+        """(2,) where the curve, followed from ``s`` toward the base for at most ``reach`` px,
+        crosses the line through ``point`` (2,) square to ``normal`` (2,)."""
+        trial = s - np.linspace(0.0, reach + 3.0, 400)
+        side = (np.stack([self(t) for t in trial]) - point) @ normal
+        change = np.flatnonzero(np.sign(side[1:]) != np.sign(side[:-1]))
+        if change.size == 0:  # no crossing within reach: the line's nearest approach
+            return self(float(trial[np.argmin(np.abs(side))]))
+        k = change[0]
+        return self(float(trial[k] + (trial[k + 1] - trial[k]) * side[k] / (side[k] - side[k + 1])))
 
     def frame(self, s: float) -> tuple[np.ndarray, np.ndarray]:
         """(toward the base, across) unit vectors (2,) at arc length ``s``."""
