@@ -241,13 +241,13 @@ def _fit(args: argparse.Namespace):
     measure = _measure_settings(args, start)
     if empty is not None:  # the free-closure pair is one pair of the fit, not also an ordinary one
         pairs = [pair for pair in pairs if not _same_pair(pair, empty)]
+    free, reason = (None, None) if empty is None else _free_closure(empty, settings, n_links, measure,
+                                                                     must=empty_given)  # first: it may be refused
     observations, skipped = load_observations(pairs, settings, n_links, progress=True, measure=measure)
-    if empty is not None:
-        free, reason = _free_closure(empty, settings, n_links, measure, must=empty_given)
-        if free is not None:
-            observations.append(free)
-        else:
-            skipped.append({"frame": f"{empty[0]} + {empty[1]}", "reason": reason})
+    if free is not None:
+        observations.append(free)
+    elif empty is not None:
+        skipped.append({"frame": f"{empty[0]} + {empty[1]}", "reason": reason})
     elif args.profile is None:  # (a --profile's pair was looked for above, and its absence reported)
         print("softgrip calibrate: note: no pair of the gripper closed without an object in the fit, so nothing "
               "keeps it from making the free closure worse; add one with --empty OPEN CLOSED", file=sys.stderr)
@@ -373,9 +373,12 @@ def _print_summary(profile, output: Path, start_method: str | None = None) -> No
 def _print_frames(profile, start_method: str | None) -> None:
     """One line per frame pair: residual RMS, mean joint error at joint N/2 and at the tip (mm); the
     free-closure pair also with its residual at the start."""
+    rows = _frame_report(profile)
+    if not rows or rows[0]["residual_rms_mm"] is None:
+        return
     print("per frame pair (mm): residual RMS, mean joint error at joint N/2 and at the tip")
     free = _free_closure_report(profile, start_method)
-    for row in _frame_report(profile):
+    for row in rows:
         line = f"  {row['frame']}: RMS {row['residual_rms_mm']:.3f}"
         if row["mid_error_mm"] is not None:
             line += f", N/2 {row['mid_error_mm']:.3f}, tip {row['tip_error_mm']:.3f}"
