@@ -272,10 +272,10 @@ def _free_closure(pair: tuple[Path, Path], settings, n_links: int, measure, must
         return free_closure_observation(load_frame(pair[0]), load_frame(pair[1]), settings, n_links, label,
                                         measure=measure, closed_name=str(pair[1])), None
     except SoftgripError as err:
-        message = str(err) if any(str(p) in str(err) for p in pair) else f"{label}: {err}"
         if must:
-            raise type(err)(f"--empty {message}") from None
-        warnings.warn(f"{label}: skipped: {message}", SkippedFrameWarning, stacklevel=2)
+            message = str(err) if any(str(p) in str(err) for p in pair) else f"{label}: {err}"
+            raise type(err)(f"the --empty pair: {message}") from None
+        warnings.warn(f"{label}: skipped: {err}", SkippedFrameWarning, stacklevel=2)
         return None, str(err)
 
 
