@@ -180,12 +180,17 @@ class Observation:
         bases: (2, 2) [left, right] finger bases seen in the open frame.
         observed: (2, N+1, 2) [left, right] observed joints of the closed fingers, base first.
         label: how reports and warnings name the pair.
+        free_closure: True for the pair whose closed frame shows the gripper closed without an
+            object (the one-frame calibration's data, eq. 4; see :func:`free_closure_observation`):
+            the fit's report names it (``fit.free_closure``), so that what the fit did to the free
+            closure can be checked. At most one per fit.
     """
 
     sdf: AbstractSDF
     bases: np.ndarray
     observed: np.ndarray
     label: str = "frame pair"
+    free_closure: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.sdf, AbstractSDF):
@@ -239,14 +244,18 @@ def fit(
     Returns:
         ``start`` with the fitted values and ``fit`` describing the fit: method ``"least-squares"``,
         the estimate ``method`` (``fit.estimate_method``), the frames used, residual RMS (mm) per
-        frame and overall, standard errors, skipped frames.
+        frame and overall, standard errors, skipped frames; and per frame the residual RMS at the
+        start values (``fit.frame_start_residual_rms_mm``) and the fitted mean joint error at joint
+        N // 2 and at the tip (``fit.frame_mid_error_mm``, ``fit.frame_tip_error_mm``), all mm; and
+        ``fit.free_closure``, the label of the used observation marked ``free_closure`` (None
+        without one).
         Pairs that cannot be used (non-finite input, or an invalid estimate at the start values:
         the open finger overlaps the object, its base lies outside the SDF grid, ...) are skipped
         with a :class:`SkippedFrameWarning`.
 
     Raises:
         FitError: unknown parameters or bad settings (including a stiffness parameter with
-            ``method="geometric"``), no usable frame pair, fewer usable pairs than a parameter needs
+            ``method="geometric"``), more than one observation marked ``free_closure``, no usable frame pair, fewer usable pairs than a parameter needs
             (under-determined: the message names it), a parameter the frames do not constrain at all
             (e.g. the stiffness when no finger touches an object), mismatched N, no convergence, or a
             fitted Theta outside [0, pi/2).
@@ -271,6 +280,10 @@ def fit(
     """
     names = _check_settings(parameters, loss, loss_scale_mm, max_steps, method, mechanics)
     n_links = _common_n_links(start, observations)
+    free = [obs.label for obs in observations if obs.free_closure]
+    if len(free) > 1:
+        raise FitError(f"{len(free)} frame pairs are marked as the free closure ({'; '.join(free)}): give one pair "
+                       f"of the gripper closed without an object")
     skipped = [dict(s) for s in skipped]
     total = len(observations) + len(skipped)
     candidates = []
@@ -289,7 +302,7 @@ def fit(
         groups, index = _stack(candidates)
         out = _solve(y0, free, fixed, groups, jnp.asarray(loss_scale_mm, jnp.float64), n_links=n_links,
                      config=config, method=method, mechanics=mechanics, loss=loss, max_steps=max_steps)
-        flat, result, start_status, residuals, robust, jacobian = jax.tree.map(np.asarray, out)
+        flat, result, start_status, start_residuals, residuals, robust, jacobian = jax.tree.map(np.asarray, out)
 
     start_ok = (_per_frame(start_status, index) == Status.OK).all(axis=1)
     for obs, status in zip(candidates, _per_frame(start_status, index)):
@@ -300,8 +313,10 @@ def fit(
     if int(result) != _SUCCESSFUL:
         raise FitError(f"the least-squares fit did not converge within {max_steps} steps (optimistix result "
                        f"{int(result)}); raise max_steps, or start closer (e.g. from a one-frame calibration)")
-    return _report(start, names, flat, _per_frame(residuals, index)[start_ok], robust, jacobian, y0,
-                   [o.label for o in used], skipped, method)
+    final = _per_frame(residuals, index)[start_ok]
+    fitted = _report(start, names, flat, final, robust, jacobian, y0, [o.label for o in used], skipped, method)
+    return _with_frame_report(fitted, _per_frame(start_residuals, index)[start_ok], final,
+                              next((o.label for o in used if o.free_closure), None))
 
 
 def observations_from_frames(
@@ -336,15 +351,75 @@ def observations_from_frames(
         >>> round(float(obs.bases[1, 0] - obs.bases[0, 0]), 1)  # the base separation W, mm
         64.0
     """
+    return _measured_pair(open_frame, closed_frame, settings, n_links, label, measure)[0]
+
+
+def _measured_pair(open_frame: Frame, closed_frame: Frame, settings: SegmentationSettings | None, n_links: int,
+                   label: str, measure: MeasureSettings | None, free_closure: bool = False):
+    """(the pair's Observation, the closed frame's measurement)."""
     opened = frame_measurement(open_frame, settings, measure)
     closed = frame_measurement(closed_frame, settings, measure, center_hint=opened.segmentation.center_column)
     # Both frames' millimetres are their own fitted planes: the same plane when the camera stayed.
-    return Observation(
+    observation = Observation(
         sdf=object_sdf(opened.segmentation.object, opened.object_camera),
         bases=np.stack([f.base_mm for f in opened.keypoints]),
         observed=np.stack([f.observed_mm(n_links) for f in closed.keypoints]),
         label=label,
+        free_closure=free_closure,
     )
+    return observation, closed
+
+
+def free_closure_observation(
+    open_frame: Frame,
+    closed_frame: Frame,
+    settings: SegmentationSettings | None,
+    n_links: int,
+    label: str = "calibration pair",
+    *,
+    measure: MeasureSettings | None = None,
+    closed_name: str = "the closed frame",
+) -> Observation:
+    """The :class:`Observation` of a calibration pair: an open frame and a frame of the gripper
+    closed without an object (the one-frame calibration's data, eq. 4), marked ``free_closure``.
+
+    In a fit over pairs with objects, this pair keeps Theta from bending to make up for errors in
+    L, r or the bases that the object pairs cannot tell apart from Theta: the free closure then
+    pulls back. The fit reports it as ``fit.free_closure``, with its residual at the start values
+    next to the fitted one.
+
+    Args:
+        open_frame, closed_frame: the frames (open gripper; closed gripper without an object).
+        settings, n_links, measure: as for :func:`observations_from_frames`.
+        label: how reports and warnings name the pair.
+        closed_name: how the error names the closed frame (e.g. its folder).
+
+    Raises:
+        SoftgripError: the closed frame shows an object (the message names ``closed_name``), or
+            the vision pipeline fails on either frame.
+
+    Example (the sample calibration pair; N = 20):
+        >>> from pathlib import Path
+        >>> import calib
+        >>> from vision.frames import load_frame
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> obs = free_closure_observation(load_frame(data / "calib_open"), load_frame(data / "calib_closed"),
+        ...                                None, 20, "calib")
+        >>> obs.free_closure, obs.observed.shape  # (left, right), N + 1 joints, mm
+        (True, (2, 21, 2))
+        >>> free_closure_observation(load_frame(data / "circle_open"), load_frame(data / "circle_closed"), None, 20,
+        ...                          closed_name="circle_closed")
+        Traceback (most recent call last):
+        ...
+        softgrip_jax...SoftgripError: circle_closed shows an object (... px): ...
+    """
+    observation, closed = _measured_pair(open_frame, closed_frame, settings, n_links, label, measure, True)
+    if closed.segmentation.object.any():
+        raise SoftgripError(
+            f"{closed_name} shows an object ({int(closed.segmentation.object.sum())} px): the free-closure pair needs "
+            f"the gripper closed without touching anything; give a frame closed without the object (or raise the "
+            f"segmentation's object_min_saturation / min_object_px if that is not an object)")
+    return observation
 
 
 def load_observations(
@@ -640,9 +715,10 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
            mechanics: MechanicsConfig, loss: Loss, max_steps: int):
     """Robust Levenberg-Marquardt from ``y0`` over the frames whose estimates are valid at ``y0``.
 
-    Returns (flattened solution, optimistix result code, estimate statuses at the start (per group,
-    (F, 2)), raw residuals at the solution (per group, (F, 2, J, 2)), robust residuals at the
-    solution flattened (M,), and their Jacobian (M, P) with respect to the flattened unknowns).
+    Returns (flattened solution, optimistix result code, estimate statuses and raw residuals at the
+    start (per group, (F, 2) and (F, 2, J, 2)), raw residuals at the solution (per group,
+    (F, 2, J, 2)), robust residuals at the solution flattened (M,), and their Jacobian (M, P) with
+    respect to the flattened unknowns).
     """
     def with_fixed(y):
         return jax.tree.map(lambda v, v0, f: jnp.where(f, v, v0), y, y0, free)
@@ -661,7 +737,7 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
         return r, [sum(jnp.tensordot(j, d, axes=d.ndim) for j, d in zip(jax.tree.leaves(jg), dy_leaves))
                    for jg in jac]
 
-    start_status = _evaluate(y0, fixed, groups, n_links, config, method, mechanics)[1]
+    start_residuals, start_status = _evaluate(y0, fixed, groups, n_links, config, method, mechanics)
     usable = [g.real & jnp.all(s == Status.OK, axis=-1) for g, s in zip(groups, start_status)]
 
     def objective(y, args):
@@ -672,8 +748,8 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
     solution = optx.least_squares(objective, solver, y0, has_aux=True, max_steps=max_steps, throw=False)
     # The solver's state holds the residuals and the linearisation at the last accepted step: the solution.
     robust = ravel_pytree(solution.state.f_info.residual)[0]
-    return (ravel_pytree(solution.value)[0], solution.result._value, start_status, solution.state.aux, robust,
-            solution.state.f_info.jac.as_matrix())
+    return (ravel_pytree(solution.value)[0], solution.result._value, start_status, start_residuals,
+            solution.state.aux, robust, solution.state.f_info.jac.as_matrix())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -748,3 +824,17 @@ def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, r
         residual_rms_mm=float(np.sqrt(np.mean(distances**2))),
         frame_residual_rms_mm=np.sqrt(np.mean(distances**2, axis=(1, 2))).tolist(),
         standard_errors=standard_errors, skipped=skipped))
+
+
+def _with_frame_report(profile: CalibrationProfile, start_residuals: np.ndarray, residuals: np.ndarray,
+                       free_closure: str | None) -> CalibrationProfile:
+    """``profile`` with the per-frame report: residual RMS at the start values, and mean fitted
+    joint error at joint N // 2 and at the tip, from the raw residuals (F, 2, J, 2) mm of the used
+    frames at the start and at the solution; and the free-closure pair's label (or None)."""
+    start_rms = np.sqrt(np.mean(np.sum(start_residuals**2, axis=-1), axis=(1, 2)))  # (F,) mm
+    distances = np.sqrt(np.sum(residuals**2, axis=-1))  # (F, 2, J) mm
+    n_links = distances.shape[-1] - 1
+    return dataclasses.replace(profile, fit=dataclasses.replace(
+        profile.fit, free_closure=free_closure, frame_start_residual_rms_mm=start_rms.tolist(),
+        frame_mid_error_mm=distances[:, :, n_links // 2].mean(axis=1).tolist(),
+        frame_tip_error_mm=distances[:, :, n_links].mean(axis=1).tolist()))

@@ -15,7 +15,9 @@ A profile says everything the estimator needs about one gripper and how it was o
       "vision": {"base_end": "auto", "finger_relief_mm": "auto", "detected": {...}},
       "fit": {"method": "least-squares", "estimate_method": "mechanics", "frames": [...], "residual_rms_mm": 0.41,
               "frame_residual_rms_mm": [...], "standard_errors": {"left.theta_entire": 0.002, ...},
-              "skipped": [{"frame": "...", "reason": "..."}]}
+              "skipped": [{"frame": "...", "reason": "..."}],
+              "free_closure": "calib_open + calib_closed", "frame_start_residual_rms_mm": [...],
+              "frame_mid_error_mm": [...], "frame_tip_error_mm": [...]}
     }
 
 Each finger's entry uses the field names of :class:`softgrip_jax.FingerModel` (mm, rad), plus an
@@ -26,6 +28,12 @@ in units of the finger's bending compliance, default 0: clamped) are optional to
 mechanics estimate uses them. ``fit.estimate_method`` (optional) is the estimate a least-squares
 fit went through, ``"geometric"`` or ``"mechanics"``; the commands estimate with it unless told
 otherwise (absent: the profile says nothing, e.g. a one-frame calibration, which uses no estimate).
+The other optional ``fit`` fields report a least-squares fit frame by frame: ``free_closure`` names
+the pair in ``frames`` whose closed frame shows the gripper closed without an object (the one-frame
+calibration's data), and ``frame_start_residual_rms_mm``, ``frame_mid_error_mm`` and
+``frame_tip_error_mm`` give, per pair in ``frames``, the residual RMS at the start values and the
+mean joint error of the fitted estimate at joint N // 2 and at the tip (mm); profiles without them
+load as before.
 ``segmentation`` holds :class:`vision.segmentation.SegmentationSettings` fields (``{}``: defaults);
 ``camera`` names the camera (serial number, ``"synthetic"``, or ``"unspecified"``) and its
 intrinsics (pyrealsense2 names, or null). ``vision`` (optional) says how the fingers are measured
@@ -127,6 +135,15 @@ class FitEntry:
         standard_errors: standard error of each fitted parameter (``"left.theta_entire"``: rad,
             ``"left.base_offset"``: [mm, mm]); empty for a one-frame calibration.
         skipped: frame pairs left out, each ``{"frame": label, "reason": why}``.
+        estimate_method: see above.
+        free_closure: the label (one of ``frames``) of the pair whose closed frame shows the gripper
+            closed without an object (the free closure, eq. 4), when a least-squares fit used one;
+            else None.
+        frame_start_residual_rms_mm: per frame of ``frames``, the residual RMS (mm) at the fit's
+            start values (empty when not recorded).
+        frame_mid_error_mm: per frame, the mean over both fingers of the fitted joint distance
+            |estimated - observed| at joint N // 2, mm (empty when not recorded).
+        frame_tip_error_mm: the same at the tip, joint N, mm (empty when not recorded).
     """
 
     method: Method
@@ -136,6 +153,14 @@ class FitEntry:
     standard_errors: dict[str, float | list[float]] = field(default_factory=dict)
     skipped: list[dict[str, str]] = field(default_factory=list)
     estimate_method: str | None = None
+    free_closure: str | None = None
+    frame_start_residual_rms_mm: list[float] = field(default_factory=list)
+    frame_mid_error_mm: list[float] = field(default_factory=list)
+    frame_tip_error_mm: list[float] = field(default_factory=list)
+
+
+#: The optional per-frame lists of ``fit`` (each one value per frame of ``fit.frames``, mm >= 0).
+_PER_FRAME = ("frame_residual_rms_mm", "frame_start_residual_rms_mm", "frame_mid_error_mm", "frame_tip_error_mm")
 
 
 @dataclass(frozen=True)
@@ -182,7 +207,9 @@ class CalibrationProfile:
                     "residual_rms_mm": self.fit.residual_rms_mm,
                     "frame_residual_rms_mm": list(self.fit.frame_residual_rms_mm),
                     "standard_errors": dict(self.fit.standard_errors),
-                    "skipped": [dict(s) for s in self.fit.skipped]},
+                    "skipped": [dict(s) for s in self.fit.skipped],
+                    **({} if self.fit.free_closure is None else {"free_closure": self.fit.free_closure}),
+                    **{name: list(getattr(self.fit, name)) for name in _PER_FRAME[1:] if getattr(self.fit, name)}},
         }
 
     @classmethod
@@ -395,7 +422,7 @@ def _parse_finger(r: _Reader, value: Any, path: str) -> FingerEntry:
 
 def _parse_fit(r: _Reader, value: Any) -> FitEntry:
     f = r.obj(value, "fit", ("method", "frames"),
-              ("estimate_method", "residual_rms_mm", "frame_residual_rms_mm", "standard_errors", "skipped"))
+              ("estimate_method", "residual_rms_mm", *_PER_FRAME, "standard_errors", "skipped", "free_closure"))
     method = r.text(f["method"], "fit.method", METHODS)
     estimate_method = f.get("estimate_method")
     if estimate_method is not None:
@@ -405,11 +432,18 @@ def _parse_fit(r: _Reader, value: Any) -> FitEntry:
     rms = f.get("residual_rms_mm")
     if rms is not None:
         rms = r.number(rms, "fit.residual_rms_mm", *non_negative)
-    per_frame = [r.number(v, f"fit.frame_residual_rms_mm[{i}]", *non_negative)
-                 for i, v in enumerate(r.array(f.get("frame_residual_rms_mm", []), "fit.frame_residual_rms_mm"))]
-    if per_frame and len(per_frame) != len(frames):
-        raise r.fail("fit.frame_residual_rms_mm", f"one value per frame in fit.frames ({len(frames)})",
-                     per_frame)
+    per_frame = {}
+    for name in _PER_FRAME:
+        path = f"fit.{name}"
+        values = [r.number(v, f"{path}[{i}]", *non_negative) for i, v in enumerate(r.array(f.get(name, []), path))]
+        if values and len(values) != len(frames):
+            raise r.fail(path, f"one value per frame in fit.frames ({len(frames)})", values)
+        per_frame[name] = values
+    free_closure = f.get("free_closure")
+    if free_closure is not None:
+        free_closure = r.text(free_closure, "fit.free_closure")
+        if free_closure not in frames:
+            raise r.fail("fit.free_closure", "the label of one of fit.frames", free_closure)
     errors_obj = f.get("standard_errors", {})
     if not isinstance(errors_obj, dict):
         raise r.fail("fit.standard_errors", "a JSON object (parameter name -> standard error)", errors_obj)
@@ -425,8 +459,8 @@ def _parse_fit(r: _Reader, value: Any) -> FitEntry:
         entry = r.obj(v, f"fit.skipped[{i}]", ("frame", "reason"))
         skipped.append({"frame": r.text(entry["frame"], f"fit.skipped[{i}].frame"),
                         "reason": r.text(entry["reason"], f"fit.skipped[{i}].reason")})
-    return FitEntry(method=method, frames=frames, residual_rms_mm=rms, frame_residual_rms_mm=per_frame,
-                    standard_errors=errors, skipped=skipped, estimate_method=estimate_method)
+    return FitEntry(method=method, frames=frames, residual_rms_mm=rms, standard_errors=errors, skipped=skipped,
+                    estimate_method=estimate_method, free_closure=free_closure, **per_frame)
 
 
 def _show(value: Any) -> str:

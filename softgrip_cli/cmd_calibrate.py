@@ -13,6 +13,10 @@ from softgrip_cli._args import add_method_argument, positive_int, resolve_method
 
 DEFAULT_N_LINKS = 10
 
+#: How much worse (mm of residual RMS) the fit may leave the free closure than it was at the start
+#: before the command warns.
+FREE_CLOSURE_TOLERANCE_MM = 0.1
+
 EPILOG = """\
 examples:
   softgrip calibrate closed_0 --open open_0 --n-links 10 -o profile.json
@@ -21,6 +25,9 @@ examples:
   softgrip calibrate --fit open_1 closed_1 open_2 closed_2 open_3 closed_3 -o fitted.json
       least squares over open/closed frame pairs (objects allowed), starting from the first open
       frame and Theta = 0.5 rad
+  softgrip calibrate --fit open_1 closed_1 open_2 closed_2 --empty open_0 closed_0 -o fitted.json
+      the same with a calibration pair (open; closed without an object) in the fit's data, so that
+      the fit keeps the free closure; it starts from that pair's one-frame calibration
   softgrip calibrate --fit open_1 closed_1 open_2 closed_2 --profile profile.json --base-offset \\
       --json -o fitted.json
       start from a profile (its N, L, r, segmentation), also fit a base offset per finger, and print
@@ -32,6 +39,13 @@ examples:
       that the closed fingers wrap, at different places along the fingers
 
 Frame arguments are frame folders (color.png, depth.png, intrinsics.json; see `softgrip capture`).
+A fit over pairs with objects alone can bend Theta to make up for errors in the measured L, r or
+bases and so make the gripper's closure without an object worse. The pair of the free closure is
+therefore part of the fit when it is known: --empty OPEN CLOSED, else the pair a --profile records
+(a one-frame calibration's frames, or a fit's fit.free_closure) if its folders exist (relative
+paths: from here, else next to the profile). The report lists every pair's residual (RMS, and the
+mean joint error at joint N/2 and at the tip, mm), the free closure's next to its residual at the
+start, and warns when the fit made the free closure worse by more than 0.1 mm.
 In a fit, a pair that cannot be used (segmentation fails, the open finger already overlaps the
 object, ...) is skipped with a warning and listed in the profile's fit.skipped. The first fit in a
 process compiles for tens of seconds (longer with --method mechanics); progress goes to stderr.
@@ -59,6 +73,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="frame of the open gripper (one-frame calibration)")
     parser.add_argument("--fit", nargs="+", type=Path, metavar="FRAME",
                         help="least squares over pairs OPEN CLOSED [OPEN CLOSED ...]")
+    parser.add_argument("--empty", nargs=2, type=Path, metavar=("OPEN", "CLOSED"),
+                        help="with --fit, a calibration pair in the fit's data: a frame of the open gripper and "
+                             "one of the gripper closed without an object (the free closure); default: the pair "
+                             "the --profile records, if its folders exist")
     parser.add_argument("--profile", type=Path, metavar="START",
                         help="starting values for --fit (default: the first open frame, Theta 0.5 rad)")
     parser.add_argument("--n-links", type=_n_links, metavar="N",
@@ -133,14 +151,19 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings():
         warnings.simplefilter("always", SkippedFrameWarning)
         warnings.showwarning = _print_warning
-        profile = _fit(args) if args.fit else _one_frame(args)
+        profile, start_method = _fit(args) if args.fit else (_one_frame(args), None)
     from calib.profile import save_profile
 
     save_profile(profile, args.output)
+    if args.fit:
+        _warn_if_free_closure_worse(profile, start_method)
     if args.json:
-        print(json.dumps({"output": str(args.output), "profile": profile.to_dict()}))
+        report = {"output": str(args.output), "profile": profile.to_dict()}
+        if args.fit:
+            report.update(frames=_frame_report(profile), free_closure=_free_closure_report(profile, start_method))
+        print(json.dumps(report))
     else:
-        _print_summary(profile, args.output)
+        _print_summary(profile, args.output, start_method if args.fit else None)
     return 0
 
 
@@ -151,7 +174,7 @@ def _one_frame(args: argparse.Namespace):
     if args.closed is None or args.open_frame is None:
         raise SoftgripError("give CLOSED_FRAME and --open OPEN_FRAME for a one-frame calibration, or --fit OPEN "
                             "CLOSED [...] for least squares (see softgrip calibrate --help)")
-    fit_only = [f"--{name.replace('_', '-')}" for name in ("profile", "base_offset", "method", "stiffness",
+    fit_only = [f"--{name.replace('_', '-')}" for name in ("profile", "empty", "base_offset", "method", "stiffness",
                                                            "base_compliance")
                 if getattr(args, name) not in (None, False)]
     if fit_only:
@@ -163,9 +186,11 @@ def _one_frame(args: argparse.Namespace):
 
 
 def _fit(args: argparse.Namespace):
+    """The fitted profile, and the fit method of its start profile."""
     import dataclasses
 
     from calib.fit import fit, load_observations, start_from_open_frame
+    from calib.one_frame import one_frame_from_frames
     from calib.profile import load_profile
     from vision.frames import load_frame
 
@@ -175,6 +200,7 @@ def _fit(args: argparse.Namespace):
     if len(args.fit) % 2:
         raise SoftgripError(f"--fit needs frame pairs OPEN CLOSED, got {len(args.fit)} folders (an odd number)")
     pairs = list(zip(args.fit[0::2], args.fit[1::2]))
+    empty, empty_given = (tuple(args.empty), True) if args.empty else (None, False)
     if args.profile is not None:
         start = load_profile(args.profile)
         n_links = start.fingers["left"].n_links
@@ -184,6 +210,16 @@ def _fit(args: argparse.Namespace):
         if args.camera is not None:
             start = dataclasses.replace(start, camera={**start.camera, "name": args.camera})
         settings = start.segmentation_settings()
+        if empty is None:
+            empty = _recorded_free_closure(start, args.profile)
+    elif empty is not None:
+        # Start from the calibration pair's one-frame calibration (eqs. 4-5): L, r and W from its open
+        # frame, Theta from its free closure; it also checks that the closed frame shows no object.
+        n_links = args.n_links or DEFAULT_N_LINKS
+        start = one_frame_from_frames(load_frame(empty[1]), load_frame(empty[0]), n_links,
+                                      label=f"{empty[0]} + {empty[1]}", camera_name=args.camera or "unspecified",
+                                      names=(str(empty[1]), str(empty[0])), measure=_measure_settings(args))
+        settings = None
     else:
         n_links = args.n_links or DEFAULT_N_LINKS
         try:
@@ -203,13 +239,114 @@ def _fit(args: argparse.Namespace):
                                                             ("stiffness_ratio", args.stiffness),
                                                             ("base_compliance", args.base_compliance)) if on]
     measure = _measure_settings(args, start)
+    if empty is not None:  # the free-closure pair is one pair of the fit, not also an ordinary one
+        pairs = [pair for pair in pairs if not _same_pair(pair, empty)]
+    free, reason = (None, None) if empty is None else _free_closure(empty, settings, n_links, measure,
+                                                                     must=empty_given)  # first: it may be refused
     observations, skipped = load_observations(pairs, settings, n_links, progress=True, measure=measure)
+    if free is not None:
+        observations.append(free)
+    elif empty is not None:
+        skipped.append({"frame": f"{empty[0]} + {empty[1]}", "reason": reason})
+    elif args.profile is None:  # (a --profile's pair was looked for above, and its absence reported)
+        print("softgrip calibrate: note: no pair of the gripper closed without an object in the fit, so nothing "
+              "keeps it from making the free closure worse; add one with --empty OPEN CLOSED", file=sys.stderr)
     fitted = fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, method=method,
                  skipped=skipped)
-    return dataclasses.replace(fitted, vision={**fitted.vision, **measure.to_dict()})
+    # The start's method says what the free closure's start residual is (e.g. the one-frame calibration's).
+    return dataclasses.replace(fitted, vision={**fitted.vision, **measure.to_dict()}), start.fit.method
 
 
-def _print_summary(profile, output: Path) -> None:
+def _same_pair(a: tuple[Path, Path], b: tuple[Path, Path]) -> bool:
+    return all(Path(x).resolve() == Path(y).resolve() for x, y in zip(a, b))
+
+
+def _free_closure(pair: tuple[Path, Path], settings, n_links: int, measure, must: bool):
+    """(the free-closure Observation of ``pair`` (open, closed), None) or, when it cannot be used and
+    ``must`` is False, (None, why) with a warning; when ``must``, the error names the pair."""
+    from calib.fit import SkippedFrameWarning, free_closure_observation
+    from vision.frames import load_frame
+
+    label = f"{pair[0]} + {pair[1]}"
+    try:
+        return free_closure_observation(load_frame(pair[0]), load_frame(pair[1]), settings, n_links, label,
+                                        measure=measure, closed_name=str(pair[1])), None
+    except SoftgripError as err:
+        if must:
+            message = str(err) if any(str(p) in str(err) for p in pair) else f"{label}: {err}"
+            raise type(err)(f"the --empty pair: {message}") from None
+        warnings.warn(f"{label}: skipped: {err}", SkippedFrameWarning, stacklevel=2)
+        return None, str(err)
+
+
+def _recorded_free_closure(start, profile_path: Path) -> tuple[Path, Path] | None:
+    """The (open, closed) folders of the free-closure pair the start profile records (a one-frame
+    calibration's pair, or a fit's ``fit.free_closure``) when they exist, saying so on stderr; None
+    with a warning naming them when they are missing, or a note when the profile names no frames."""
+    fit = start.fit
+    label = fit.free_closure or (fit.frames[0] if fit.method == "one-frame" and len(fit.frames) == 1 else None)
+    splits = [] if label is None else [(label[:i], label[i + 3:]) for i in range(len(label)) if label[i:i + 3] == " + "]
+    if not splits:
+        print(f"softgrip calibrate: note: {profile_path} does not name the frames of a pair closed without an object; "
+              f"give them with --empty OPEN CLOSED so that the fit keeps the free closure", file=sys.stderr)
+        return None
+    for open_name, closed_name in splits:
+        for folder in (Path(), profile_path.parent):  # relative paths: from here, else next to the profile
+            pair = (folder / open_name, folder / closed_name)
+            if all(p.is_dir() for p in pair):
+                print(f"softgrip calibrate: including the free-closure pair {pair[0]} + {pair[1]} that "
+                      f"{profile_path} records (the gripper closed without an object) in the fit",
+                      file=sys.stderr)
+                return pair
+    missing = " and ".join(splits[0])
+    print(f"softgrip calibrate: warning: {profile_path} records its free-closure pair {label}, but the folders "
+          f"{missing} do not exist (here or next to the profile): fitting without it, so the fit may make the "
+          f"closure without an object worse; give the pair with --empty OPEN CLOSED", file=sys.stderr)
+    return None
+
+
+def _frame_report(profile) -> list[dict]:
+    """Per frame pair of a fitted profile: label, residual RMS, residual RMS at the start values,
+    mean joint error at joint N // 2 and at the tip (all mm; None where the profile has none), and
+    whether it is the free-closure pair."""
+    fit = profile.fit
+
+    def at(values, i):
+        return values[i] if values else None
+
+    return [{"frame": label, "residual_rms_mm": at(fit.frame_residual_rms_mm, i),
+             "start_residual_rms_mm": at(fit.frame_start_residual_rms_mm, i),
+             "mid_error_mm": at(fit.frame_mid_error_mm, i), "tip_error_mm": at(fit.frame_tip_error_mm, i),
+             "free_closure": label == fit.free_closure}
+            for i, label in enumerate(fit.frames)]
+
+
+def _free_closure_report(profile, start_method: str | None) -> dict | None:
+    """The free-closure pair's residual RMS at the start and fitted (mm), or None without one."""
+    fit = profile.fit
+    if fit.free_closure is None or not fit.frame_start_residual_rms_mm:
+        return None
+    i = fit.frames.index(fit.free_closure)
+    start, fitted = fit.frame_start_residual_rms_mm[i], fit.frame_residual_rms_mm[i]
+    return {"frame": fit.free_closure, "start": start_method, "start_residual_rms_mm": start,
+            "residual_rms_mm": fitted, "change_mm": fitted - start,
+            "worse": fitted > start + FREE_CLOSURE_TOLERANCE_MM}
+
+
+def _warn_if_free_closure_worse(profile, start_method: str | None) -> None:
+    report = _free_closure_report(profile, start_method)
+    if report is None or not report["worse"]:
+        return
+    start = "the one-frame calibration" if start_method == "one-frame" else "the start values"
+    print(f"softgrip calibrate: warning: the fit made the free closure ({report['frame']}) worse: residual RMS "
+          f"{report['residual_rms_mm']:.3f} mm against {report['start_residual_rms_mm']:.3f} mm at {start} "
+          f"(+{report['change_mm']:.3f} mm). The pairs with objects pull Theta away from what the gripper shows "
+          f"closed without an object: likely L, r or the base separation are measured wrong (check the frames' "
+          f"measurement: the profile's vision.detected, --base-end, --finger-relief), or the estimate cannot "
+          f"match both closures with one Theta (with --method geometric, try --method mechanics)", file=sys.stderr)
+
+
+def _print_summary(profile, output: Path, start_method: str | None = None) -> None:
     errors = profile.fit.standard_errors
     for side, f in profile.fingers.items():
         se = errors.get(f"{side}.theta_entire")
@@ -228,7 +365,27 @@ def _print_summary(profile, output: Path) -> None:
     through = f" ({fit.estimate_method} estimate)" if fit.estimate_method else ""
     print(f"base separation {profile.base_separation:.2f} mm; {fit.method}: residual RMS {fit.residual_rms_mm:.3f} mm "
           f"over {len(fit.frames)} frame pair(s){through}{skipped}")
+    if fit.method == "least-squares":
+        _print_frames(profile, start_method)
     print(f"wrote {output}")
+
+
+def _print_frames(profile, start_method: str | None) -> None:
+    """One line per frame pair: residual RMS, mean joint error at joint N/2 and at the tip (mm); the
+    free-closure pair also with its residual at the start."""
+    rows = _frame_report(profile)
+    if not rows or rows[0]["residual_rms_mm"] is None:
+        return
+    print("per frame pair (mm): residual RMS, mean joint error at joint N/2 and at the tip")
+    free = _free_closure_report(profile, start_method)
+    for row in rows:
+        line = f"  {row['frame']}: RMS {row['residual_rms_mm']:.3f}"
+        if row["mid_error_mm"] is not None:
+            line += f", N/2 {row['mid_error_mm']:.3f}, tip {row['tip_error_mm']:.3f}"
+        if row["free_closure"] and free is not None:
+            start = "one-frame" if start_method == "one-frame" else "start"
+            line += f"; free closure: {start} {free['start_residual_rms_mm']:.3f} -> fitted {free['residual_rms_mm']:.3f}"
+        print(line)
 
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -31,7 +31,9 @@ def make_profile() -> CalibrationProfile:
                      standard_errors={"left.theta_entire": 0.002, "left.base_offset": [0.1, 0.12],
                                       "left.stiffness_ratio": 0.05},
                      skipped=[{"frame": "open_2 + closed_2", "reason": "no gripper found"}],
-                     estimate_method="mechanics"),
+                     estimate_method="mechanics", free_closure="open_1 + closed_1",
+                     frame_start_residual_rms_mm=[0.6, 0.45], frame_mid_error_mm=[0.2, 0.3],
+                     frame_tip_error_mm=[0.5, 0.6]),
     )
 
 
@@ -90,7 +92,8 @@ def test_optional_fields_take_their_defaults(tmp_path: Path) -> None:
     for side in ("left", "right"):
         del data["fingers"][side]["stiffness_ratio"]
         del data["fingers"][side]["base_compliance"]
-    for key in ("residual_rms_mm", "frame_residual_rms_mm", "standard_errors", "skipped", "estimate_method"):
+    for key in ("residual_rms_mm", "frame_residual_rms_mm", "standard_errors", "skipped", "estimate_method",
+                "free_closure", "frame_start_residual_rms_mm", "frame_mid_error_mm", "frame_tip_error_mm"):
         del data["fit"][key]
     data["segmentation"] = {}
     data["camera"]["intrinsics"] = None
@@ -98,6 +101,11 @@ def test_optional_fields_take_their_defaults(tmp_path: Path) -> None:
     assert profile.fingers["left"].base_offset == (0.0, 0.0)
     assert (profile.fingers["left"].stiffness_ratio, profile.fingers["left"].base_compliance) == (1.0, 0.0)
     assert profile.fit.skipped == [] and profile.fit.residual_rms_mm is None and profile.fit.estimate_method is None
+    assert profile.fit.free_closure is None and profile.fit.frame_start_residual_rms_mm == []
+    assert profile.fit.frame_mid_error_mm == [] and profile.fit.frame_tip_error_mm == []
+    # Not written when not recorded: a profile without them reads and writes as before.
+    assert not {"free_closure", "frame_start_residual_rms_mm", "frame_mid_error_mm",
+                "frame_tip_error_mm"} & set(profile.to_dict()["fit"])
     assert profile.segmentation_settings() == SegmentationSettings()
 
 
@@ -191,6 +199,11 @@ BAD_VALUES = [
     (("fit", "residual_rms_mm"), -1.0, "fit.residual_rms_mm", "a number >= 0"),
     (("fit", "frame_residual_rms_mm"), [0.1, 0.2, 0.3], "fit.frame_residual_rms_mm", "one value per frame"),
     (("fit", "frame_residual_rms_mm", 0), "x", "fit.frame_residual_rms_mm[0]", "a number >= 0"),
+    (("fit", "frame_start_residual_rms_mm"), [0.1], "fit.frame_start_residual_rms_mm", "one value per frame"),
+    (("fit", "frame_mid_error_mm", 1), -0.5, "fit.frame_mid_error_mm[1]", "a number >= 0"),
+    (("fit", "frame_tip_error_mm"), {}, "fit.frame_tip_error_mm", "a JSON array"),
+    (("fit", "free_closure"), "open_9 + closed_9", "fit.free_closure", "the label of one of fit.frames"),
+    (("fit", "free_closure"), 1, "fit.free_closure", "a non-empty string"),
     (("fit", "standard_errors"), [], "fit.standard_errors", "a JSON object"),
     (("fit", "standard_errors", "left.theta_entire"), -0.1, "fit.standard_errors.left.theta_entire",
      "a number >= 0"),
