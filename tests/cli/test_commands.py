@@ -42,14 +42,15 @@ def profile_data() -> dict:
 
 
 def frame_camera(path: str):
-    """The frame's plane camera, built the way the pipeline builds it (profile's segmentation)."""
+    """The frame's plane camera, measured the way the pipeline measures it (the profile's
+    segmentation and vision settings: the gripper plane fitted to the fingers' depth)."""
+    from calib.one_frame import frame_measurement
+    from calib.profile import load_profile
     from vision.frames import load_frame
-    from vision.geometry import PlaneCamera
-    from vision.segmentation import SegmentationSettings, segment
 
     frame = load_frame(path)
-    seg = segment(frame, SegmentationSettings.from_dict(profile_data()["segmentation"]))
-    return frame, PlaneCamera.from_frame(frame, seg.fingers)
+    profile = load_profile(PROFILE)
+    return frame, frame_measurement(frame, profile.segmentation_settings(), profile.measure_settings()).camera
 
 
 def check_finger(finger: dict, side: str, n_links: int) -> None:
