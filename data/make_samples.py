@@ -43,6 +43,9 @@ BASE_SEPARATION_MM = 64.0
 GRIPPER_CENTER_MM = (0.0, -45.0)  # midway between the finger bases, in the gripper plane
 PLANE_DEPTH_MM = 120.0
 N_LINKS = 20  # the sample profile's N (the paper's Experiment A-b uses 20)
+# The objects' front faces lie 3 mm behind the fingers' plane (their outlines drawn there): vision
+# converts an object's outline at the depth of its own face.
+OBJECT_FACE_OFFSET_MM = 3.0
 WIDTH, HEIGHT = 640, 480
 # Orange-yellow objects: saturated (segmented as the object) and far from the overlays' colours
 # (estimated joints blue, observed positions green, contacts red).
@@ -74,7 +77,8 @@ CALIBRATION_SEEDS = {"calib_open": 1, "calib_closed": 2}
 
 def _scene(fingers: list[np.ndarray], polygon: np.ndarray | None, seed: int) -> Scene:
     return Scene(fingers, half_thickness=HALF_THICKNESS_MM, object_polygon=polygon,
-                 plane_depth_mm=PLANE_DEPTH_MM, object_rgb=OBJECT_RGB, palm=False, seed=seed)
+                 plane_depth_mm=PLANE_DEPTH_MM, object_depth_offset_mm=OBJECT_FACE_OFFSET_MM, object_rgb=OBJECT_RGB,
+                 palm=False, seed=seed)
 
 
 def _closed_fingers(sdf: PolygonSDF | None) -> tuple[list[np.ndarray], dict]:
