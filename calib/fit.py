@@ -348,8 +348,8 @@ def observations_from_frames(
         ...                                None, 20)
         >>> obs.bases.shape, obs.observed.shape  # (left, right) bases; N+1 closed joints each; mm
         ((2, 2), (2, 21, 2))
-        >>> round(float(obs.bases[1, 0] - obs.bases[0, 0]), 1)  # the base separation W, mm
-        64.0
+        >>> round(float(obs.bases[1, 0] - obs.bases[0, 0]))  # the base separation W, mm
+        64
     """
     return _measured_pair(open_frame, closed_frame, settings, n_links, label, measure)[0]
 

@@ -244,8 +244,8 @@ def to_gripper(profile: CalibrationProfile) -> Gripper:
         >>> import calib
         >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
         >>> gripper = to_gripper(load_profile(data / "sample_profile.json"))
-        >>> round(float(gripper.base_separation), 1), gripper.left.n_links, round(float(gripper.left.theta_entire), 3)
-        (64.0, 20, 0.549)
+        >>> round(float(gripper.base_separation), 1), gripper.left.n_links, round(float(gripper.left.theta_entire), 2)
+        (64.0, 20, 0.55)
     """
     return Gripper(left=profile.fingers["left"].model(), right=profile.fingers["right"].model(),
                    base_separation=profile.base_separation)

@@ -70,12 +70,16 @@ def test_stiffness_fields_and_the_estimate_method_round_trip(tmp_path: Path) -> 
     assert float(left.stiffness_ratio) == 2.0 and float(left.base_compliance) == pytest.approx(0.25)
 
 
-def test_a_profile_without_the_stiffness_fields_loads_with_defaults() -> None:
-    """Profiles written before the mechanics estimate (data/sample_profile.json is one) still load:
-    a uniform finger with a clamped base, and no recorded estimate method."""
-    sample = Path(__file__).resolve().parents[2] / "data" / "sample_profile.json"
-    data = json.loads(sample.read_text())
-    assert "stiffness_ratio" not in data["fingers"]["left"] and "estimate_method" not in data["fit"]
+def test_a_profile_without_the_stiffness_fields_loads_with_defaults(tmp_path: Path) -> None:
+    """Profiles written before the mechanics estimate (the sample profile without those fields)
+    still load: a uniform finger with a clamped base, and no recorded estimate method."""
+    data = json.loads((Path(__file__).resolve().parents[2] / "data" / "sample_profile.json").read_text())
+    for side in ("left", "right"):
+        for name in ("stiffness_ratio", "base_compliance"):
+            data["fingers"][side].pop(name, None)
+    data["fit"].pop("estimate_method", None)
+    sample = tmp_path / "old_profile.json"
+    sample.write_text(json.dumps(data))
     profile = load_profile(sample)
     for side in ("left", "right"):
         assert profile.fingers[side].stiffness_ratio == 1.0 and profile.fingers[side].base_compliance == 0.0
