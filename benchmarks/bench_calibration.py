@@ -67,11 +67,15 @@ class Pair:
     observation: Observation
     truth: np.ndarray
     rod_in_contact: tuple = ()  # each finger's rod nodes in contact (M+1,), for the rod's contact case
+    true_observation: Observation | None = None  # the same pair from the renderer's geometry (bases, polygon)
 
 
-def make_pair(index: int, n_links: int = N_LINKS, rod: RodMechanics = RodMechanics()) -> Pair | None:
+def make_pair(index: int, n_links: int = N_LINKS, rod: RodMechanics = RodMechanics(),
+              scene_options: dict | None = None) -> Pair | None:
     """Scene ``index``: render it open and closed (rod closures with ``rod``'s stiffness profile and
-    base compliance), observed at ``n_links``; None if a closure fails."""
+    base compliance), observed at ``n_links``; None if a closure fails. ``scene_options``: more
+    ``Scene`` fields for both frames (a renderer variant, e.g. round fingers; the gripper plane must
+    face the camera, so that the renderer's millimetres are the pipeline's)."""
     rng = np.random.default_rng(500 + index)
     center = np.array([rng.uniform(-10.0, 10.0), rng.uniform(-48.0, -38.0)])
     name = OBJECTS[index % len(OBJECTS)]
@@ -84,23 +88,29 @@ def make_pair(index: int, n_links: int = N_LINKS, rod: RodMechanics = RodMechani
                 for side, base, hand in zip(SIDES, bases, (1.0, -1.0))]
     if not all(bool(c.converged) for c in closures):
         return None
+    options = scene_options or {}
     opened = Scene(gripper_centrelines(tuple(center), SEPARATION, LENGTH), half_thickness=HALF_THICKNESS,
-                   object_polygon=polygon, seed=2 * index)
+                   object_polygon=polygon, seed=2 * index, **options)
     closed = Scene([np.asarray(c.points) for c in closures], half_thickness=HALF_THICKNESS,
-                   object_polygon=polygon, seed=2 * index + 1)
+                   object_polygon=polygon, seed=2 * index + 1, **options)
     observation = observations_from_frames(render(opened, INTRINSICS), render(closed, INTRINSICS), None, n_links,
                                            f"scene {index} ({name})")
-    return Pair(observation, np.stack([np.asarray(observed_joints(c, n_links)) for c in closures]),
-                tuple(np.asarray(c.in_contact) for c in closures))
+    truth = np.stack([np.asarray(observed_joints(c, n_links)) for c in closures])
+    return Pair(observation, truth, tuple(np.asarray(c.in_contact) for c in closures),
+                Observation(sdf=sdf, bases=bases, observed=truth, label=f"scene {index} ({name}), true geometry"))
 
 
-def one_frame_calibration(n_links: int = N_LINKS) -> CalibrationProfile:
-    """Eqs. 4-5 on rendered frames: the gripper closed without an object, and open."""
+def one_frame_calibration(n_links: int = N_LINKS, scene_options: dict | None = None) -> CalibrationProfile:
+    """Eqs. 4-5 on rendered frames: the gripper closed without an object, and open (``scene_options``
+    as for :func:`make_pair`)."""
+    options = scene_options or {}
     arcs = {side: np.asarray(free_arc_points((0.0, 0.0), THETA[side], LENGTH, np.linspace(0.0, LENGTH, 257)))
             for side in SIDES}
     closed = Scene(gripper_centrelines((0.0, -40.0), SEPARATION, LENGTH, left_shape=arcs["left"],
-                                       right_shape=arcs["right"]), half_thickness=HALF_THICKNESS, seed=9001)
-    opened = Scene(gripper_centrelines((0.0, -40.0), SEPARATION, LENGTH), half_thickness=HALF_THICKNESS, seed=9002)
+                                       right_shape=arcs["right"]), half_thickness=HALF_THICKNESS, seed=9001,
+                   **options)
+    opened = Scene(gripper_centrelines((0.0, -40.0), SEPARATION, LENGTH), half_thickness=HALF_THICKNESS, seed=9002,
+                   **options)
     return one_frame_from_frames(render(closed, INTRINSICS), render(opened, INTRINSICS), n_links,
                                  label="synthetic closed + open", camera_name="synthetic")
 

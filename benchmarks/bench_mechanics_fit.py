@@ -4,6 +4,7 @@ Run from the repository root:
 
     .venv/bin/python benchmarks/bench_mechanics_fit.py            # uniform and profiled gripper
     .venv/bin/python benchmarks/bench_mechanics_fit.py --quick    # tiny configuration (CI test)
+    .venv/bin/python benchmarks/bench_mechanics_fit.py --variant 'round fingers, flat base'  # other frames
 
 and paste the printed markdown into benchmarks/RESULTS.md.
 
@@ -24,6 +25,7 @@ solver): a uniform one, and one whose bending stiffness doubles from the tip to 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 import warnings
@@ -47,15 +49,17 @@ from vision.synthetic.rod import RodMechanics  # noqa: E402
 _estimate = eqx.filter_jit(estimate_in_frame)
 
 
-def held_out(profile: CalibrationProfile, pairs: list, method: str, n_links: int) -> dict:
-    """Mean eq. 10 error (mm) at i = N/2 and i = N and the contact-case agreement with the rod."""
+def held_out(profile: CalibrationProfile, pairs: list, method: str, n_links: int, truth: bool = False) -> dict:
+    """Mean eq. 10 error (mm) at i = N/2 and i = N and the contact-case agreement with the rod;
+    with ``truth``, from each pair's true geometry (bases and polygon) instead of its frames."""
     mid, tip, agree, differ = [], [], [], []
     for pair in pairs:
-        bases = profile.corrected_bases(pair.observation.bases)
+        observation = pair.true_observation if truth else pair.observation
+        bases = profile.corrected_bases(observation.bases)
         for k, (side, hand) in enumerate(zip(bc.SIDES, (1.0, -1.0))):
             frame = FingerFrame(origin=jnp.asarray(bases[k], jnp.float32), angle=jnp.zeros(()),
                                 handedness=jnp.asarray(hand))
-            est = _estimate(profile.fingers[side].model(), pair.observation.sdf, frame, method=method)
+            est = _estimate(profile.fingers[side].model(), observation.sdf, frame, method=method)
             errors = np.asarray(joint_errors(est.joints, jnp.asarray(pair.truth[k], jnp.float32)))
             mid.append(errors[n_links // 2])
             tip.append(errors[n_links])
@@ -67,12 +71,16 @@ def held_out(profile: CalibrationProfile, pairs: list, method: str, n_links: int
             "fingers": len(agree), "differ": differ}
 
 
-def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int) -> list[str]:
+def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int,
+                variant: str = "default") -> list[str]:
+    from vision_accuracy import VARIANTS
+
+    options = dict(VARIANTS[variant])
     rod = RodMechanics(stiffness_ratio=stiffness_ratio)
     t0 = time.perf_counter()
-    pairs = [p for p in (bc.make_pair(i, n_links, rod) for i in range(n_train + n_test)) if p is not None]
+    pairs = [p for p in (bc.make_pair(i, n_links, rod, options) for i in range(n_train + n_test)) if p is not None]
     train, test = pairs[:-n_test], pairs[-n_test:]
-    one_frame = bc.one_frame_calibration(n_links)
+    one_frame = bc.one_frame_calibration(n_links, options)
     scenes_s = time.perf_counter() - t0
 
     def least_squares(parameters, method):
@@ -84,20 +92,25 @@ def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int)
 
     geometric, geometric_s = least_squares(("theta_entire",), "geometric")
     mechanics, mechanics_s = least_squares(("theta_entire", "stiffness_ratio"), "mechanics")
+    true_fingers = {side: dataclasses.replace(one_frame.fingers[side], length=bc.LENGTH, theta_entire=bc.THETA[side],
+                                              half_thickness=bc.HALF_THICKNESS, stiffness_ratio=stiffness_ratio)
+                    for side in bc.SIDES}
+    true_profile = dataclasses.replace(one_frame, fingers=true_fingers, base_separation=bc.SEPARATION)
     rows = [
+        ("true geometry (the rod's L, r, Theta, ratio; true bases and polygon)", true_profile, "mechanics", None),
         ("one-frame calibration", one_frame, "geometric", None),
         ("one-frame calibration", one_frame, "mechanics", None),
         ("least squares: Theta", geometric, "geometric", geometric_s),
         ("least squares: Theta + stiffness ratio", mechanics, "mechanics", mechanics_s),
     ]
-    lines = [f"#### Rod stiffness ratio {stiffness_ratio:g} (true Theta 0.55 / 0.45 rad): {len(train)} training "
-             f"pairs, {len(test)} held out, N = {n_links}\n",
+    lines = [f"#### Rod stiffness ratio {stiffness_ratio:g} (true Theta 0.55 / 0.45 rad), frames rendered as "
+             f"'{variant}': {len(train)} training pairs, {len(test)} held out, N = {n_links}\n",
              "| profile | estimate | Theta left / right (rad) | stiffness ratio left / right (SE) | pairs used "
              "(skipped) | fit time (s) | held-out error i=N/2 (mm) | held-out error i=N (mm) | case agreement |",
              "|---|---|---|---|---|---|---|---|---|"]
     differ = {}
     for name, profile, method, seconds in rows:
-        result = held_out(profile, test, method, n_links)
+        result = held_out(profile, test, method, n_links, truth=profile is true_profile)
         differ[f"{name}, {method}"] = result["differ"]
         f = profile.fingers
         se = profile.fit.standard_errors
@@ -119,17 +132,26 @@ def main(argv: list[str] | None = None) -> str:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="tiny configuration: N = 4, 3 + 2 pairs, one gripper")
+    parser.add_argument("--variant", default="default", metavar="NAME",
+                        help="render the frames as this variant of benchmarks/vision_accuracy.py (one whose gripper "
+                             "plane faces the camera and whose tips do not touch), e.g. 'round fingers, flat base'")
     args = parser.parse_args(argv)
+    from vision_accuracy import VARIANTS
+
+    usable = [name for name, options in VARIANTS.items() if not {"tilt_deg", "touching"} & set(options)]
+    if args.variant not in usable:
+        parser.error(f"--variant must be one of: {', '.join(repr(v) for v in usable)}")
     if args.quick:
         configs, n_links, n_train, n_test = (2.0,), 4, 3, 2
     else:
         configs, n_links, n_train, n_test = (1.0, 2.0), 20, 16, 24
     t0 = time.perf_counter()
     lines = ["Command (from the repository root):\n",
-             "    .venv/bin/python benchmarks/bench_mechanics_fit.py" + (" --quick" if args.quick else "") + "\n",
+             "    .venv/bin/python benchmarks/bench_mechanics_fit.py" + (" --quick" if args.quick else "")
+             + ("" if args.variant == "default" else f" --variant '{args.variant}'") + "\n",
              f"Machine: {describe()}\n"]
     for ratio in configs:
-        lines += run_gripper(ratio, n_links, n_train, n_test)
+        lines += run_gripper(ratio, n_links, n_train, n_test, args.variant)
         print(f"gripper with stiffness ratio {ratio:g} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
     lines.append(f"Whole run: {time.perf_counter() - t0:.0f} s.")
     text = "\n".join(lines)
