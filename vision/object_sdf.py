@@ -16,10 +16,10 @@ edge to a small fraction of a pixel.
 ray-plane intersection (:meth:`PlaneCamera.px_to_mm`), so a tilted plane's perspective is exact,
 and the grid holds the Euclidean distance (mm) in the plane from each grid point to them: exactly
 (nearest segment among those of the nearest sample points, scipy's k-d tree) within
-``_EXACT_BAND_PX`` = 4 px of the outline, and farther out the distance to the outline's closest
-point from the nearest grid point of that band (scipy's Euclidean feature transform), an
-over-estimate by at most a few hundredths of a pixel. The sign is the smoothed level's (negative
-inside).
+``_EXACT_BAND_PX`` = 8 px of the outline, where fingers touch; farther out, the distance to the
+segment holding the closest point of the nearest grid point next to the outline (scipy's Euclidean
+feature transform), which over-estimates by at most about one grid step (a few hundredths of a
+pixel on average). The sign is the smoothed level's (negative inside).
 
 **The grid.** Always (H, W), the image's size, whatever the plane's depth and tilt, so the frames of
 one camera share one compilation downstream. It is the regular millimetre grid spanning the box
@@ -58,7 +58,7 @@ from vision.geometry import PlaneCamera
 
 _POLYGON_UPSAMPLE = 4
 _SMOOTH_PX = 0.5  # Gaussian sigma (px) smoothing the mask's staircase before its 0.5 level is traced
-_EXACT_BAND_PX = 4.0  # distances within this many pixels of the outline are exact
+_EXACT_BAND_PX = 8.0  # distances within this many pixels of the outline are exact
 _SAMPLES_PER_SEGMENT = 4  # points per outline segment (<= 1.5 px long) in the k-d tree
 _NEAREST_SAMPLES = 8  # the segments of this many nearest sample points are measured exactly
 
