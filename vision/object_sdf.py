@@ -8,9 +8,13 @@ into segments cell by cell. For a hard mask (0 or 1 per pixel) a straight edge a
 then lies exactly halfway between the last pixel centre inside and the first outside, and a
 slanted or curved edge on the average of its pixel staircase, not on its outer corners: unbiased.
 The smoothing damps the staircase's one-pixel steps (their fundamental by exp(-2 pi^2 sigma^2) ~
-0.007) and rounds a corner by less than half a pixel. With a **coverage** image (each edge pixel's
-covered fraction, :func:`vision.coverage.edge_coverage`) the 0.5 level follows the anti-aliased
-edge to a small fraction of a pixel.
+0.007) and rounds a right-angled corner by 0.4 px. A hard mask still places each point of a
+shallow edge only within half a pixel (its steps are longer than the smoothing): unbiased on
+average, but the outline wavers by up to about 0.4 px, and distances a few pixels off it read the
+nearest waver, on average about 0.1 px short. With a **coverage** image (each edge pixel's covered
+fraction, :func:`vision.coverage.edge_coverage`) the 0.5 level follows an anti-aliased edge to a
+few hundredths of a pixel. Features under about a pixel wide may vanish in the smoothing (an
+object that vanishes entirely is traced unsmoothed).
 
 **The distance.** The outline's segments are mapped to millimetres in the plane by the camera's
 ray-plane intersection (:meth:`PlaneCamera.px_to_mm`), so a tilted plane's perspective is exact,
@@ -18,8 +22,8 @@ and the grid holds the Euclidean distance (mm) in the plane from each grid point
 (nearest segment among those of the nearest sample points, scipy's k-d tree) within
 ``_EXACT_BAND_PX`` = 8 px of the outline, where fingers touch; farther out, the distance to the
 segment holding the closest point of the nearest grid point next to the outline (scipy's Euclidean
-feature transform), which over-estimates by at most about one grid step (a few hundredths of a
-pixel on average). The sign is the smoothed level's (negative inside).
+feature transform), which over-estimates by up to about one grid step (a small fraction of one on
+average). The sign is the smoothed level's (negative inside).
 
 **The grid.** Always (H, W), the image's size, whatever the plane's depth and tilt, so the frames of
 one camera share one compilation downstream. It is the regular millimetre grid spanning the box
@@ -75,7 +79,8 @@ def object_sdf(mask: np.ndarray, camera: PlaneCamera, coverage: np.ndarray | Non
         camera: the plane's camera (pixels <-> mm, tilted or not).
         coverage: (H, W) float in [0, 1], the fraction of each pixel the object covers (e.g.
             ``vision.coverage.edge_coverage(frame.color, mask)``), or None for the hard mask. Its
-            0.5 level (smoothed) is the outline, to sub-pixel precision on anti-aliased edges.
+            0.5 level (smoothed) is then the outline, to sub-pixel precision on anti-aliased edges;
+            the mask only says whether there is an object.
 
     Returns:
         ``SDFGrid`` with values (H, W) in mm, origin (2,) mm and spacing (2,) mm of the regular
@@ -93,6 +98,9 @@ def object_sdf(mask: np.ndarray, camera: PlaneCamera, coverage: np.ndarray | Non
         >>> point = camera.px_to_mm(np.array([310.0, 229.5]))  # mm; the left edge is at u = 299.5
         >>> round(float(grid.distance(jnp.asarray(point))) / camera.mm_per_px, 2)  # 10.5 px inside
         -10.5
+        >>> tilted = PlaneCamera(d405_intrinsics(), 130.0, normal=(0.1, 0.05, 1.0))  # about 6 degrees
+        >>> object_sdf(mask, tilted).values.shape  # the image's size, whatever the plane
+        (480, 640)
 
     Raises:
         ObjectMaskError: the mask is not 2-D or is smaller than 2x2, or covers the whole frame
