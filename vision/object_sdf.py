@@ -13,8 +13,8 @@ shallow edge only within half a pixel (its steps are longer than the smoothing):
 average, but the outline wavers by up to about 0.4 px, and distances a few pixels off it read the
 nearest waver, on average about 0.1 px short. With a **coverage** image (each edge pixel's covered
 fraction, :func:`vision.coverage.edge_coverage`) the 0.5 level follows an anti-aliased edge to a
-few hundredths of a pixel. Features under about a pixel wide may vanish in the smoothing (an
-object that vanishes entirely is traced unsmoothed).
+few hundredths of a pixel. Features about a pixel wide shrink in the smoothing (a lone pixel to
+under half its width); an object that vanishes entirely (a faint coverage) is traced unsmoothed.
 
 **The distance.** The outline's segments are mapped to millimetres in the plane by the camera's
 ray-plane intersection (:meth:`PlaneCamera.px_to_mm`), so a tilted plane's perspective is exact,
@@ -80,7 +80,8 @@ def object_sdf(mask: np.ndarray, camera: PlaneCamera, coverage: np.ndarray | Non
         coverage: (H, W) float in [0, 1], the fraction of each pixel the object covers (e.g.
             ``vision.coverage.edge_coverage(frame.color, mask)``), or None for the hard mask. Its
             0.5 level (smoothed) is then the outline, to sub-pixel precision on anti-aliased edges;
-            the mask only says whether there is an object.
+            the mask only says whether there is an object (and is the outline where the coverage
+            has no pixel on one side of 1/2).
 
     Returns:
         ``SDFGrid`` with values (H, W) in mm, origin (2,) mm and spacing (2,) mm of the regular
@@ -143,10 +144,12 @@ def _level(inside: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
         if not np.isfinite(level).all():
             raise ObjectMaskError("the coverage image must be finite (fractions in [0, 1])")
         level = np.clip(level, 0.0, 1.0)
+        if not ((level > 0.5).any() and (level <= 0.5).any()):  # no outline in the coverage: the mask's
+            level = inside.astype(np.float32)
     smooth = cv2.GaussianBlur(level, (0, 0), _SMOOTH_PX, borderType=cv2.BORDER_REPLICATE) - 0.5
-    if not (smooth > 0).any():  # an object under about a pixel across: keep it unsmoothed
-        return level - 0.5
-    return smooth
+    if (smooth > 0).any() and (smooth <= 0).any():
+        return smooth
+    return level - 0.5  # an object that vanishes in the smoothing (a faint coverage): unsmoothed
 
 
 def _signed_distance(level: np.ndarray, camera: PlaneCamera, origin: np.ndarray,

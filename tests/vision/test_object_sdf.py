@@ -115,7 +115,8 @@ def sampled_coverage(polygon_mm: np.ndarray, camera: PlaneCamera, k: int) -> np.
     """(H, W) fraction of each pixel's k x k sub-pixel points (their rays hitting the plane) inside
     the polygon (V, 2) mm: k = 1 is a point-sampled mask (pixel centres), k = 4 an anti-aliased one."""
     outline_px = camera.mm_to_px(polygon_mm)
-    (u0, v0), (u1, v1) = np.floor(outline_px.min(axis=0)).astype(int) - 2, np.ceil(outline_px.max(axis=0)).astype(int) + 2
+    u0, v0 = np.floor(outline_px.min(axis=0)).astype(int) - 2
+    u1, v1 = np.ceil(outline_px.max(axis=0)).astype(int) + 2
     offsets = (np.arange(k) + 0.5) / k - 0.5
     u = (np.arange(u0, u1)[:, None] + offsets).ravel()
     v = (np.arange(v0, v1)[:, None] + offsets).ravel()
@@ -188,7 +189,7 @@ def test_circle_of_known_radius(offset_mm, tilt_deg: float, kind: str) -> None:
     true = -radius + np.hypot(*(nodes - centre).transpose(2, 0, 1))
     assert np.abs(np.asarray(grid.values, float)[rows, cols] - true).max() <= tolerance
     fx, fy = (centre - origin) / spacing - (col, row)
-    interpolated = ((1 - fy) * ((1 - fx) * true[0, 0] + fx * true[0, 1]) + fy * ((1 - fx) * true[1, 0] + fx * true[1, 1]))
+    interpolated = (1 - fy) * ((1 - fx) * true[0, 0] + fx * true[0, 1]) + fy * ((1 - fx) * true[1, 0] + fx * true[1, 1])
     at_centre = float(sdf_lookup(grid, jnp.asarray(centre)))
     assert at_centre == pytest.approx(interpolated, abs=tolerance)
     assert -radius - tolerance <= at_centre <= -radius + 0.75 * float(np.hypot(*spacing)) + tolerance
@@ -214,6 +215,19 @@ def test_coverage_must_match_the_mask() -> None:
         object_sdf(mask, CAMERA, coverage=np.zeros((10, 10)))
     with pytest.raises(ObjectMaskError, match="coverage.*finite"):
         object_sdf(mask, CAMERA, coverage=np.full(mask.shape, np.nan))
+
+
+def test_objects_a_pixel_across_and_coverage_without_an_outline() -> None:
+    mask = np.zeros((480, 640), bool)
+    mask[200, 300] = True  # a lone pixel shrinks in the smoothing but stays an object
+    grid = object_sdf(mask, CAMERA)
+    inside, near = lookup_px(grid, np.array([[300.0, 200.0], [303.0, 200.0]]))
+    assert -0.5 <= inside < 0.0 and 2.5 <= near <= 3.0
+    faint = mask * 0.6  # vanishes in the smoothing: traced unsmoothed
+    assert lookup_px(object_sdf(mask, CAMERA, coverage=faint), np.array([[300.0, 200.0]]))[0] < 0.0
+    disc_mask = disc((320.3, 240.6), 20.0)  # coverage nowhere above 1/2: the mask's outline
+    hard = np.asarray(object_sdf(disc_mask, CAMERA).values)
+    assert np.array_equal(np.asarray(object_sdf(disc_mask, CAMERA, coverage=np.zeros((480, 640))).values), hard)
 
 
 # --- no object, objects at the border ---------------------------------------------------------
