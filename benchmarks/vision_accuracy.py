@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from softgrip_jax import SDFGrid
+from vision.coverage import edge_coverage
 from vision.frames import Frame
 from vision.geometry import PlaneCamera
 from vision.keypoints import gripper_keypoints, resample_polyline
@@ -202,7 +203,8 @@ def measure(scene: AccuracyScene) -> SceneErrors:
                 errors["length"].append(100.0 * abs(finger.length_mm - LENGTH_MM) / LENGTH_MM)
         if not closed and scene.object_name is not None:
             true_outline_px = mm_to_px(scene.object_polygon(), INTRINSICS, scene.plane_depth_mm)
-            sdf_metrics = _sdf_errors(object_sdf(seg.object, camera), camera, true_outline_px)
+            grid = object_sdf(seg.object, camera, coverage=edge_coverage(frame.color, seg.object))
+            sdf_metrics = _sdf_errors(grid, camera, true_outline_px)
     return SceneErrors(
         base_px=max(errors["base"]), tip_px=max(errors["tip"]), theta_rad=max(errors["theta"]),
         length_pct=max(errors["length"]), observed_px=max(errors["observed"]),

@@ -1,24 +1,43 @@
 """Object mask -> signed distance in millimetres, as the core's ``SDFGrid`` or ``PolygonSDF``.
 
-The grid has one value per pixel. OpenCV's exact Euclidean distance transform
-(``cv2.distanceTransform(..., cv2.DIST_L2, cv2.DIST_MASK_PRECISE)``) gives, for each pixel, the
-distance to the nearest pixel centre of the other kind (object / not object). The object's boundary
-runs between the two kinds of pixel centres, so half a pixel is taken off both sides:
+**The zero level.** A mask (or a colour coverage image, below) is a function sampled at pixel
+centres. The object's outline is taken as the 0.5 level of that function, smoothed by a Gaussian
+of ``_SMOOTH_PX`` = 0.5 px (OpenCV), and found at sub-pixel precision by marching squares: linear
+interpolation between each pair of neighbouring pixel centres on either side of the level, joined
+into segments cell by cell. For a hard mask (0 or 1 per pixel) a straight edge along the pixel grid
+then lies exactly halfway between the last pixel centre inside and the first outside, and a
+slanted or curved edge on the average of its pixel staircase, not on its outer corners: unbiased.
+The smoothing damps the staircase's one-pixel steps (their fundamental by exp(-2 pi^2 sigma^2) ~
+0.007) and rounds a right-angled corner by 0.4 px. A hard mask still places each point of a
+shallow edge only within half a pixel (its steps are longer than the smoothing): unbiased on
+average, but the outline wavers by up to about 0.4 px, and distances a few pixels off it read the
+nearest waver, on average about 0.1 px short. With a **coverage** image (each edge pixel's covered
+fraction, :func:`vision.coverage.edge_coverage`) the 0.5 level follows an anti-aliased edge to a
+few hundredths of a pixel. Features about a pixel wide shrink in the smoothing (a lone pixel to
+under half its width); an object that vanishes entirely (a faint coverage) is traced unsmoothed.
 
-    sdf = d_outside - 1/2 outside the object,    sdf = 1/2 - d_inside inside it   (px),
+**The distance.** The outline's segments are mapped to millimetres in the plane by the camera's
+ray-plane intersection (:meth:`PlaneCamera.px_to_mm`), so a tilted plane's perspective is exact,
+and the grid holds the Euclidean distance (mm) in the plane from each grid point to them: exactly
+(nearest segment among those of the nearest sample points, scipy's k-d tree) within
+``_EXACT_BAND_PX`` = 8 px of the outline, where fingers touch; farther out, the distance to the
+segment holding the closest point of the nearest grid point next to the outline (scipy's Euclidean
+feature transform), which over-estimates by up to about one grid step (a small fraction of one on
+average). The sign is the smoothed level's (negative inside).
 
-and bilinear interpolation (the core's lookup) puts the zero level halfway between an object pixel
-and its neighbour outside: on the boundary to sub-pixel accuracy. Pixel distances become
-millimetres with the plane camera's ``mm_per_px`` (exact for square pixels, fx = fy; otherwise off
-by at most ``|fx - fy| / (2 min(fx, fy))`` relative, 0.1 % for a typical D405, and exactly 0 on the
-zero level). The grid's origin is the millimetre position of pixel (0, 0) and its spacing the pixel
-size (Z / fx, Z / fy), so grid element (row v, column u) is pixel (u, v).
+**The grid.** Always (H, W), the image's size, whatever the plane's depth and tilt, so the frames of
+one camera share one compilation downstream. It is the regular millimetre grid spanning the box
+around the image's footprint in the plane (the plane points of its four corner pixel centres): for
+a plane facing the camera, grid element (row v, column u) is pixel (u, v), origin pixel (0, 0)'s
+position and spacing the pixel size (Z / fx, Z / fy). A tilted plane's footprint is a
+quadrilateral: grid points outside it get distances to the visible outline extended straight past
+the image border.
 
 **Objects cut by the image border.** The part outside the image is unknown. The image border is
 not treated as the object's boundary: inside the image, distances are to the visible boundary
-only (an object pixel at the border has a negative value), and outside the image the core reads
-the grid as far (``SDFGrid.far``), i.e. never in contact. Contacts predicted near the border are
-therefore only as good as the visible part of the object.
+only (an object pixel at the border has a negative value), and outside the grid the core reads
+``SDFGrid.far``, i.e. never in contact. Contacts predicted near the border are therefore only as
+good as the visible part of the object.
 
 Example:
     >>> import numpy as np
@@ -35,28 +54,41 @@ from __future__ import annotations
 import cv2
 import jax.numpy as jnp
 import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from softgrip_jax import FAR_MM, PolygonSDF, SDFGrid, SoftgripError
 from vision.geometry import PlaneCamera
 
 _POLYGON_UPSAMPLE = 4
+_SMOOTH_PX = 0.5  # Gaussian sigma (px) smoothing the mask's staircase before its 0.5 level is traced
+_EXACT_BAND_PX = 8.0  # distances within this many pixels of the outline are exact
+_SAMPLES_PER_SEGMENT = 4  # points per outline segment (<= 1.5 px long) in the k-d tree
+_NEAREST_SAMPLES = 8  # the segments of this many nearest sample points are measured exactly
 
 
 class ObjectMaskError(SoftgripError):
     """An object mask that cannot be turned into a signed-distance function."""
 
 
-def object_sdf(mask: np.ndarray, camera: PlaneCamera) -> SDFGrid:
-    """Signed distance (mm, negative inside) to the object in ``mask``, one grid value per pixel.
+def object_sdf(mask: np.ndarray, camera: PlaneCamera, coverage: np.ndarray | None = None) -> SDFGrid:
+    """Signed distance (mm, negative inside) to the object in ``mask``, on an (H, W) grid.
 
     Args:
         mask: (H, W) bool, the object's pixels (several components are one object).
-        camera: the gripper plane's camera (mm per pixel and pixel (0, 0)'s position).
+        camera: the plane's camera (pixels <-> mm, tilted or not).
+        coverage: (H, W) float in [0, 1], the fraction of each pixel the object covers (e.g.
+            ``vision.coverage.edge_coverage(frame.color, mask)``), or None for the hard mask. Its
+            0.5 level (smoothed) is then the outline, to sub-pixel precision on anti-aliased edges;
+            the mask only says whether there is an object (and is the outline where the coverage
+            has no pixel on one side of 1/2).
 
     Returns:
-        ``SDFGrid`` with values (H, W) in mm, origin (2,) = pixel (0, 0) in mm, spacing (2,) =
-        (Z / fx, Z / fy) mm. An empty mask (no object) gives a grid that reads ``FAR_MM``
-        everywhere: nothing can be touched (contact case (a)).
+        ``SDFGrid`` with values (H, W) in mm, origin (2,) mm and spacing (2,) mm of the regular
+        grid spanning the image's footprint in the plane (module docstring); for a plane facing
+        the camera, origin = pixel (0, 0) in mm and spacing = (Z / fx, Z / fy) mm. An empty mask
+        (no object) gives a grid that reads ``FAR_MM`` everywhere: nothing can be touched (contact
+        case (a)).
 
     Example (a 60 x 60 px square; at 120 mm one pixel is 120 / 385 mm):
         >>> import numpy as np
@@ -67,25 +99,171 @@ def object_sdf(mask: np.ndarray, camera: PlaneCamera) -> SDFGrid:
         >>> point = camera.px_to_mm(np.array([310.0, 229.5]))  # mm; the left edge is at u = 299.5
         >>> round(float(grid.distance(jnp.asarray(point))) / camera.mm_per_px, 2)  # 10.5 px inside
         -10.5
+        >>> tilted = PlaneCamera(d405_intrinsics(), 130.0, normal=(0.1, 0.05, 1.0))  # about 6 degrees
+        >>> object_sdf(mask, tilted).values.shape  # the image's size, whatever the plane
+        (480, 640)
 
     Raises:
         ObjectMaskError: the mask is not 2-D or is smaller than 2x2, or covers the whole frame
-            (no boundary: check the object's colour thresholds and the background cut-off).
+            (no boundary: check the object's colour thresholds and the background cut-off), or the
+            coverage does not match it.
     """
     inside = _as_mask(mask)
+    origin, spacing = _grid_geometry(camera, inside.shape)
     if not inside.any():
-        values = np.full(inside.shape, FAR_MM, dtype=np.float32)
+        values = np.full(inside.shape, FAR_MM, dtype=np.float64)
     elif inside.all():
         raise ObjectMaskError("the object mask covers the whole frame, so it has no boundary: check "
                               "object_min_saturation and background_depth_mm of the segmentation")
     else:
-        u8 = inside.view(np.uint8)
-        d_inside = cv2.distanceTransform(u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        d_outside = cv2.distanceTransform(1 - u8, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        values = np.where(inside, 0.5 - d_inside, d_outside - 0.5) * np.float32(camera.mm_per_px)
+        values = _signed_distance(_level(inside, coverage), camera, origin, spacing)
     dtype = jnp.result_type(float)
-    return SDFGrid(values=jnp.asarray(values, dtype), origin=jnp.asarray(camera.origin_mm, dtype),
-                   spacing=jnp.asarray(camera.spacing_mm, dtype))
+    return SDFGrid(values=jnp.asarray(values, dtype), origin=jnp.asarray(origin, dtype),
+                   spacing=jnp.asarray(spacing, dtype))
+
+
+def _grid_geometry(camera: PlaneCamera, shape_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Origin (2,) and spacing (2,) in mm of the (H, W) grid spanning the image's footprint."""
+    h, w = shape_hw
+    if camera.faces_camera:
+        return camera.origin_mm, camera.spacing_mm
+    corners = camera.px_to_mm(np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0], [w - 1.0, h - 1.0]]))
+    low, high = corners.min(axis=0), corners.max(axis=0)
+    return low, (high - low) / np.array([w - 1.0, h - 1.0])
+
+
+def _level(inside: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
+    """(H, W) float32: the smoothed coverage (the mask without one) minus 1/2; > 0 inside."""
+    if coverage is None:
+        level = inside.astype(np.float32)
+    else:
+        level = np.asarray(coverage, dtype=np.float32)
+        if level.shape != inside.shape:
+            raise ObjectMaskError(f"the coverage image must have the mask's shape {inside.shape}, got "
+                                  f"{level.shape}")
+        if not np.isfinite(level).all():
+            raise ObjectMaskError("the coverage image must be finite (fractions in [0, 1])")
+        level = np.clip(level, 0.0, 1.0)
+        if not ((level > 0.5).any() and (level <= 0.5).any()):  # no outline in the coverage: the mask's
+            level = inside.astype(np.float32)
+    smooth = cv2.GaussianBlur(level, (0, 0), _SMOOTH_PX, borderType=cv2.BORDER_REPLICATE) - 0.5
+    if (smooth > 0).any() and (smooth <= 0).any():
+        return smooth
+    return level - 0.5  # an object that vanishes in the smoothing (a faint coverage): unsmoothed
+
+
+def _signed_distance(level: np.ndarray, camera: PlaneCamera, origin: np.ndarray,
+                     spacing: np.ndarray) -> np.ndarray:
+    """(H, W) signed distance (mm) on the grid to the 0 level of ``level`` (H, W), > 0 inside."""
+    h, w = level.shape
+    rows, cols = np.indices((h, w), dtype=np.float64)
+    nodes_mm = origin + np.stack([cols, rows], axis=-1) * spacing
+    if camera.faces_camera:  # grid points are the pixel centres
+        margin, inside = 0, level > 0
+    else:  # grid points anywhere on the image's footprint and a little beyond
+        nodes_px = camera.mm_to_px(nodes_mm)
+        reach = max(0.0, -nodes_px.min(), float((nodes_px - (w - 1.0, h - 1.0)).max()))
+        margin = int(np.ceil(reach)) + 1
+        level = cv2.copyMakeBorder(level, margin, margin, margin, margin, cv2.BORDER_REPLICATE)
+        map_px = (nodes_px + margin).astype(np.float32)
+        inside = cv2.remap(level, map_px[..., 0], map_px[..., 1], cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_REPLICATE) > 0
+    segments_mm = camera.px_to_mm(_zero_crossings(level) - margin)
+    distance = _distance_to_segments(nodes_mm, segments_mm, origin, spacing,
+                                     _EXACT_BAND_PX * float(np.max(spacing)))
+    return np.where(inside, -distance, distance)
+
+
+def _zero_crossings(level: np.ndarray) -> np.ndarray:
+    """Marching squares: the 0 level of ``level`` (H, W) as segments (S, 2, 2) of (u, v) px.
+
+    Each cell between four pixel centres with both signs gets one segment (two at a saddle,
+    separated as the cell's mean says) between the level's crossings of its edges, interpolated
+    linearly between the edge's two pixel centres.
+    """
+    positive = level > 0
+    f00, f01, f10, f11 = level[:-1, :-1], level[:-1, 1:], level[1:, :-1], level[1:, 1:]
+    s00, s01, s10, s11 = positive[:-1, :-1], positive[:-1, 1:], positive[1:, :-1], positive[1:, 1:]
+    # Edges: top (00-01), right (01-11), bottom (10-11), left (00-10).
+    crossed = np.stack([s00 != s01, s01 != s11, s10 != s11, s00 != s10], axis=-1)
+    count = crossed.sum(axis=-1)
+    cell_rows, cell_cols = np.nonzero(count >= 2)
+    cut = crossed[cell_rows, cell_cols]
+    corners = [f[cell_rows, cell_cols].astype(np.float64) for f in (f00, f01, f10, f11)]
+    i, j = cell_rows.astype(np.float64), cell_cols.astype(np.float64)
+
+    def at(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # where the line from a to b crosses 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(a != b, a / (a - b), 0.5)
+
+    c00, c01, c10, c11 = corners
+    points = np.stack([np.stack([j + at(c00, c01), i], -1), np.stack([j + 1.0, i + at(c01, c11)], -1),
+                       np.stack([j + at(c10, c11), i + 1.0], -1), np.stack([j, i + at(c00, c10)], -1)], 1)
+    single = count[cell_rows, cell_cols] == 2
+    first = np.argmax(cut[single], axis=1)  # the two crossed edges, in order
+    second = 3 - np.argmax(cut[single][:, ::-1], axis=1)
+    pick = np.arange(int(single.sum()))
+    pairs = [np.stack([points[single][pick, first], points[single][pick, second]], 1)]
+    saddle = ~single
+    if saddle.any():
+        p = points[saddle]
+        centre_inside = (c00 + c01 + c10 + c11)[saddle] > 0
+        corner_cut = (s00[cell_rows, cell_cols][saddle] != centre_inside)[:, None]  # 00 and 11 cut off
+        pairs.append(np.stack([np.where(corner_cut, p[:, 3], p[:, 0]), np.where(corner_cut, p[:, 0], p[:, 1])], 1))
+        pairs.append(np.stack([np.where(corner_cut, p[:, 1], p[:, 2]), np.where(corner_cut, p[:, 2], p[:, 3])], 1))
+    return np.concatenate(pairs)
+
+
+def _distance_to_segments(nodes: np.ndarray, segments: np.ndarray, origin: np.ndarray,
+                          spacing: np.ndarray, band_mm: float) -> np.ndarray:
+    """(H, W) distance (mm) from grid points (H, W, 2) to the nearest of segments (S, 2, 2), mm.
+
+    Exact within ``band_mm`` of the grid points next to the segments; beyond, the distance to the
+    segment holding the closest point of the nearest of those grid points.
+    """
+    h, w = nodes.shape[:2]
+    t = np.linspace(0.0, 1.0, _SAMPLES_PER_SEGMENT + 1)
+    samples = (segments[:, :1] + t[None, :, None] * (segments[:, 1:] - segments[:, :1])).reshape(-1, 2)
+    owner = np.repeat(np.arange(len(segments)), len(t))
+    tree = cKDTree(samples)
+    # Grid points at the corners of the grid cells the outline crosses, seeding the feature transform.
+    cell = np.floor((samples - origin) / spacing).astype(np.int64)
+    seed = np.zeros((h, w), bool)
+    for dc, dr in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        c, r = cell[:, 0] + dc, cell[:, 1] + dr
+        ok = (c >= 0) & (c < w) & (r >= 0) & (r < h)
+        seed[r[ok], c[ok]] = True
+    to_seed, (seed_row, seed_col) = ndimage.distance_transform_edt(~seed, sampling=(spacing[1], spacing[0]),
+                                                                     return_indices=True)
+    near = to_seed <= band_mm
+    distance = np.empty((h, w))
+    closest = np.zeros((h, w, 2))
+    nearest_segment = np.zeros((h, w), np.int64)
+    k = min(_NEAREST_SAMPLES, len(samples))
+    _, index = tree.query(nodes[near], k=list(range(1, k + 1)))
+    candidates = owner[index]
+    distance[near], closest[near], best = _nearest_on(nodes[near], segments[candidates])
+    nearest_segment[near] = candidates[np.arange(len(best)), best]
+    far = ~near
+    if far.any():
+        seeds = seed_row[far], seed_col[far]
+        along, _, _ = _nearest_on(nodes[far], segments[nearest_segment[seeds]][:, None])
+        distance[far] = np.minimum(along, np.hypot(*(nodes[far] - closest[seeds]).T))
+    return distance
+
+
+def _nearest_on(points: np.ndarray, segments: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distance (P,), closest point (P, 2) and which of K segments (P,) from points (P, 2) to
+    segments (P, K, 2, 2)."""
+    a, ab = segments[..., 0, :], segments[..., 1, :] - segments[..., 0, :]
+    ap = points[:, None, :] - a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip(np.nan_to_num(np.sum(ap * ab, -1) / np.sum(ab * ab, -1)), 0.0, 1.0)
+    foot = a + t[..., None] * ab
+    squared = np.sum((points[:, None, :] - foot) ** 2, -1)
+    best = np.argmin(squared, axis=1)
+    pick = np.arange(len(points))
+    return np.sqrt(squared[pick, best]), foot[pick, best], best
 
 
 def object_polygon(mask: np.ndarray, camera: PlaneCamera, tolerance_px: float = 0.5) -> PolygonSDF:
