@@ -52,9 +52,7 @@ from tqdm import tqdm
 
 from calib.one_frame import frame_measurement, one_frame_from_frames
 from softgrip_jax import CASE_NAMES, ContactConfig, FingerFrame, FingerModel, PolygonSDF, estimate_in_frame
-from vision.coverage import edge_coverage
 from vision.keypoints import resample_polyline
-from vision.object_sdf import object_sdf
 from vision.overlay import draw_overlay, save_png
 from vision.synthetic.render import Scene, d405_intrinsics, mm_to_px, render
 from vision.synthetic.rod import RodMechanics, close_rod, observed_joints
@@ -240,8 +238,7 @@ def evaluate(trial: Trial, open_frame, profile, n_values, variant_list) -> tuple
     """
     measured = frame_measurement(open_frame)
     fingers = measured.keypoints
-    sdf_frames = object_sdf(measured.segmentation.object, measured.object_camera,
-                            coverage=edge_coverage(open_frame.color, measured.segmentation.object))
+    sdf_frames = measured.object_sdf(open_frame)
     bases_frames = profile.corrected_bases(np.stack([f.base_mm for f in fingers]))
     sdf_truth = FAR_AWAY if trial.polygon is None else PolygonSDF(jnp.asarray(trial.polygon, jnp.float32))
     bases_truth = trial.centre + np.array([[-SEPARATION / 2, 0.0], [SEPARATION / 2, 0.0]])

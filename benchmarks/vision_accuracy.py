@@ -374,7 +374,7 @@ def variant_errors(scene: AccuracyScene, variant: str) -> VariantErrors:
     outline = opened.object_polygon
     samples = resample_polyline(np.vstack([outline, outline[:1]]), 4096)
     seen_px = project(opened, samples, INTRINSICS, opened.object_depth_offset_mm)
-    grid = object_sdf(measured.segmentation.object, measured.object_camera)
+    grid = measured.object_sdf(open_frame)
     sdf = np.asarray(sdf_lookup(grid, jnp.asarray(measured.object_camera.px_to_mm(seen_px), jnp.float32)))
     return VariantErrors(
         theta_rad=max(errors["theta"]), length_pct=max(errors["length"]),

@@ -77,9 +77,7 @@ from calib.one_frame import frame_keypoints, frame_measurement
 from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import (DEFAULT_METHOD, METHODS, AbstractSDF, ContactConfig, FingerFrame, FingerModel, MechanicsConfig, SoftgripError,
                           Status, estimate_in_frame)
-from vision.coverage import edge_coverage
 from vision.frames import Frame, load_frame
-from vision.object_sdf import object_sdf
 from vision.measure import MeasureSettings
 from vision.segmentation import SegmentationSettings
 
@@ -362,8 +360,7 @@ def _measured_pair(open_frame: Frame, closed_frame: Frame, settings: Segmentatio
     closed = frame_measurement(closed_frame, settings, measure, center_hint=opened.segmentation.center_column)
     # Both frames' millimetres are their own fitted planes: the same plane when the camera stayed.
     observation = Observation(
-        sdf=object_sdf(opened.segmentation.object, opened.object_camera,
-                       coverage=edge_coverage(open_frame.color, opened.segmentation.object)),
+        sdf=opened.object_sdf(open_frame),
         bases=np.stack([f.base_mm for f in opened.keypoints]),
         observed=np.stack([f.observed_mm(n_links) for f in closed.keypoints]),
         label=label,

@@ -181,10 +181,8 @@ def frame_scene(path: str | os.PathLike[str], profile, *, length_from_frame: boo
         FrameSceneError: the frame cannot be read, segmented or measured; the message starts with
             the frame's path.
     """
-    from vision.coverage import edge_coverage
     from vision.frames import load_frame
     from vision.measure import measure_gripper
-    from vision.object_sdf import object_sdf
     from vision.segmentation import segment
 
     label = str(path)
@@ -194,7 +192,7 @@ def frame_scene(path: str | os.PathLike[str], profile, *, length_from_frame: boo
         seg = segment(frame, settings)
         measured = measure_gripper(frame, seg, profile.measure_settings())
         camera, keypoints = measured.camera, measured.keypoints
-        sdf = object_sdf(seg.object, measured.object_camera, coverage=edge_coverage(frame.color, seg.object))
+        sdf = measured.object_sdf(frame)
     except SoftgripError as err:
         message = str(err)
         raise FrameSceneError(message if label in message else f"{label}: {message}") from None

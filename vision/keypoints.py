@@ -66,9 +66,9 @@ _LINES = 17  # lines across a cap or a cut end
 _CAP_REACH = 0.85  # their spread across the finger, as a fraction of r
 _CAP_ACROSS = np.linspace(-_CAP_REACH, _CAP_REACH, _LINES)
 _CAP_FAN = np.radians(80.0)  # rays from a rounded end's rough centre fan over +-80 degrees
-#: Height of a round finger's front surface (a fraction of its relief) where the median of the lines
-#: across a cut end meets it: the relief of the middle-ranked line, sqrt(1 - x^2) at its offset x.
-_CUT_FRONT = float(np.median(np.sqrt(1.0 - _CAP_ACROSS**2)))
+#: Height of a round finger's front surface (a fraction of its relief) at the mean of the points
+#: where the lines across a cut end meet it: the mean of sqrt(1 - x^2) at their offsets x.
+_CUT_FRONT = float(np.mean(np.sqrt(1.0 - _CAP_ACROSS**2)))
 #: The quadratic coefficient a least-squares fit gives a half circle of radius 1 sampled on the lines
 #: across a cap (about -0.67; -0.5 at the apex alone): the curvature of a rounded end.
 _HALF_CIRCLE_CURVATURE = float(np.polyfit(_CAP_ACROSS, np.sqrt(1.0 - _CAP_ACROSS**2), 2)[0])
@@ -97,6 +97,8 @@ class FingerKeypoints:
         region: (H, W) bool, the finger alone: its mask without the body (for depth fits).
         tip_cap_px, base_cap_px: (K, 2) outline points of the rounded tip and base ends, px (None
             for a flat base), to place the ends again once the finger's relief is known.
+        base_direction: (2,) unit vector square to a flat base's cut (or the body's edge), into the
+            finger, px; None for a rounded base.
     """
 
     side: Side
@@ -111,6 +113,7 @@ class FingerKeypoints:
     region: np.ndarray | None = None
     tip_cap_px: np.ndarray | None = None
     base_cap_px: np.ndarray | None = None
+    base_direction: np.ndarray | None = None
 
     def with_camera(self, camera: PlaneCamera, relief_mm: float = 0.0,
                     base_relief_mm: float | None = None) -> FingerKeypoints:
@@ -150,8 +153,8 @@ class FingerKeypoints:
         if self.body_in_view:
             front = base_relief_mm or 0.0
         else:
-            # The cut is found along lines across the finger (median over them), where the front
-            # surface stands _CUT_FRONT of the relief before the plane.
+            # The cut is found along lines across the finger (their mean), where the front surface
+            # stands _CUT_FRONT of the relief before the plane.
             front = _CUT_FRONT * relief_mm
         if self.base_end != "flat" or front == 0.0:
             return dataclasses.replace(self, camera=camera)
@@ -159,9 +162,11 @@ class FingerKeypoints:
         # shift along the finger applies.
         seen_at_front = camera.parallel(-front).px_to_mm(self.base_px)
         shift = camera.mm_to_px(seen_at_front) - self.base_px
-        arc = _arc(self.centreline_px)  # the direction over 4 r: the first pixels may bend to a corner
-        along = _at(self.centreline_px, arc, min(4.0 * self.half_thickness_px, arc[-1])) - self.centreline_px[0]
-        along = along / max(float(np.hypot(*along)), 1e-9)
+        along = self.base_direction
+        if along is None:  # the direction over 4 r: the first pixels may bend to a corner
+            arc = _arc(self.centreline_px)
+            along = _at(self.centreline_px, arc, min(4.0 * self.half_thickness_px, arc[-1])) - self.centreline_px[0]
+            along = along / max(float(np.hypot(*along)), 1e-9)
         base_px = self.base_px + (shift @ along) * along
         centreline = self.centreline_px.copy()
         centreline[0] = base_px
@@ -339,7 +344,7 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
         contour = contour[np.abs(contour[:, 0] - cut_column) > 1.0]
     tip, tip_cap = _cap_centre(line[::-1], radius, contour, sampler, f"{side} finger's tip", cut_column)
     intr = camera.intrinsics
-    base, end, body, base_cap = _base(sampler, line, arc, clearance, radius, rounded_base, contour,
+    base, end, body, base_cap, base_direction = _base(sampler, line, arc, clearance, radius, rounded_base, contour,
                             f"{side} finger's base", (np.array([intr.ppx, intr.ppy]), 0.5 * (intr.fx + intr.fy)))
     first = int(np.argmin(np.hypot(*(line - base).T)))
     last = int(np.argmin(np.hypot(*(line - tip).T)))
@@ -353,7 +358,8 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
     region = finger & _beyond(finger.shape, base, axis)
     return FingerKeypoints(side=side, base_px=base, tip_px=tip, centreline_px=centreline,
                            half_thickness_px=half_thickness, camera=camera, base_end=end, body_in_view=body,
-                           width_edges_px=edges, region=region, tip_cap_px=tip_cap, base_cap_px=base_cap)
+                           width_edges_px=edges, region=region, tip_cap_px=tip_cap, base_cap_px=base_cap,
+                           base_direction=base_direction)
 
 
 def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera, rounded_base: bool | None = None, *,
@@ -591,9 +597,10 @@ def _cap_centre(line: np.ndarray, radius: float, contour: np.ndarray, sampler: _
 
 def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.ndarray, radius: float,
           rounded: bool | None, contour: np.ndarray, what: str,
-          optics: tuple[np.ndarray, float]) -> tuple[np.ndarray, BaseEnd, bool, np.ndarray | None]:
-    """(base point (2,), base end kind, body in view, a rounded end's outline points (K, 2) or None)
-    at the top end of ``line``.
+          optics: tuple[np.ndarray, float]) -> tuple[np.ndarray, BaseEnd, bool, np.ndarray | None,
+                                                     np.ndarray | None]:
+    """(base point (2,), base end kind, body in view, a rounded end's outline points (K, 2) or None,
+    a flat end's direction square to the cut into the finger (2,) or None) at the top end of ``line``.
 
     ``optics``: the principal point (2,) and focal length, px. The end is told by the curvature of
     its outline across the finger: a rounded cap's is a half circle's; a flat cut's is 0, except that
@@ -618,8 +625,9 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
         # which holds for a finger leaving the body at an angle as for a straight one.
         edge = hits[found]
         direction = np.linalg.svd(edge - edge.mean(axis=0))[2][0]
-        return centre.crossing(s_finger, edge.mean(axis=0), np.array([-direction[1], direction[0]]),
-                               6.0 * radius), "flat", True, None
+        into = np.array([-direction[1], direction[0]])
+        into = into if into @ up < 0.0 else -into
+        return centre.crossing(s_finger, edge.mean(axis=0), into, 6.0 * radius), "flat", True, None, into
     top = _at(line, arc, 0.0)
     if rounded is None or rounded:
         try:
@@ -636,7 +644,7 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
             q = max(0.0, float((top - principal) @ axis) / focal)
             if rounded or curvature < 0.5 * (1.0 + q) * _HALF_CIRCLE_CURVATURE / radius:
                 centre, cap = _cap_centre(line, radius, contour, sampler, what)
-                return centre, "rounded", False, cap
+                return centre, "rounded", False, cap, None
     # Stations from 2.5 r on: nearer the cut the distance transform's ridge forks toward its corners
     # (more so when a round finger's cut bulges in perspective), and its direction there would
     # tilt the lines across the finger.
@@ -646,8 +654,16 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
     hits = sampler.exits(_lines_across(centre(s_in), up, radius), up, 3.0 * radius)
     if (hits[:, 1] < 1.0).any() or np.isnan(hits).sum() > 2 * (_LINES // 2):
         raise KeypointError(f"the {what} is cut off by the image border: keep the whole finger in view")
-    reach = (hits - centre(s_in)) @ up
-    return centre.reach(s_in, float(np.nanmedian(reach))), "flat", False, None
+    # The cut is square to the finger where it ends, through the mean of its edge points (where a
+    # round finger's cut bulges, lopsided, in perspective): the base is where the centre curve
+    # crosses it, with the curve's own direction there (the finger may bend right below its base,
+    # and the lines ran along its direction 2.5 r in).
+    middle = np.nanmean(hits, axis=0)
+    into = -up
+    for _ in range(2):
+        s_base = centre.crossing_arc(s_in, middle, into, 3.0 * radius)
+        into = -centre.frame(s_base)[0]
+    return centre(centre.crossing_arc(s_in, middle, into, 3.0 * radius)), "flat", False, None, into
 
 
 class _CentreCurve:
@@ -684,13 +700,18 @@ class _CentreCurve:
     def crossing(self, s: float, point: np.ndarray, normal: np.ndarray, reach: float) -> np.ndarray:
         """(2,) where the curve, followed from ``s`` toward the base for at most ``reach`` px,
         crosses the line through ``point`` (2,) square to ``normal`` (2,)."""
+        return self(self.crossing_arc(s, point, normal, reach))
+
+    def crossing_arc(self, s: float, point: np.ndarray, normal: np.ndarray, reach: float) -> float:
+        """The arc length (px) of :meth:`crossing` (of the line's nearest approach if it is not
+        crossed within ``reach``)."""
         trial = s - np.linspace(0.0, reach + 3.0, 400)
         side = (np.stack([self(t) for t in trial]) - point) @ normal
         change = np.flatnonzero(np.sign(side[1:]) != np.sign(side[:-1]))
-        if change.size == 0:  # no crossing within reach: the line's nearest approach
-            return self(float(trial[np.argmin(np.abs(side))]))
+        if change.size == 0:
+            return float(trial[np.argmin(np.abs(side))])
         k = change[0]
-        return self(float(trial[k] + (trial[k + 1] - trial[k]) * side[k] / (side[k] - side[k + 1])))
+        return float(trial[k] + (trial[k + 1] - trial[k]) * side[k] / (side[k] - side[k + 1]))
 
     def frame(self, s: float) -> tuple[np.ndarray, np.ndarray]:
         """(toward the base, across) unit vectors (2,) at arc length ``s``."""

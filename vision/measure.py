@@ -35,11 +35,12 @@ from typing import Any, Literal
 
 import numpy as np
 
-from softgrip_jax import SoftgripError
+from softgrip_jax import SDFGrid, SoftgripError
+from vision.coverage import edge_coverage
 from vision.frames import Frame
 from vision.geometry import TILT_WARN_DEG, PlaneCamera, PlaneFit, face_offset_mm, fit_gripper_plane
-
 from vision.keypoints import FingerKeypoints, gripper_keypoints
+from vision.object_sdf import object_sdf
 from vision.segmentation import Segmentation
 
 BaseEndSetting = Literal["auto", "rounded", "flat"]
@@ -143,6 +144,13 @@ class GripperMeasurement:
     def body_in_view(self) -> bool:
         """True when a finger hangs from a gripper body seen in the frame."""
         return any(k.body_in_view for k in self.keypoints)
+
+    def object_sdf(self, frame: Frame) -> SDFGrid:
+        """The object's signed-distance grid (mm, in the gripper plane's coordinates) from its
+        outline at the depth of its own face, read at sub-pixel level from ``frame``'s colour (the
+        frame this was measured in); far everywhere without an object (:func:`vision.object_sdf.object_sdf`)."""
+        mask = self.segmentation.object
+        return object_sdf(mask, self.object_camera, coverage=edge_coverage(frame.color, mask))
 
     def warnings(self) -> list[str]:
         """Sentences about what was measured that a user should check (empty when all is ordinary)."""
