@@ -41,7 +41,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from calib.fit import Observation, fit, observations_from_frames
+from calib.fit import Observation, fit, free_closure_observation, observations_from_frames
 from calib.one_frame import one_frame_from_frames
 from calib.profile import CalibrationProfile
 from softgrip_jax import CASE_NAMES, FingerFrame, PolygonSDF, estimate_in_frame, joint_errors
@@ -103,6 +103,12 @@ def make_pair(index: int, n_links: int = N_LINKS, rod: RodMechanics = RodMechani
 def one_frame_calibration(n_links: int = N_LINKS, scene_options: dict | None = None) -> CalibrationProfile:
     """Eqs. 4-5 on rendered frames: the gripper closed without an object, and open (``scene_options``
     as for :func:`make_pair`)."""
+    return one_frame_calibration_with_pair(n_links, scene_options)[0]
+
+
+def one_frame_calibration_with_pair(n_links: int = N_LINKS, scene_options: dict | None = None
+                                    ) -> tuple[CalibrationProfile, Observation]:
+    """:func:`one_frame_calibration` and its frame pair as a fit's free-closure observation."""
     options = scene_options or {}
     arcs = {side: np.asarray(free_arc_points((0.0, 0.0), THETA[side], LENGTH, np.linspace(0.0, LENGTH, 257)))
             for side in SIDES}
@@ -111,8 +117,10 @@ def one_frame_calibration(n_links: int = N_LINKS, scene_options: dict | None = N
                    **options)
     opened = Scene(gripper_centrelines((0.0, -40.0), SEPARATION, LENGTH), half_thickness=HALF_THICKNESS, seed=9002,
                    **options)
-    return one_frame_from_frames(render(closed, INTRINSICS), render(opened, INTRINSICS), n_links,
-                                 label="synthetic closed + open", camera_name="synthetic")
+    closed_frame, open_frame = render(closed, INTRINSICS), render(opened, INTRINSICS)
+    profile = one_frame_from_frames(closed_frame, open_frame, n_links, label="synthetic closed + open",
+                                    camera_name="synthetic")
+    return profile, free_closure_observation(open_frame, closed_frame, None, n_links, "calibration pair")
 
 
 _estimate = eqx.filter_jit(estimate_in_frame)

@@ -15,8 +15,12 @@ solver): a uniform one, and one whose bending stiffness doubles from the tip to 
 (``stiffness_ratio`` 2). For each gripper:
 
 * one-frame calibration (eqs. 4-5) on rendered frames closed without an object and open;
-* least squares on the training pairs, starting from the one-frame profile: Theta through the
+* least squares on the training pairs and the calibration pair (closed without an object, as
+  ``softgrip calibrate --fit`` includes it), starting from the one-frame profile: Theta through the
   geometric estimate (issue 4), and Theta plus the stiffness ratio through the mechanics estimate;
+* the same estimate from the true geometry (the rod's L, r, Theta and stiffness ratio, the true bases
+  and polygon), so the vision's cost shows in one run, and each profile's closure without an object
+  against the true one at i = N/2 and N;
 * on the held-out pairs: eq. 10 at i = N/2 and i = N (mean over fingers) between the estimate from
   the open frame and the rod's observed joints, and the share of fingers whose estimated contact
   case is the rod's (the rod's case from where it touches, as in ``reproduce_paper.py``).
@@ -71,6 +75,17 @@ def held_out(profile: CalibrationProfile, pairs: list, method: str, n_links: int
             "fingers": len(agree), "differ": differ}
 
 
+def free_closure_error(profile: CalibrationProfile, truth: CalibrationProfile, n_links: int) -> str:
+    """The largest distance over both fingers between ``profile``'s closure without an object and
+    the true one (the rod's free closure is the PCC arc of the true L and Theta), at joint N/2 and
+    N, from the base along the gripper's axes: "mid / tip" in mm."""
+    from calib.one_frame import free_closure_joints
+
+    gaps = [np.hypot(*(free_closure_joints(profile.fingers[side], np.zeros(2), side)
+                       - free_closure_joints(truth.fingers[side], np.zeros(2), side)).T) for side in bc.SIDES]
+    return f"{max(g[n_links // 2] for g in gaps):.3f} / {max(g[n_links] for g in gaps):.3f}"
+
+
 def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int,
                 variant: str = "default") -> list[str]:
     from vision_accuracy import VARIANTS
@@ -80,14 +95,15 @@ def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int,
     t0 = time.perf_counter()
     pairs = [p for p in (bc.make_pair(i, n_links, rod, options) for i in range(n_train + n_test)) if p is not None]
     train, test = pairs[:-n_test], pairs[-n_test:]
-    one_frame = bc.one_frame_calibration(n_links, options)
+    one_frame, calibration_pair = bc.one_frame_calibration_with_pair(n_links, options)
     scenes_s = time.perf_counter() - t0
 
     def least_squares(parameters, method):
         t = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # skipped pairs are counted in the table
-            profile = fit([p.observation for p in train], one_frame, parameters, method=method, progress=False)
+            profile = fit([p.observation for p in train] + [calibration_pair], one_frame, parameters, method=method,
+                          progress=False)
         return profile, time.perf_counter() - t
 
     geometric, geometric_s = least_squares(("theta_entire",), "geometric")
@@ -106,8 +122,9 @@ def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int,
     lines = [f"#### Rod stiffness ratio {stiffness_ratio:g} (true Theta 0.55 / 0.45 rad), frames rendered as "
              f"'{variant}': {len(train)} training pairs, {len(test)} held out, N = {n_links}\n",
              "| profile | estimate | Theta left / right (rad) | stiffness ratio left / right (SE) | pairs used "
-             "(skipped) | fit time (s) | held-out error i=N/2 (mm) | held-out error i=N (mm) | case agreement |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "(skipped) | fit time (s) | held-out error i=N/2 (mm) | held-out error i=N (mm) | case agreement "
+             "| free closure vs truth i=N/2 / i=N (mm) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     differ = {}
     for name, profile, method, seconds in rows:
         result = held_out(profile, test, method, n_links, truth=profile is true_profile)
@@ -120,7 +137,8 @@ def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int,
         used = f"{len(profile.fit.frames)} ({len(profile.fit.skipped)})"
         lines.append(f"| {name} | {method} | {f['left'].theta_entire:.4f} / {f['right'].theta_entire:.4f} | {ratio} "
                      f"| {used} | {'-' if seconds is None else f'{seconds:.0f}'} | {result['mid']:.2f} "
-                     f"| {result['tip']:.2f} | {100 * result['agree']:.0f} % of {result['fingers']} |")
+                     f"| {result['tip']:.2f} | {100 * result['agree']:.0f} % of {result['fingers']} "
+                     f"| {free_closure_error(profile, true_profile, n_links)} |")
     lines.append("\nFingers whose case differs from the rod's: "
                  + "; ".join(f"{row}: {', '.join(d)}" for row, d in differ.items() if d) + ".")
     lines.append(f"\n(scenes, rod closures and rendering: {scenes_s:.0f} s; fit times include compilation)\n")

@@ -251,6 +251,23 @@ def to_gripper(profile: CalibrationProfile) -> Gripper:
                    base_separation=profile.base_separation)
 
 
+def _non_finite_number(value: Any, path: str) -> str | None:
+    """The path of the first NaN or infinite number inside a JSON value, or None."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return path
+    if isinstance(value, dict):
+        items = ((f"{path}.{k}", v) for k, v in value.items())
+    elif isinstance(value, list):
+        items = ((f"{path}[{i}]", v) for i, v in enumerate(value))
+    else:
+        return None
+    for where, item in items:
+        found = _non_finite_number(item, where)
+        if found is not None:
+            return found
+    return None
+
+
 def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str]) -> Path:
     """Validate ``profile`` and write it to ``path`` atomically (replacing an existing file).
 
@@ -393,6 +410,9 @@ def _parse(data: Any, source: str) -> CalibrationProfile:
         raise ProfileError(str(err)) from None
     if not isinstance(vision.get("detected", {}), dict):
         raise r.fail("vision.detected", "a JSON object (what calibration detected)", vision["detected"])
+    where = _non_finite_number(vision.get("detected", {}), "vision.detected")
+    if where is not None:  # a record only, but it must survive being written again
+        raise r.fail(where, "a finite number (a record of what calibration detected)")
     return CalibrationProfile(fingers=fingers, base_separation=base_separation, segmentation=dict(segmentation),
                               camera=dict(camera), fit=_parse_fit(r, root["fit"]), version=PROFILE_VERSION,
                               vision=dict(vision))

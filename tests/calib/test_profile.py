@@ -336,3 +336,12 @@ def test_a_bad_vision_setting_is_named(tmp_path: Path, vision: dict, field: str)
     path.write_text(json.dumps(data))
     with pytest.raises(ProfileError, match=field.replace(".", r"\.")):
         load_profile(path)
+
+
+def test_a_non_finite_number_in_the_detection_record_is_named(tmp_path: Path) -> None:
+    data = json.loads((Path(__file__).resolve().parents[2] / "data" / "sample_profile.json").read_text())
+    data["vision"]["detected"]["open"]["plane"]["depth_mm"] = float("nan")
+    path = tmp_path / "nan.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ProfileError, match=r"vision\.detected\.open\.plane\.depth_mm: expected a finite number"):
+        load_profile(path)
