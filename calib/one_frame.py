@@ -48,8 +48,22 @@ class FingerMeasurement(Protocol):
     def half_thickness_mm(self) -> float:
         """Half-thickness r."""
 
+    @property
+    def length_mm(self) -> float:
+        """Base-tip distance (L when the finger is open, eq. 5)."""
+
+    @property
+    def arc_length_mm(self) -> float:
+        """Length of the centreline from base to tip."""
+
     def observed_mm(self, n_links: int) -> np.ndarray:
         """(N+1, 2) the centreline divided into N equal arc lengths, base first."""
+
+
+#: How much longer than its base-tip distance an open finger's centreline may be (2 %; a straight
+#: finger's measured centreline is within 1.1 % on every renderer variant, 10 degrees of tilt
+#: included): beyond it the finger is bent, or its centreline runs along something else.
+MAX_OPEN_BEND = 1.02
 
 
 def one_frame_profile(
@@ -97,6 +111,14 @@ def one_frame_profile(
     fingers, squared = {}, []
     angle = gripper_angle(closed[0].base_mm, closed[1].base_mm)  # the gripper's axis, as in the estimate
     for side, shut, straight in zip(SIDES, closed, open_):
+        bend = straight.arc_length_mm / max(straight.length_mm, 1e-9)
+        if bend > MAX_OPEN_BEND:  # eq. 5 would read a chord across a bend (or along a body) as L
+            raise SoftgripError(
+                f"the {side} finger of the open frame is not straight: its centreline runs "
+                f"{straight.arc_length_mm:.1f} mm between a base and tip {straight.length_mm:.1f} mm apart "
+                f"({100 * (bend - 1):.0f} % longer); eq. 5 needs the open gripper's straight fingers. Check that "
+                f"the open frame shows the gripper open, and, if the gripper's body joins the fingers, leave it "
+                f"out with the segmentation's roi or give the base end (--base-end)")
         theta = theta_from_closed(shut.base_mm, shut.tip_mm, side, angle)  # eq. 4
         if theta < 0:
             raise SoftgripError(

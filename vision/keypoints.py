@@ -41,7 +41,7 @@ line sampling.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -168,8 +168,9 @@ class FingerKeypoints:
             along = _at(self.centreline_px, arc, min(4.0 * self.half_thickness_px, arc[-1])) - self.centreline_px[0]
             along = along / max(float(np.hypot(*along)), 1e-9)
         base_px = self.base_px + (shift @ along) * along
-        centreline = self.centreline_px.copy()
-        centreline[0] = base_px
+        rest = self.centreline_px[1:]
+        rest = rest[(rest - base_px) @ along > 0.0]  # the centre beyond the moved base only
+        centreline = np.vstack([base_px, rest])
         return dataclasses.replace(self, camera=camera, base_px=base_px, centreline_px=centreline)
 
     @property
@@ -344,14 +345,22 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
         contour = contour[np.abs(contour[:, 0] - cut_column) > 1.0]
     tip, tip_cap = _cap_centre(line[::-1], radius, contour, sampler, f"{side} finger's tip", cut_column)
     intr = camera.intrinsics
-    base, end, body, base_cap, base_direction = _base(sampler, line, arc, clearance, radius, rounded_base, contour,
-                            f"{side} finger's base", (np.array([intr.ppx, intr.ppy]), 0.5 * (intr.fx + intr.fy)))
+    end_ = _base(sampler, line, arc, clearance, radius, rounded_base, contour, f"{side} finger's base",
+                 (np.array([intr.ppx, intr.ppy]), 0.5 * (intr.fx + intr.fy)))
+    base, end, body, base_cap, base_direction = end_.point, end_.kind, end_.body, end_.cap, end_.direction
     first = int(np.argmin(np.hypot(*(line - base).T)))
     last = int(np.argmin(np.hypot(*(line - tip).T)))
     if last <= first + 1:
         raise KeypointError(f"the {side} finger's base and tip could not be told apart: is the whole finger in "
                             f"view and separate from the other finger?")
-    centreline = np.vstack([base, line[first + 1:last], tip])
+    if end_.lead_in is None:
+        centreline = np.vstack([base, line[first + 1:last], tip])
+    else:  # near a cut the ridge bends to the cut's corners: the centre of the sides instead
+        resume = max(int(np.searchsorted(arc, end_.lead_in_to, side="right")), first + 1)
+        if resume >= last:
+            raise KeypointError(f"the {side} finger is too short beyond its base to follow: is the whole finger in "
+                                f"view?")
+        centreline = np.vstack([base, end_.lead_in[0][1:], line[resume:last], tip])
     edges = _width_edges(sampler, centreline, radius)
     half_thickness = 0.5 * float(np.median(np.hypot(*(edges[:, 1] - edges[:, 0]).T))) if len(edges) else radius
     axis = _direction(line, arc, arc[first] + radius, arc[first] + 3.0 * radius)
@@ -595,12 +604,28 @@ def _cap_centre(line: np.ndarray, radius: float, contour: np.ndarray, sampler: _
     return _circle_centre(cap), cap
 
 
+class _End(NamedTuple):
+    """A finger's base end: ``point`` (2,) px; ``kind``; ``body`` in view; a rounded end's outline
+    points ``cap`` (K, 2) px or None; a flat end's unit ``direction`` (2,) square to the cut, into the
+    finger, or None; and for a flat end the finger's centre from the base on, ``lead_in`` (K, 2) px,
+    up to the ridge's arc length ``lead_in_to`` (px), or None."""
+
+    point: np.ndarray
+    kind: BaseEnd
+    body: bool
+    cap: np.ndarray | None
+    direction: np.ndarray | None
+    lead_in: tuple[np.ndarray, float] | None
+
+    @property
+    def lead_in_to(self) -> float:
+        return float(self.lead_in[1]) if self.lead_in is not None else 0.0
+
+
 def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.ndarray, radius: float,
           rounded: bool | None, contour: np.ndarray, what: str,
-          optics: tuple[np.ndarray, float]) -> tuple[np.ndarray, BaseEnd, bool, np.ndarray | None,
-                                                     np.ndarray | None]:
-    """(base point (2,), base end kind, body in view, a rounded end's outline points (K, 2) or None,
-    a flat end's direction square to the cut into the finger (2,) or None) at the top end of ``line``.
+          optics: tuple[np.ndarray, float]) -> _End:
+    """The base end at the top end of ``line`` (see :class:`_End`).
 
     ``optics``: the principal point (2,) and focal length, px. The end is told by the curvature of
     its outline across the finger: a rounded cap's is a half circle's; a flat cut's is 0, except that
@@ -627,7 +652,8 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
         direction = np.linalg.svd(edge - edge.mean(axis=0))[2][0]
         into = np.array([-direction[1], direction[0]])
         into = into if into @ up < 0.0 else -into
-        return centre.crossing(s_finger, edge.mean(axis=0), into, 6.0 * radius), "flat", True, None, into
+        s_base = centre.crossing_arc(s_finger, edge.mean(axis=0), into, 6.0 * radius)
+        return _End(centre(s_base), "flat", True, None, into, centre.stretch(s_base, s_finger + 4.0 * radius))
     top = _at(line, arc, 0.0)
     if rounded is None or rounded:
         try:
@@ -644,7 +670,7 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
             q = max(0.0, float((top - principal) @ axis) / focal)
             if rounded or curvature < 0.5 * (1.0 + q) * _HALF_CIRCLE_CURVATURE / radius:
                 centre, cap = _cap_centre(line, radius, contour, sampler, what)
-                return centre, "rounded", False, cap, None
+                return _End(centre, "rounded", False, cap, None, None)
     # Stations from 2.5 r on: nearer the cut the distance transform's ridge forks toward its corners
     # (more so when a round finger's cut bulges in perspective), and its direction there would
     # tilt the lines across the finger.
@@ -663,7 +689,8 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
     for _ in range(2):
         s_base = centre.crossing_arc(s_in, middle, into, 3.0 * radius)
         into = -centre.frame(s_base)[0]
-    return centre(centre.crossing_arc(s_in, middle, into, 3.0 * radius)), "flat", False, None, into
+    s_base = centre.crossing_arc(s_in, middle, into, 3.0 * radius)
+    return _End(centre(s_base), "flat", False, None, into, centre.stretch(s_base, 6.0 * radius))
 
 
 class _CentreCurve:
@@ -696,6 +723,10 @@ class _CentreCurve:
         trial = s - np.linspace(0.0, 3.0 * abs(distance) + 3.0, 200)
         along = (np.stack([self(t) for t in trial]) - self(s)) @ up
         return self(float(np.interp(distance, along, trial)))
+
+    def stretch(self, s_from: float, s_to: float) -> tuple[np.ndarray, float]:
+        """(points (K, 2) of the curve every pixel of arc from ``s_from`` to ``s_to``, ``s_to``)."""
+        return np.stack([self(t) for t in np.append(np.arange(s_from, s_to, 1.0), s_to)]), float(s_to)
 
     def crossing(self, s: float, point: np.ndarray, normal: np.ndarray, reach: float) -> np.ndarray:
         """(2,) where the curve, followed from ``s`` toward the base for at most ``reach`` px,
