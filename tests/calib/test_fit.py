@@ -301,6 +301,14 @@ class Keypoints:
     half_thickness_mm: float
     joints: np.ndarray
 
+    @property
+    def length_mm(self) -> float:
+        return float(np.hypot(*(self.tip_mm - self.base_mm)))
+
+    @property
+    def arc_length_mm(self) -> float:
+        return float(np.hypot(*np.diff(self.joints, axis=0).T).sum())
+
     def observed_mm(self, n_links: int) -> np.ndarray:
         assert n_links == len(self.joints) - 1
         return self.joints
@@ -605,3 +613,15 @@ def test_cli_fit_passes_the_method_and_parameters(frames, tmp_path: Path, monkey
     assert calls == [(parameters, method)]
     assert load_profile(output).fit.estimate_method == method
     assert f"({method} estimate)" in capsys.readouterr().out
+
+
+def test_one_frame_refuses_an_open_finger_that_is_bent() -> None:
+    """Eq. 5 takes the open finger's base-tip distance as L: a bent 'open' finger (here a PCC arc of
+    Theta 0.5, whose chord is L sin(Theta) / Theta, 4 % short) must not be read as a short finger."""
+    closed = [keypoints((-30.0, -40.0), 0.6, "left"), keypoints((30.0, -40.0), 0.6, "right")]
+    opened = [keypoints((-30.0, -40.0), 0.0, "left"), keypoints((30.0, -40.0), 0.5, "right")]
+    with pytest.raises(SoftgripError, match="right finger of the open frame is not straight"):
+        one_frame_profile(closed, opened, N)
+    opened[1] = keypoints((30.0, -40.0), 0.1, "right")  # 0.2 % short: a straight finger's measuring noise
+    assert one_frame_profile(closed, opened, N).fingers["right"].length == pytest.approx(LENGTH * math.sin(0.1) / 0.1,
+                                                                                  rel=1e-4)
