@@ -9,7 +9,7 @@ It writes ``tables.md`` (markdown for benchmarks/RESULTS.md), ``results.json`` (
 errors and cases) and ``contact_sheet_<estimate>.png`` (Fig. 17) to ``--out``
 (benchmarks/figures/ by default).
 
-The protocol follows the paper's section V-A on rendered frames (DESIGN section 11):
+The protocol follows the paper's section V-A on rendered frames:
 
 * the gripper: L = 52 mm (the paper's), r = 4 mm, bases 64 mm apart, Theta 0.55 rad (left) and
   0.45 rad (right); the camera 120 mm away (a D405's intrinsics, colour and depth noise);

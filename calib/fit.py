@@ -1,4 +1,4 @@
-"""Multi-frame least-squares calibration through the differentiable core (DESIGN section 9).
+"""Multi-frame least-squares calibration through the differentiable core.
 
 Each observation is an open/closed frame pair: the object's signed distance and both finger bases
 seen in the open frame, and both fingers' observed joints in the closed frame (the closed centreline

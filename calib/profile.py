@@ -1,4 +1,4 @@
-"""Calibration profiles on disk: a small, versioned JSON file (DESIGN section 9).
+"""Calibration profiles on disk: a small, versioned JSON file (README: "File formats").
 
 A profile says everything the estimator needs about one gripper and how it was obtained::
 

@@ -1,7 +1,7 @@
 """The ``softgrip`` command line: the composition root wiring ``softgrip_jax``, ``vision`` and ``calib``.
 
 It lives outside the three packages so that the core never imports the vision or calibration
-packages (DESIGN section 2). Each command is a module with an ``add_parser(subparsers)`` function.
+packages. Each command is a module with an ``add_parser(subparsers)`` function.
 """
 
 from softgrip_cli._main import main

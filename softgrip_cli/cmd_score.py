@@ -62,7 +62,7 @@ def add_parser(subparsers) -> None:
         "score", help="score and rank candidate gripper poses on a frame, with a heat map",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Estimate both fingers at many candidate gripper poses on one frame in one compiled, "
-                    "batched call, score each (DESIGN section 8) and rank them best first.",
+                    "batched call, score each and rank them best first.",
     )
     parser.add_argument("frame", metavar="FRAME", help="frame folder with the object")
     parser.add_argument("--profile", required=True, metavar="P", help="calibration profile (JSON)")

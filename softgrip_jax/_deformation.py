@@ -1,6 +1,6 @@
 """Deformation per contact case (paper section IV-C, eq. 9) and the whole estimate of one finger.
 
-Each case is a ``(psi, turning)`` pair drawn by the same forward kinematics (DESIGN section 7):
+Each case is a ``(psi, turning)`` pair drawn by the same forward kinematics (:mod:`softgrip_jax._kinematics`):
 
 * (a) no contact: psi = 0, turning = 2 Theta / N (eqs. 1-3);
 * (b) tip only: the free PCC shape rotated away from the object about P_base by

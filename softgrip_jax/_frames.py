@@ -3,7 +3,7 @@
 The core computes one finger that hangs straight down (+y) from its base and curls toward +x.
 A finger at another place, a rotated gripper, or a right finger (which curls toward -x) is the same
 computation on the scene expressed in the finger's own frame; the right finger's frame is mirrored
-about the gripper's centre line (DESIGN section 3). Distances are unchanged by these rigid motions
+about the gripper's centre line. Distances are unchanged by these rigid motions
 and reflections, so the object's SDF read through ``frame.to_world`` is again a signed distance.
 """
 

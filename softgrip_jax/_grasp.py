@@ -1,4 +1,4 @@
-"""Both fingers of a gripper at a pose (DESIGN section 8).
+"""Both fingers of a gripper at a pose.
 
 A pose is ``(x, y, angle)``: the point midway between the two finger bases in image-plane mm and
 the gripper's in-plane rotation in rad (0: fingers hang toward +y). The left finger's base is W/2

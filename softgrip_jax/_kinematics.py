@@ -1,4 +1,4 @@
-"""Forward kinematics of an N-link chain (DESIGN section 4) and the PCC shape (eqs. 1-3).
+"""Forward kinematics of an N-link chain and the PCC shape (eqs. 1-3).
 
 Every shape in this package is a pair ``(psi, turning)``: ``psi`` rotates the whole finger about
 its base, ``turning[k]`` is the turning angle at joint k. Link k points at

@@ -1,6 +1,6 @@
-"""The mechanics estimate: the N-link chain with spring joints at equilibrium (DESIGN section 7).
+"""The mechanics estimate: the N-link chain with spring joints at equilibrium.
 
-Model. The finger is the chain of DESIGN section 4: base P_0, base direction psi, turning angles
+Model. The finger is the chain of :mod:`softgrip_jax._kinematics`: base P_0, base direction psi, turning angles
 delta_k (link k, of length h = L/N, points at psi + sum_{j<k} delta_j + delta_k / 2). Link k is the
 chord of a short arc that turns by delta_k, so its curvature is delta_k / h and its bending energy
 k_k (delta_k - delta0)^2 / (2 h), with the rest turning delta0 = 2 Theta / N of the calibrated,
@@ -198,7 +198,7 @@ class _Problem(eqx.Module):
     def stations(self, y):
         """Joints (N+1, 2) and centreline stations (M, 2), M = N stations_per_link + 1, in mm.
 
-        The chain of DESIGN section 4 with running sums (``jnp.cumsum``): here, where the points
+        The chain of :func:`forward_kinematics` with running sums (``jnp.cumsum``): here, where the points
         feed SDF lookups and their gradients, that compiles to faster code than
         :func:`forward_kinematics`' triangular product.
         """

@@ -1,4 +1,4 @@
-"""Scoring and refining pre-touch gripper poses (DESIGN section 8; the paper's future work).
+"""Scoring and refining pre-touch gripper poses (the paper's future work).
 
 A candidate is a gripper pose (x mm, y mm, angle rad). Its score combines what a planner needs to
 rank pre-touch poses from both fingers' estimates:

@@ -1,4 +1,4 @@
-"""Signed distance to the object (DESIGN section 5): negative inside, in mm.
+"""Signed distance to the object: negative inside, in mm.
 
 Two implementations behind one interface, :class:`AbstractSDF`:
 

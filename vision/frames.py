@@ -1,4 +1,4 @@
-"""RGB-D frames in memory and on disk (DESIGN section 10).
+"""RGB-D frames in memory and on disk (README: "File formats").
 
 A frame on disk is a folder of three files::
 

@@ -1,4 +1,4 @@
-"""Frames from Intel RealSense cameras and recordings, through pyrealsense2 (DESIGN section 10).
+"""Frames from Intel RealSense cameras and recordings, through pyrealsense2.
 
 Every capture ends as frame folders (see :mod:`vision.frames`): colour in RGB order, depth
 registered to the colour image in units of the device's depth scale, and the colour stream's

@@ -1,4 +1,4 @@
-"""Segmentation of an RGB-D frame into the two fingers and the object (DESIGN section 10).
+"""Segmentation of an RGB-D frame into the two fingers and the object.
 
 Every pixel is classified in two stages:
 

@@ -1,4 +1,4 @@
-"""One constructed scene per contact case (paper Fig. 6), with the joints of DESIGN section 7."""
+"""One constructed scene per contact case (paper Fig. 6), with the joints each case's rule gives (softgrip_jax._deformation)."""
 
 import math
 

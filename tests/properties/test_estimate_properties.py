@@ -17,7 +17,7 @@ BATCH bases around the object, and estimates every base with ``method="geometric
 * the estimated centreline is not inside the object dilated by r, beyond the stated tolerances,
   where it should not be: in case none (both methods) and in every case for mechanics. The
   geometric cases (b)-(d) are the paper's rules, which do not keep the finger out of the object
-  (DESIGN section 7), so they are not held to it.
+  (they turn the free shape about the base), so they are not held to it.
 
 Not a property here: "the sweep touched => the mechanics case is not none". A frictionless tip that
 meets the object first can slide off it and close freely; the independent elastic-rod closure

@@ -1,6 +1,6 @@
 """The observed closure: a finely discretised elastic rod, independent of the estimator's model.
 
-Accuracy is measured against this model (DESIGN.md section 11). It shares nothing with the
+Accuracy is measured against this model (benchmarks/reproduce_paper.py, benchmarks/bench_mechanics_fit.py). It shares nothing with the
 estimator's PCC chain or contact cases except the conventions: image plane in millimetres, x right,
 y down, angles from the downward vertical and positive toward +x, direction of angle ``a`` is
 ``(sin a, cos a)``. The finger is computed as a left finger (curling toward +x); a right finger
