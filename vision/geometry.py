@@ -391,7 +391,8 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
         # the image its bulge is displaced outward from the outline's centre (by r / depth of the
         # distance from the optical axis, several pixels at the image's sides), which the pixel
         # distance would read as a flatter bulge.
-        bulge = _bulge_in_plane(points, label, normal, c, frame.intrinsics, centrelines_px, width_edges_px)
+        first_pass = PlaneCamera(frame.intrinsics, depth_mm=c / normal[2], normal=tuple(normal))
+        bulge = _bulge_in_plane(points, label, first_pass, centrelines_px, width_edges_px)
         solution = least_squares(residuals, solution.x, loss="soft_l1", f_scale=max(2.0 * spread_mm, 0.02),
                                  x_scale="jac")
         normal, c, relief = unpack(solution.x)
@@ -401,61 +402,55 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
                     readings=len(points), residual_mm=1.4826 * float(np.median(np.abs(final - np.median(final)))))
 
 
-def _bulge_in_plane(points: np.ndarray, label: np.ndarray, normal: np.ndarray, c: float, intrinsics: Intrinsics,
+def _bulge_in_plane(points: np.ndarray, label: np.ndarray, plane: PlaneCamera,
                     centrelines_px: Sequence[np.ndarray], width_edges_px: Sequence[np.ndarray]) -> np.ndarray:
     """(P,) the elliptic bulge sqrt(1 - (rho / r)^2) of each reading (P, 3) in camera mm, with rho
-    the distance in the plane n . P = c from the reading's foot on it to its finger's axis (the
-    centreline's rays met with the plane), and r the finger's half-thickness there: the outline's
-    half-width on the plane times cos(beta), beta the ray's angle across the axis (a round finger's
-    tangent rays make its outline r / cos(beta) wide)."""
+    the distance in ``plane`` from the reading's foot on it to its finger's axis (the centreline's
+    rays met with the plane), and r the finger's half-thickness there: the outline's half-width on
+    the plane times cos(beta), beta the ray's angle across the axis (a round finger's tangent rays
+    make its outline r / cos(beta) wide)."""
 
     def on_plane(uv: np.ndarray) -> np.ndarray:
-        rays = np.column_stack([(uv[:, 0] - intrinsics.ppx) / intrinsics.fx,
-                                (uv[:, 1] - intrinsics.ppy) / intrinsics.fy, np.ones(len(uv))])
-        return rays * (c / (rays @ normal))[:, None]
+        return plane.points_3d(plane.px_to_mm(uv))
 
+    normal = np.asarray(plane.normal)
+    c = float(on_plane(np.zeros((1, 2)))[0] @ normal)
     bulge = np.zeros(len(points))
     for k, (line, edges) in enumerate(zip(centrelines_px, width_edges_px)):
         mine = label == k
         if not mine.any() or edges is None or len(edges) < 2:
             continue
-        axis = on_plane(np.asarray(line, np.float64))
-        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(axis, axis=0), axis=1))])
-        fine = np.linspace(0.0, arc[-1], max(2, int(arc[-1] / 0.02) + 1))
-        dense = np.column_stack([np.interp(fine, arc, axis[:, j]) for j in range(3)])
-        feet = points[mine] - (points[mine] @ normal - c)[:, None] * normal
-        tree = cKDTree(dense)
-        rho, nearest = tree.query(feet)
         sides = on_plane(edges.reshape(-1, 2)).reshape(-1, 2, 3)
-        middle = sides.mean(axis=1)
         half = 0.5 * np.linalg.norm(sides[:, 1] - sides[:, 0], axis=1)
         across = (sides[:, 1] - sides[:, 0]) / np.maximum(2.0 * half, 1e-9)[:, None]
-        sight = middle / np.linalg.norm(middle, axis=1, keepdims=True)
+        sight = sides.mean(axis=1) / np.linalg.norm(sides.mean(axis=1), axis=1, keepdims=True)
         half = half * np.sqrt(np.clip(1.0 - np.sum(sight * across, axis=1) ** 2, 0.0, 1.0))
-        _, station = tree.query(middle)
-        order = np.argsort(fine[station])
-        local_r = np.interp(fine[nearest], fine[station][order], half[order])
+        feet = points[mine] - (points[mine] @ normal - c)[:, None] * normal
+        rho, local_r = _across(feet, on_plane(np.asarray(line, np.float64)), sides, 0.0, step=0.02, half=half)
         bulge[mine] = np.sqrt(np.clip(1.0 - (rho / np.maximum(local_r, 1e-9)) ** 2, 0.0, 1.0))
     return bulge
 
 
-def _across(points: np.ndarray, polyline: np.ndarray, edges: np.ndarray | None,
-            r_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Each point's distance (P,) to a polyline (K, 2) and the half-width (P,) there, px.
+def _across(points: np.ndarray, polyline: np.ndarray, edges: np.ndarray | None, r: float, *,
+            step: float = 0.1, half: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's distance (P,) to a polyline (K, D) and the half-width (P,) there, in their unit
+    (px, or mm in 3-D).
 
-    The polyline is resampled every 0.1 px and searched with a k-d tree (scipy); the half-width is
-    interpolated along it from ``edges`` (S, 2, 2), side pairs across the finger, or ``r_px``."""
+    The polyline is resampled every ``step`` and searched with a k-d tree (scipy); the half-width is
+    interpolated along it from ``edges`` (S, 2, D), side pairs across the finger (half their distance,
+    or ``half`` (S,) when given), or is ``r`` without them."""
     polyline = np.asarray(polyline, np.float64)
-    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(polyline, axis=0).T))])
-    fine = np.linspace(0.0, arc[-1], max(2, int(arc[-1] / 0.1) + 1))
-    dense = np.column_stack([np.interp(fine, arc, polyline[:, 0]), np.interp(fine, arc, polyline[:, 1])])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(polyline, axis=0), axis=1))])
+    fine = np.linspace(0.0, arc[-1], max(2, int(arc[-1] / step) + 1))
+    dense = np.column_stack([np.interp(fine, arc, polyline[:, j]) for j in range(polyline.shape[1])])
     tree = cKDTree(dense)
     distance, nearest = tree.query(points)
     if edges is None or len(edges) < 2:
-        return distance, np.full(len(points), r_px)
+        return distance, np.full(len(points), r)
     _, station = tree.query(0.5 * (edges[:, 0] + edges[:, 1]))
     order = np.argsort(fine[station])
-    half = 0.5 * np.hypot(*(edges[:, 1] - edges[:, 0]).T)
+    if half is None:
+        half = 0.5 * np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1)
     return distance, np.interp(fine[nearest], fine[station][order], half[order])
 
 

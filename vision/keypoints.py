@@ -136,7 +136,7 @@ class FingerKeypoints:
         # circles in the plane's millimetres. Facing the camera, the latter is the pixel fit.
         if relief_mm > 0.5 * self.half_thickness_px * float(camera.local_mm_per_px(self.tip_px)):
             def centre(outline):
-                return _sphere_centre_px(outline, camera.intrinsics)
+                return _sphere_centre_px(outline, camera)
         else:
             def centre(outline):
                 return camera.mm_to_px(_circle_centre(camera.px_to_mm(outline)))
@@ -360,7 +360,7 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
         if resume >= last:
             raise KeypointError(f"the {side} finger is too short beyond its base to follow: is the whole finger in "
                                 f"view?")
-        centreline = np.vstack([base, end_.lead_in[0][1:], line[resume:last], tip])
+        centreline = np.vstack([base, end_.lead_in[1:], line[resume:last], tip])
     edges = _width_edges(sampler, centreline, radius)
     half_thickness = 0.5 * float(np.median(np.hypot(*(edges[:, 1] - edges[:, 0]).T))) if len(edges) else radius
     axis = _direction(line, arc, arc[first] + radius, arc[first] + 3.0 * radius)
@@ -532,7 +532,7 @@ def _circle_centre(points: np.ndarray) -> np.ndarray:
     return solution[:2]
 
 
-def _sphere_centre_px(outline_px: np.ndarray, intrinsics) -> np.ndarray:
+def _sphere_centre_px(outline_px: np.ndarray, camera: PlaneCamera) -> np.ndarray:
     """(2,) the pixel of the centre of a sphere whose outline passes through ``outline_px`` (K, 2).
 
     A sphere's outline is a cone of rays about the ray to its centre: unit rays d_k with
@@ -540,11 +540,11 @@ def _sphere_centre_px(outline_px: np.ndarray, intrinsics) -> np.ndarray:
     that plane's normal, and the centre's ray is w / |w| (exact in perspective, where a circle fitted
     to the outline in pixels lies off-centre by up to the outline's stretch, a pixel here).
     """
-    rays = np.column_stack([(outline_px[:, 0] - intrinsics.ppx) / intrinsics.fx,
-                            (outline_px[:, 1] - intrinsics.ppy) / intrinsics.fy, np.ones(len(outline_px))])
+    rays = camera.rays(outline_px)
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     w, *_ = np.linalg.lstsq(rays, np.ones(len(rays)), rcond=None)
-    return np.array([intrinsics.fx * w[0] / w[2] + intrinsics.ppx, intrinsics.fy * w[1] / w[2] + intrinsics.ppy])
+    i = camera.intrinsics
+    return np.array([i.fx * w[0] / w[2] + i.ppx, i.fy * w[1] / w[2] + i.ppy])
 
 
 def _lines_across(centre: np.ndarray, axis: np.ndarray, radius: float, reach: float = _CAP_REACH) -> np.ndarray:
@@ -613,13 +613,10 @@ class _End(NamedTuple):
     point: np.ndarray
     kind: BaseEnd
     body: bool
-    cap: np.ndarray | None
-    direction: np.ndarray | None
-    lead_in: tuple[np.ndarray, float] | None
-
-    @property
-    def lead_in_to(self) -> float:
-        return float(self.lead_in[1]) if self.lead_in is not None else 0.0
+    cap: np.ndarray | None = None
+    direction: np.ndarray | None = None
+    lead_in: np.ndarray | None = None
+    lead_in_to: float = 0.0
 
 
 def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.ndarray, radius: float,
@@ -652,8 +649,10 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
         direction = np.linalg.svd(edge - edge.mean(axis=0))[2][0]
         into = np.array([-direction[1], direction[0]])
         into = into if into @ up < 0.0 else -into
-        s_base = centre.crossing_arc(s_finger, edge.mean(axis=0), into, 6.0 * radius)
-        return _End(centre(s_base), "flat", True, None, into, centre.stretch(s_base, s_finger + 4.0 * radius))
+        s_base = centre.crossing(s_finger, edge.mean(axis=0), into, 6.0 * radius)
+        s_ridge = s_finger + 4.0 * radius
+        return _End(centre(s_base), "flat", True, direction=into, lead_in=centre.stretch(s_base, s_ridge),
+                    lead_in_to=s_ridge)
     top = _at(line, arc, 0.0)
     if rounded is None or rounded:
         try:
@@ -670,7 +669,7 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
             q = max(0.0, float((top - principal) @ axis) / focal)
             if rounded or curvature < 0.5 * (1.0 + q) * _HALF_CIRCLE_CURVATURE / radius:
                 centre, cap = _cap_centre(line, radius, contour, sampler, what)
-                return _End(centre, "rounded", False, cap, None, None)
+                return _End(centre, "rounded", False, cap=cap)
     # Stations from 2.5 r on: nearer the cut the distance transform's ridge forks toward its corners
     # (more so when a round finger's cut bulges in perspective), and its direction there would
     # tilt the lines across the finger.
@@ -687,10 +686,11 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
     middle = np.nanmean(hits, axis=0)
     into = -up
     for _ in range(2):
-        s_base = centre.crossing_arc(s_in, middle, into, 3.0 * radius)
-        into = -centre.frame(s_base)[0]
-    s_base = centre.crossing_arc(s_in, middle, into, 3.0 * radius)
-    return _End(centre(s_base), "flat", False, None, into, centre.stretch(s_base, 6.0 * radius))
+        into = -centre.frame(centre.crossing(s_in, middle, into, 3.0 * radius))[0]
+    s_base = centre.crossing(s_in, middle, into, 3.0 * radius)
+    s_ridge = 6.0 * radius
+    return _End(centre(s_base), "flat", False, direction=into, lead_in=centre.stretch(s_base, s_ridge),
+                lead_in_to=s_ridge)
 
 
 class _CentreCurve:
@@ -716,26 +716,14 @@ class _CentreCurve:
         """(2,) the centre at arc length ``s`` (px)."""
         return np.array([np.polyval(c, s) for c in self.coefficients])
 
-    def reach(self, s: float, distance: float) -> np.ndarray:
-        """(2,) the point of the curve ``distance`` px from its point at ``s``, measured toward the
-        base along the curve's direction there (following the curve, which may bend)."""
-        up, _ = self.frame(s)
-        trial = s - np.linspace(0.0, 3.0 * abs(distance) + 3.0, 200)
-        along = (np.stack([self(t) for t in trial]) - self(s)) @ up
-        return self(float(np.interp(distance, along, trial)))
+    def stretch(self, s_from: float, s_to: float) -> np.ndarray:
+        """(K, 2) points of the curve every pixel of arc from ``s_from`` to ``s_to`` (both included)."""
+        return np.stack([self(t) for t in np.append(np.arange(s_from, s_to, 1.0), s_to)])
 
-    def stretch(self, s_from: float, s_to: float) -> tuple[np.ndarray, float]:
-        """(points (K, 2) of the curve every pixel of arc from ``s_from`` to ``s_to``, ``s_to``)."""
-        return np.stack([self(t) for t in np.append(np.arange(s_from, s_to, 1.0), s_to)]), float(s_to)
-
-    def crossing(self, s: float, point: np.ndarray, normal: np.ndarray, reach: float) -> np.ndarray:
-        """(2,) where the curve, followed from ``s`` toward the base for at most ``reach`` px,
-        crosses the line through ``point`` (2,) square to ``normal`` (2,)."""
-        return self(self.crossing_arc(s, point, normal, reach))
-
-    def crossing_arc(self, s: float, point: np.ndarray, normal: np.ndarray, reach: float) -> float:
-        """The arc length (px) of :meth:`crossing` (of the line's nearest approach if it is not
-        crossed within ``reach``)."""
+    def crossing(self, s: float, point: np.ndarray, normal: np.ndarray, reach: float) -> float:
+        """The arc length (px) where the curve, followed from ``s`` toward the base for at most
+        ``reach`` px, crosses the line through ``point`` (2,) square to ``normal`` (2,) (where it
+        comes nearest the line if it does not cross it)."""
         trial = s - np.linspace(0.0, reach + 3.0, 400)
         side = (np.stack([self(t) for t in trial]) - point) @ normal
         change = np.flatnonzero(np.sign(side[1:]) != np.sign(side[:-1]))
