@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_method
@@ -52,6 +53,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--overlay-dir", metavar="DIR", help="write DIR/<frame-name>.png overlays")
     parser.add_argument("--length-from-frame", action="store_true",
                         help="use each finger's length measured in the frame instead of the profile's")
+    pipe.add_force_argument(parser)
     add_method_argument(parser)
     parser.set_defaults(func=run)
 
@@ -67,6 +69,10 @@ def run(args: argparse.Namespace) -> int:
     settings = pipe.segmentation_settings(profile)
     overlay_dir = pipe.ensure_dir(args.overlay_dir, "overlay folder") if args.overlay_dir else None
     names = pipe.unique_png_names(args.frames)
+    inputs = pipe.frame_inputs(*args.frames) + [Path(args.profile)]
+    if overlay_dir is not None:  # before any work: no overlay may replace an input
+        for name in names:
+            pipe.check_output_file(overlay_dir / name, "overlay", inputs, args.force)
     start = time.perf_counter()
     with tqdm(total=len(args.frames), desc="estimate", unit="frame", file=sys.stderr, disable=None,
               leave=False) as bar:
@@ -86,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
                 cases = ", ".join(f"{f['side']} {f['case']}" for f in record["fingers"])
                 image = pipe.grasp_overlay(scene.frame.color, grasp, scene.camera,
                                            label=f"{scene.name}: {cases}\nblue: estimated joints, red: contacts")
-                save_png(overlay_dir / name, image)
+                save_png(overlay_dir / name, image, inputs=inputs, force=args.force, what="overlay")
             bar.update()
     print(f"estimated {len(args.frames)} frame(s) in {time.perf_counter() - start:.1f} s", file=sys.stderr)
     return 0

@@ -7,6 +7,7 @@ import csv
 import io
 import json
 import math
+import os
 import re
 import sys
 import time
@@ -71,6 +72,10 @@ def add_parser(subparsers) -> None:
     poses.add_argument("--poses", metavar="FILE", help="poses from a .json or .csv file")
     parser.add_argument("--json", action="store_true", help="print the ranked candidates as JSON")
     parser.add_argument("--heatmap", metavar="PNG", help="write the score heat map over the frame")
+    parser.add_argument("-o", "--output", metavar="FILE",
+                        help="write the ranked candidates as JSON (as --json prints them) to FILE, atomically: "
+                             "a run that is stopped leaves FILE as it was")
+    pipe.add_force_argument(parser)
     parser.add_argument("--top", type=int, default=10, metavar="K",
                         help="how many of the best candidates to print (default 10; 0 for all)")
     parser.add_argument("--length-from-frame", action="store_true",
@@ -92,9 +97,14 @@ def run(args: argparse.Namespace) -> int:
         poses = read_poses(args.poses)  # before the frame: a bad file fails fast
     elif args.grid:
         grid = parse_grid(args.grid)
+    inputs = pipe.frame_inputs(args.frame) + [Path(args.profile)] + ([Path(args.poses)] if args.poses else [])
     if args.heatmap:
         pipe.ensure_dir(Path(args.heatmap).parent, "heat map's folder")
-        pipe.check_output_file(args.heatmap, "--heatmap")
+        pipe.check_output_file(args.heatmap, "--heatmap", inputs, args.force)
+    if args.output:
+        pipe.check_output_file(args.output, "-o", inputs, args.force)
+        if args.heatmap and os.path.realpath(args.heatmap) == os.path.realpath(args.output):
+            raise SoftgripError(f"-o and --heatmap name the same file {args.output}: give two file names")
     scene = pipe.frame_scene(args.frame, profile, length_from_frame=args.length_from_frame)
     if not args.poses:
         grid = grid or default_grid(scene)
@@ -112,16 +122,40 @@ def run(args: argparse.Namespace) -> int:
     shown = order if args.top == 0 else order[:args.top]
     if args.heatmap:
         image = heatmap_image(scene, poses, result, grid, int(order[0]))
-        save_png(args.heatmap, image)
+        save_png(args.heatmap, image, inputs=inputs, force=args.force, what="--heatmap")
+    header = {"frame": scene.path, "method": method, "n_links": scene.n_links, "n_candidates": len(poses),
+              "n_valid": n_valid}
+    if args.output:
+        from vision.atomic_write import atomic_open
+
+        try:
+            with atomic_open(args.output, inputs=inputs, force=args.force, what="-o") as handle:
+                write_json_stream(handle, header, scene, poses, result, shown)
+        except OSError as err:
+            raise SoftgripError(f"-o {args.output}: cannot write it ({err.strerror}); it is left as it was") from None
     if args.json:
-        out = {"frame": scene.path, "method": method, "n_links": scene.n_links, "n_candidates": len(poses), "n_valid": n_valid,
-               "candidates": [pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera)
-                              for i in shown]}
-        json.dump(out, sys.stdout, allow_nan=False)
-        print()
+        write_json_stream(sys.stdout.buffer, header, scene, poses, result, shown)
+        sys.stdout.buffer.flush()
     else:
         print(_table(scene, poses, result, shown, n_valid))
     return 0
+
+
+def write_json_stream(handle, header: dict, scene: pipe.FrameScene, poses: np.ndarray, result,
+                      shown: np.ndarray) -> None:
+    """Write ``header`` with its ``"candidates"`` list (``shown``, in order) to binary ``handle`` as one
+    JSON object and a newline, one candidate at a time: memory stays that of one candidate however
+    many there are."""
+    text = json.dumps(header, allow_nan=False)
+    handle.write((text[:-1] + ', "candidates": [').encode("utf-8"))
+    chunk: list[str] = []
+    for k, i in enumerate(shown):
+        chunk.append(json.dumps(pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera),
+                                allow_nan=False))
+        if len(chunk) == 256 or k == len(shown) - 1:
+            handle.write(((", " if k >= len(chunk) else "") + ", ".join(chunk)).encode("utf-8"))
+            chunk = []
+    handle.write(b"]}\n")
 
 
 # ---------------------------------------------------------------------------------------------
