@@ -15,9 +15,10 @@ One frame of the open gripper (and usually an object) becomes a :class:`FrameSce
 5. the gripper is the profile's (``calib.profile.to_gripper``), optionally with each finger's length
    L measured in this frame (eq. 5).
 
-The JSON helpers write one finger as the commands print it (issue 5)::
+The JSON helpers write one finger as the commands print it::
 
-    {"side": "left"|"right", "case": "none"|"tip"|"tip_and_other"|"other", "theta_entire": rad,
+    {"side": "left"|"right", "valid": bool, "status": "ok"|"non_finite_input"|... (Status names),
+     "case": "none"|"tip"|"tip_and_other"|"other", "theta_entire": rad,
      "joints_px": [[u, v], ...], "joints_mm": [[x, y], ...],    # N+1 joints, base (0) to tip (N)
      "contacts_px": [[u, v], ...], "contacts_mm": [[x, y], ...]}  # P_o1, and P_o2 for tip_and_other
 
@@ -304,6 +305,8 @@ def finger_json(side: str, estimate, finger, camera) -> dict:
     contacts_mm = finger_contacts_mm(estimate)
     return {
         "side": side,
+        "valid": bool(estimate.valid),
+        "status": status_name(estimate.status),
         "case": CASE_NAMES[int(estimate.case)],
         "theta_entire": round(float(finger.theta_entire), 6),
         "joints_px": points_json(camera.mm_to_px(joints_mm), 3),
@@ -319,10 +322,19 @@ def fingers_json(grasp, gripper, camera) -> list[dict]:
 
 
 def frame_json(scene: FrameScene, grasp, method: str) -> dict:
-    """``{"frame", "method", "n_links", "fingers"}``: one line of ``softgrip estimate --json``
-    (``method``: the deformation estimate used)."""
-    return {"frame": scene.path, "method": method, "n_links": scene.n_links,
-            "fingers": fingers_json(grasp, scene.gripper, scene.camera)}
+    """``{"frame", "valid", "status", "method", "n_links", "fingers"}``: one line of ``softgrip
+    estimate --json`` (``method``: the deformation estimate used). The frame is valid when both
+    fingers are; its status is the first invalid finger's (``"ok"`` when both are valid)."""
+    fingers = fingers_json(grasp, scene.gripper, scene.camera)
+    bad = [f for f in fingers if not f["valid"]]
+    return {"frame": scene.path, "valid": not bad, "status": bad[0]["status"] if bad else "ok", "method": method,
+            "n_links": scene.n_links, "fingers": fingers}
+
+
+def failed_frame_json(path: str, method: str, error: str) -> dict:
+    """The ``softgrip estimate --json`` line of a frame that could not be estimated at all."""
+    return {"frame": path, "valid": False, "status": "error", "error": error, "method": method, "n_links": None,
+            "fingers": []}
 
 
 def pose_json(pose: np.ndarray) -> dict:
