@@ -24,7 +24,8 @@ DATA = ROOT / "data"
 PROFILE = DATA / "sample_profile.json"
 SCENES = ("circle", "square", "star_a")
 FRAMES = [str(DATA / f"{name}_open") for name in SCENES]
-FINGER_KEYS = {"side", "case", "theta_entire", "joints_px", "joints_mm", "contacts_px", "contacts_mm"}
+FINGER_KEYS = {"side", "valid", "status", "case", "theta_entire", "joints_px", "joints_mm", "contacts_px",
+               "contacts_mm"}
 CANDIDATE_KEYS = {"pose", "score", "components", "valid", "status", "fingers"}
 TOP = 40
 
@@ -88,7 +89,9 @@ def test_estimate_prints_one_json_object_per_frame_in_order(estimated):
     n_links = profile_data()["fingers"]["left"]["n_links"]
     assert [r["frame"] for r in records] == FRAMES
     for record in records:
-        assert set(record) == {"frame", "method", "n_links", "fingers"}
+        assert set(record) == {"frame", "valid", "status", "method", "n_links", "fingers"}
+        assert record["valid"] is True and record["status"] == "ok"
+        assert all(f["valid"] is True and f["status"] == "ok" for f in record["fingers"])
         assert record["method"] == DEFAULT_METHOD  # the sample profile records no fitted estimate
         assert record["n_links"] == n_links
         assert [f["side"] for f in record["fingers"]] == ["left", "right"]
