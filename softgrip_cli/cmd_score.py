@@ -130,32 +130,33 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             with atomic_open(args.output, inputs=inputs, force=args.force, what="-o") as handle:
-                write_json_stream(handle, header, scene, poses, result, shown)
+                write_json_stream(lambda text: handle.write(text.encode("utf-8")), header, scene, poses, result,
+                                  shown)
         except OSError as err:
             raise SoftgripError(f"-o {args.output}: cannot write it ({err.strerror}); it is left as it was") from None
     if args.json:
-        write_json_stream(sys.stdout.buffer, header, scene, poses, result, shown)
-        sys.stdout.buffer.flush()
+        write_json_stream(sys.stdout.write, header, scene, poses, result, shown)
+        sys.stdout.flush()
     else:
         print(_table(scene, poses, result, shown, n_valid))
     return 0
 
 
-def write_json_stream(handle, header: dict, scene: pipe.FrameScene, poses: np.ndarray, result,
+def write_json_stream(write, header: dict, scene: pipe.FrameScene, poses: np.ndarray, result,
                       shown: np.ndarray) -> None:
-    """Write ``header`` with its ``"candidates"`` list (``shown``, in order) to binary ``handle`` as one
-    JSON object and a newline, one candidate at a time: memory stays that of one candidate however
-    many there are."""
+    """Write ``header`` with its ``"candidates"`` list (``shown``, in order) through ``write`` (a
+    function taking text) as one JSON object and a newline, a few hundred candidates at a time:
+    memory stays that of a few hundred candidates however many there are."""
     text = json.dumps(header, allow_nan=False)
-    handle.write((text[:-1] + ', "candidates": [').encode("utf-8"))
+    write(text[:-1] + ', "candidates": [')
     chunk: list[str] = []
     for k, i in enumerate(shown):
         chunk.append(json.dumps(pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera),
                                 allow_nan=False))
         if len(chunk) == 256 or k == len(shown) - 1:
-            handle.write(((", " if k >= len(chunk) else "") + ", ".join(chunk)).encode("utf-8"))
+            write((", " if k >= len(chunk) else "") + ", ".join(chunk))
             chunk = []
-    handle.write(b"]}\n")
+    write("]}\n")
 
 
 # ---------------------------------------------------------------------------------------------

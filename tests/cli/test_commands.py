@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from softgrip_cli import main
+from softgrip_cli._main import EXIT_USER_ERROR
 from softgrip_jax import CASE_NAMES, DEFAULT_METHOD, SoftgripError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -355,9 +356,20 @@ def frame_without_gripper(tmp_path_factory):
 
 
 def test_unusable_frame_is_a_user_error_naming_the_frame(frame_without_gripper):
-    code, _, err = run_cli(["estimate", FRAMES[0], str(frame_without_gripper), "--profile", str(PROFILE)])
+    code, _, err = run_cli(["estimate", str(frame_without_gripper), "--profile", str(PROFILE)])
     one_line_error(code, err)
     assert str(frame_without_gripper) in err and "no gripper" in err
+
+
+def test_a_frame_list_goes_on_past_a_bad_frame_and_fails_at_the_end_naming_it(frame_without_gripper):
+    bad = str(frame_without_gripper)
+    code, out, err = run_cli(["estimate", bad, FRAMES[0], "--profile", str(PROFILE), "--json"])
+    assert code == EXIT_USER_ERROR and "Traceback" not in err
+    records = [json.loads(line) for line in out.splitlines()]
+    assert [r["frame"] for r in records] == [bad, FRAMES[0]]  # the good frame after the bad one is estimated
+    assert records[0]["valid"] is False and records[0]["status"] == "error" and "no gripper" in records[0]["error"]
+    assert records[1]["valid"] is True and len(records[1]["fingers"]) == 2
+    assert f"1 of 2 frames failed: {bad}" in err.splitlines()[-1]
 
 
 def test_debug_shows_the_exception(frame_without_gripper):
