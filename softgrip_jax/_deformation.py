@@ -302,9 +302,33 @@ def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = 
 def mechanics_of(
     finger: FingerModel, sdf: AbstractSDF, stage: Stage, mechanics: MechanicsConfig, config: ContactConfig
 ) -> Equilibrium:
-    """The spring chain's equilibrium started from a stage's geometric estimate."""
+    """The spring chain's equilibrium started from a stage's geometric estimate.
+
+    A stage whose input is unusable (a NaN Theta, a base outside the SDF or too far, NaN SDF
+    data) is solved on a harmless stand-in instead: the nominal finger, its shape and contact
+    zeroed, placed far outside the object. Its equilibrium is discarded by :func:`finish` anyway,
+    but solving (and differentiating) the real one would feed NaN to the implicit adjoint's linear
+    solve, which then fails the whole batch's gradient. So one bad row never costs the others
+    theirs; its own gradient is zero or NaN.
+    """
+    bad = ~(stage.finite & stage.inside & (stage.problem == Status.OK))
+    nominal = {"length": 50.0, "theta_entire": 0.5, "half_thickness": 1.0, "stiffness_ratio": 1.0,
+               "base_compliance": 0.0}
+    finger = eqx.tree_at(lambda f: tuple(getattr(f, name) for name in nominal), finger,
+                         tuple(jnp.where(bad, jnp.asarray(value, finger.length.dtype), getattr(finger, name))
+                               for name, value in nominal.items()))
+
+    def harmless(x):
+        if not eqx.is_inexact_array(x):
+            return x
+        return jnp.where(bad, jnp.zeros_like(x), x)
+
+    stage = eqx.tree_at(lambda st: (st.contact, st.psi, st.turning), stage,
+                        jax.tree_util.tree_map(harmless, (stage.contact, stage.psi, stage.turning)))
+    far = jnp.full_like(stage.frame.origin, 2.0 * MAX_COORDINATE_MM)
+    frame = eqx.tree_at(lambda f: f.origin, stage.frame, jnp.where(bad, far, stage.frame.origin))
     psi, turning = mechanics_start(finger, stage.contact, stage.psi, stage.turning, config)
-    return solve_equilibrium(finger, sdf, stage.frame, psi, turning, mechanics, config)
+    return solve_equilibrium(finger, sdf, frame, psi, turning, mechanics, config)
 
 
 def estimate_in_frame(
