@@ -233,14 +233,14 @@ def read_poses(path: str) -> np.ndarray:
         poses = _csv_poses(text, file)
     else:
         raise PoseInputError(f"{file}: a pose file must be .json or .csv, got {suffix or 'no suffix'!r}")
-    if not poses:
+    if len(poses) == 0:
         raise PoseInputError(f"{file}: no poses in the file")
     if len(poses) > MAX_POSES:
         raise PoseInputError(f"{file}: {len(poses)} poses; at most {MAX_POSES} per call (split the file)")
     return np.asarray(poses, np.float64)
 
 
-def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
+def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]] | np.ndarray:
     try:
         data = user_json.loads(text)
     except json.JSONDecodeError as err:
@@ -256,12 +256,40 @@ def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
         items = data
     else:
         raise PoseInputError(f"{file}, line 1: expected a list of poses, got {type(data).__name__}")
-    lines = _element_lines(text, key, len(items))
+    fast = _numeric_rows(items)
+    if fast is not None:
+        return fast
     poses = []
     for i, item in enumerate(items):
-        where = f"{file}, line {lines[i]}" if lines else f"{file}, pose {i + 1}"
-        poses.append(_json_pose(item, where))
+        try:
+            poses.append(_json_pose(item, f"{file}, pose {i + 1}"))
+        except PoseInputError as err:
+            # Name the line: found only now, as scanning for every element's line is slow.
+            lines = _element_lines(text, key, len(items))
+            if lines is None:
+                raise
+            raise PoseInputError(str(err).replace(f"{file}, pose {i + 1}", f"{file}, line {lines[i]}", 1)) from None
     return poses
+
+
+def _numeric_rows(items: list) -> np.ndarray | None:
+    """(B, 3) poses when every item is a list of 2 or 3 finite numbers (the common, large case: read
+    at numpy's speed), else None (the item-by-item reader then names the bad item)."""
+    number = (int, float)
+    try:
+        if not all(type(row) is list and 2 <= len(row) <= 3 for row in items):
+            return None
+        if not all(type(v) in number for row in items for v in row):
+            return None
+        if all(len(row) == 3 for row in items):
+            poses = np.array(items, np.float64)
+        else:
+            poses = np.zeros((len(items), 3))
+            for i, row in enumerate(items):
+                poses[i, :len(row)] = row
+    except (OverflowError, ValueError):
+        return None
+    return poses if np.isfinite(poses).all() else None
 
 
 def _json_pose(item, where: str) -> tuple[float, float, float]:
