@@ -34,19 +34,33 @@ def one_line(text: str) -> str:
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
+def _interrupted_while_starting(signum, frame) -> None:
+    """Ctrl-C while JAX and OpenCV are imported: nothing is written yet, so leave at once. (A
+    KeyboardInterrupt raised in the middle of an extension module's import can leave it half set
+    up, and the interpreter then crashes on the way out.)"""
+    os.write(2, b"interrupted\n")
+    os._exit(EXIT_INTERRUPTED)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     # Ctrl-C at any moment, also while JAX and OpenCV are being imported (the first second or so),
     # ends with "interrupted" and exit 130, never a traceback. This module imports nothing heavy
-    # at its top, so that the try below covers those imports.
+    # at its top, so that the handler below covers those imports.
+    import signal
+
+    try:
+        previous = signal.signal(signal.SIGINT, _interrupted_while_starting)
+    except ValueError:  # not the main thread: signals are not ours to handle
+        previous = None
     try:
         from softgrip_jax import SoftgripError
         from vision.atomic_write import OutputRefusedError
 
         parser = build_parser()
         args = parser.parse_args(argv)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    finally:
+        if previous is not None:  # from here Ctrl-C is a KeyboardInterrupt: writes clean up after it
+            signal.signal(signal.SIGINT, previous)
     try:
         return int(args.func(args) or 0)
     except (SoftgripError, OutputRefusedError) as err:

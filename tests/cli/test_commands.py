@@ -180,10 +180,15 @@ def test_an_unknown_method_is_a_usage_error(command, capsys):
 
 @pytest.fixture(scope="module")
 def scored(tmp_path_factory):
-    heatmap = tmp_path_factory.mktemp("score") / "heat.png"
+    folder = tmp_path_factory.mktemp("score")
+    heatmap, output = folder / "heat.png", folder / "scored.json"
+    output.write_text("old")
+    output.chmod(0o600)
     code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--json", "--heatmap", str(heatmap),
-                              "--top", str(TOP)])
+                              "--top", str(TOP), "-o", str(output)])
     assert code == 0, err
+    # -o holds what --json prints, written atomically over the old file, whose mode it keeps.
+    assert json.loads(output.read_text()) == json.loads(out) and (output.stat().st_mode & 0o777) == 0o600
     return json.loads(out), heatmap
 
 
