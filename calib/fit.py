@@ -339,6 +339,31 @@ def fit(
                               next((o.label for o in used if o.free_closure), None))
 
 
+class PairOrderError(SoftgripError):
+    """A frame pair given CLOSED OPEN instead of OPEN CLOSED (the "open" fingers curl more)."""
+
+
+#: How much straighter (chord over arc length) the open frame's fingers must not be than the closed
+#: frame's for a pair to count as swapped. Open fingers measure about 1.0, closed ones 0.9 and less;
+#: two frames of the same state differ by measuring noise of a few thousandths.
+PAIR_ORDER_MARGIN = 0.01
+
+
+def check_pair_order(open_keypoints, closed_keypoints, label: str) -> None:
+    """Refuse a pair whose "open" frame shows the fingers more curled than its "closed" frame.
+
+    Raises:
+        PairOrderError: names the pair, both frames' straightness and the fix.
+    """
+    from vision.plausibility import straightness
+
+    opened, closed = straightness(open_keypoints), straightness(closed_keypoints)
+    if np.isfinite(opened) and np.isfinite(closed) and opened < closed - PAIR_ORDER_MARGIN:
+        raise PairOrderError(f"{label}: the pair looks swapped: the fingers of the first ('open') frame are more "
+                             f"curled (chord/arc {opened:.3f}) than those of the second ('closed') frame "
+                             f"({closed:.3f}); give each pair as OPEN CLOSED")
+
+
 def observations_from_frames(
     open_frame: Frame,
     closed_frame: Frame,
@@ -379,6 +404,7 @@ def _measured_pair(open_frame: Frame, closed_frame: Frame, settings: Segmentatio
     """(the pair's Observation, the closed frame's measurement)."""
     opened = frame_measurement(open_frame, settings, measure)
     closed = frame_measurement(closed_frame, settings, measure, center_hint=opened.segmentation.center_column)
+    check_pair_order(opened.keypoints, closed.keypoints, label)
     # Both frames' millimetres are their own fitted planes: the same plane when the camera stayed.
     observation = Observation(
         sdf=opened.object_sdf(open_frame),
@@ -473,6 +499,8 @@ def load_observations(
         try:
             observations.append(observations_from_frames(load_frame(open_path), load_frame(closed_path),
                                                          settings, n_links, label, measure=measure))
+        except PairOrderError:
+            raise  # a mistake in the command, not in one pair's data: never skipped silently
         except SoftgripError as err:
             skipped.append(_skip(label, str(err)))
     return observations, skipped

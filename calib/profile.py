@@ -268,8 +268,10 @@ def _non_finite_number(value: Any, path: str) -> str | None:
     return None
 
 
-def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str]) -> Path:
-    """Validate ``profile`` and write it to ``path`` atomically (replacing an existing file).
+def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str], *, inputs=(),
+                 force: bool = False) -> Path:
+    """Validate ``profile`` and write it to ``path`` atomically (replacing an existing regular file,
+    keeping its mode; ``inputs`` and ``force`` as in ``vision.atomic_write.check_output``).
 
     Raises:
         ProfileError: a field is out of range (named, as when loading), or the file cannot be written.
@@ -290,7 +292,7 @@ def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str]) -> P
     _parse(data, str(path))  # the same checks as loading: never write a profile that cannot be read
     text = json.dumps(data, indent=2, allow_nan=False) + "\n"
     try:
-        write_atomic(path, text.encode("utf-8"))
+        write_atomic(path, text.encode("utf-8"), inputs=inputs, force=force, what="profile")
     except OSError as err:
         raise ProfileError(f"{path}: cannot write the profile there ({err.strerror}): check that the folder "
                            f"{path.parent} exists and is writable") from None

@@ -15,9 +15,10 @@ One frame of the open gripper (and usually an object) becomes a :class:`FrameSce
 5. the gripper is the profile's (``calib.profile.to_gripper``), optionally with each finger's length
    L measured in this frame (eq. 5).
 
-The JSON helpers write one finger as the commands print it (issue 5)::
+The JSON helpers write one finger as the commands print it::
 
-    {"side": "left"|"right", "case": "none"|"tip"|"tip_and_other"|"other", "theta_entire": rad,
+    {"side": "left"|"right", "valid": bool, "status": "ok"|"non_finite_input"|... (Status names),
+     "case": "none"|"tip"|"tip_and_other"|"other", "theta_entire": rad,
      "joints_px": [[u, v], ...], "joints_mm": [[x, y], ...],    # N+1 joints, base (0) to tip (N)
      "contacts_px": [[u, v], ...], "contacts_mm": [[x, y], ...]}  # P_o1, and P_o2 for tip_and_other
 
@@ -304,6 +305,8 @@ def finger_json(side: str, estimate, finger, camera) -> dict:
     contacts_mm = finger_contacts_mm(estimate)
     return {
         "side": side,
+        "valid": bool(estimate.valid),
+        "status": status_name(estimate.status),
         "case": CASE_NAMES[int(estimate.case)],
         "theta_entire": round(float(finger.theta_entire), 6),
         "joints_px": points_json(camera.mm_to_px(joints_mm), 3),
@@ -319,10 +322,19 @@ def fingers_json(grasp, gripper, camera) -> list[dict]:
 
 
 def frame_json(scene: FrameScene, grasp, method: str) -> dict:
-    """``{"frame", "method", "n_links", "fingers"}``: one line of ``softgrip estimate --json``
-    (``method``: the deformation estimate used)."""
-    return {"frame": scene.path, "method": method, "n_links": scene.n_links,
-            "fingers": fingers_json(grasp, scene.gripper, scene.camera)}
+    """``{"frame", "valid", "status", "method", "n_links", "fingers"}``: one line of ``softgrip
+    estimate --json`` (``method``: the deformation estimate used). The frame is valid when both
+    fingers are; its status is the first invalid finger's (``"ok"`` when both are valid)."""
+    fingers = fingers_json(grasp, scene.gripper, scene.camera)
+    bad = [f for f in fingers if not f["valid"]]
+    return {"frame": scene.path, "valid": not bad, "status": bad[0]["status"] if bad else "ok", "method": method,
+            "n_links": scene.n_links, "fingers": fingers}
+
+
+def failed_frame_json(path: str, method: str, error: str) -> dict:
+    """The ``softgrip estimate --json`` line of a frame that could not be estimated at all."""
+    return {"frame": path, "valid": False, "status": "error", "error": error, "method": method, "n_links": None,
+            "fingers": []}
 
 
 def pose_json(pose: np.ndarray) -> dict:
@@ -424,16 +436,33 @@ def unique_png_names(scenes_paths: list[str]) -> list[str]:
     return names
 
 
-def check_output_file(path: str | os.PathLike[str], what: str) -> Path:
-    """Refuse, before any work, an output file ``path`` that cannot be written: a folder, or one
-    whose folder does not exist (the message names ``what``, e.g. ``"-o"``, and the path)."""
-    target = Path(path)
-    if target.is_dir():
-        raise SoftgripError(f"{what} {target} is a folder, not a file: add a file name, e.g. {target / 'out'}")
+def check_output_file(path: str | os.PathLike[str], what: str, inputs=(), force: bool = False) -> Path:
+    """Refuse, before any work, an output file ``path`` that cannot or must not be written (the
+    output policy of ``vision.atomic_write``: one of the command's ``inputs``, a folder, a FIFO or
+    device, a link or read-only file without ``force``), or one whose folder does not exist (the
+    message names ``what``, e.g. ``"-o"``, and the path)."""
+    from vision.atomic_write import check_output
+
+    target = check_output(path, inputs=inputs, force=force, what=what)
     if not target.parent.is_dir():
-        raise SoftgripError(f"{what} {target}: the folder {target.parent} does not exist (or is not a folder); "
+        raise SoftgripError(f"{what} {path}: the folder {target.parent} does not exist (or is not a folder); "
                             f"create it first")
-    return target
+    return Path(path)
+
+
+def frame_inputs(*folders) -> list[Path]:
+    """The input files of frame ``folders`` (for the output policy)."""
+    from vision.atomic_write import frame_inputs as _files
+
+    return [path for folder in folders if folder is not None for path in _files(folder)]
+
+
+def add_force_argument(parser) -> None:
+    """``--force``: the output policy's permission to replace through links and read-only files."""
+    parser.add_argument("--force", action="store_true",
+                        help="replace an output file even when it is read-only, or a symbolic link (then the "
+                             "file it points to is replaced and the link kept); inputs, folders, FIFOs and "
+                             "devices are never replaced")
 
 
 def ensure_dir(path: str | os.PathLike[str], what: str) -> Path:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -58,6 +59,9 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     data = Path(args.data) if args.data else DATA_DIR
     scenes = _scene_names(data)
+    if Path(os.path.realpath(args.out)).is_relative_to(os.path.realpath(data)):
+        raise SoftgripError(f"--out {args.out} lies inside the sample frames' folder {data}, the demo's input: "
+                            f"choose an output folder outside it")
     out = pipe.ensure_dir(args.out, "output folder")
     pipe.enable_compilation_cache()
     timings: dict[str, float] = {}

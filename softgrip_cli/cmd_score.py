@@ -7,6 +7,7 @@ import csv
 import io
 import json
 import math
+import os
 import re
 import sys
 import time
@@ -71,6 +72,10 @@ def add_parser(subparsers) -> None:
     poses.add_argument("--poses", metavar="FILE", help="poses from a .json or .csv file")
     parser.add_argument("--json", action="store_true", help="print the ranked candidates as JSON")
     parser.add_argument("--heatmap", metavar="PNG", help="write the score heat map over the frame")
+    parser.add_argument("-o", "--output", metavar="FILE",
+                        help="write the ranked candidates as JSON (as --json prints them) to FILE, atomically: "
+                             "a run that is stopped leaves FILE as it was")
+    pipe.add_force_argument(parser)
     parser.add_argument("--top", type=int, default=10, metavar="K",
                         help="how many of the best candidates to print (default 10; 0 for all)")
     parser.add_argument("--length-from-frame", action="store_true",
@@ -92,9 +97,14 @@ def run(args: argparse.Namespace) -> int:
         poses = read_poses(args.poses)  # before the frame: a bad file fails fast
     elif args.grid:
         grid = parse_grid(args.grid)
+    inputs = pipe.frame_inputs(args.frame) + [Path(args.profile)] + ([Path(args.poses)] if args.poses else [])
     if args.heatmap:
         pipe.ensure_dir(Path(args.heatmap).parent, "heat map's folder")
-        pipe.check_output_file(args.heatmap, "--heatmap")
+        pipe.check_output_file(args.heatmap, "--heatmap", inputs, args.force)
+    if args.output:
+        pipe.check_output_file(args.output, "-o", inputs, args.force)
+        if args.heatmap and os.path.realpath(args.heatmap) == os.path.realpath(args.output):
+            raise SoftgripError(f"-o and --heatmap name the same file {args.output}: give two file names")
     scene = pipe.frame_scene(args.frame, profile, length_from_frame=args.length_from_frame)
     if not args.poses:
         grid = grid or default_grid(scene)
@@ -112,16 +122,41 @@ def run(args: argparse.Namespace) -> int:
     shown = order if args.top == 0 else order[:args.top]
     if args.heatmap:
         image = heatmap_image(scene, poses, result, grid, int(order[0]))
-        save_png(args.heatmap, image)
+        save_png(args.heatmap, image, inputs=inputs, force=args.force, what="--heatmap")
+    header = {"frame": scene.path, "method": method, "n_links": scene.n_links, "n_candidates": len(poses),
+              "n_valid": n_valid}
+    if args.output:
+        from vision.atomic_write import atomic_open
+
+        try:
+            with atomic_open(args.output, inputs=inputs, force=args.force, what="-o") as handle:
+                write_json_stream(lambda text: handle.write(text.encode("utf-8")), header, scene, poses, result,
+                                  shown)
+        except OSError as err:
+            raise SoftgripError(f"-o {args.output}: cannot write it ({err.strerror}); it is left as it was") from None
     if args.json:
-        out = {"frame": scene.path, "method": method, "n_links": scene.n_links, "n_candidates": len(poses), "n_valid": n_valid,
-               "candidates": [pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera)
-                              for i in shown]}
-        json.dump(out, sys.stdout, allow_nan=False)
-        print()
+        write_json_stream(sys.stdout.write, header, scene, poses, result, shown)
+        sys.stdout.flush()
     else:
         print(_table(scene, poses, result, shown, n_valid))
     return 0
+
+
+def write_json_stream(write, header: dict, scene: pipe.FrameScene, poses: np.ndarray, result,
+                      shown: np.ndarray) -> None:
+    """Write ``header`` with its ``"candidates"`` list (``shown``, in order) through ``write`` (a
+    function taking text) as one JSON object and a newline, a few hundred candidates at a time:
+    memory stays that of a few hundred candidates however many there are."""
+    text = json.dumps(header, allow_nan=False)
+    write(text[:-1] + ', "candidates": [')
+    chunk: list[str] = []
+    for k, i in enumerate(shown):
+        chunk.append(json.dumps(pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera),
+                                allow_nan=False))
+        if len(chunk) == 256 or k == len(shown) - 1:
+            write((", " if k >= len(chunk) else "") + ", ".join(chunk))
+            chunk = []
+    write("]}\n")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -198,14 +233,14 @@ def read_poses(path: str) -> np.ndarray:
         poses = _csv_poses(text, file)
     else:
         raise PoseInputError(f"{file}: a pose file must be .json or .csv, got {suffix or 'no suffix'!r}")
-    if not poses:
+    if len(poses) == 0:
         raise PoseInputError(f"{file}: no poses in the file")
     if len(poses) > MAX_POSES:
         raise PoseInputError(f"{file}: {len(poses)} poses; at most {MAX_POSES} per call (split the file)")
     return np.asarray(poses, np.float64)
 
 
-def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
+def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]] | np.ndarray:
     try:
         data = user_json.loads(text)
     except json.JSONDecodeError as err:
@@ -221,12 +256,40 @@ def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
         items = data
     else:
         raise PoseInputError(f"{file}, line 1: expected a list of poses, got {type(data).__name__}")
-    lines = _element_lines(text, key, len(items))
+    fast = _numeric_rows(items)
+    if fast is not None:
+        return fast
     poses = []
     for i, item in enumerate(items):
-        where = f"{file}, line {lines[i]}" if lines else f"{file}, pose {i + 1}"
-        poses.append(_json_pose(item, where))
+        try:
+            poses.append(_json_pose(item, f"{file}, pose {i + 1}"))
+        except PoseInputError as err:
+            # Name the line: found only now, as scanning for every element's line is slow.
+            lines = _element_lines(text, key, len(items))
+            if lines is None:
+                raise
+            raise PoseInputError(str(err).replace(f"{file}, pose {i + 1}", f"{file}, line {lines[i]}", 1)) from None
     return poses
+
+
+def _numeric_rows(items: list) -> np.ndarray | None:
+    """(B, 3) poses when every item is a list of 2 or 3 finite numbers (the common, large case: read
+    at numpy's speed), else None (the item-by-item reader then names the bad item)."""
+    number = (int, float)
+    try:
+        if not all(type(row) is list and 2 <= len(row) <= 3 for row in items):
+            return None
+        if not all(type(v) in number for row in items for v in row):
+            return None
+        if all(len(row) == 3 for row in items):
+            poses = np.array(items, np.float64)
+        else:
+            poses = np.zeros((len(items), 3))
+            for i, row in enumerate(items):
+                poses[i, :len(row)] = row
+    except (OverflowError, ValueError):
+        return None
+    return poses if np.isfinite(poses).all() else None
 
 
 def _json_pose(item, where: str) -> tuple[float, float, float]:

@@ -36,6 +36,11 @@ class AbstractSDF(eqx.Module):
         """Whether ``points`` lie where the SDF has data (everywhere, unless overridden)."""
         return jnp.ones(jnp.shape(points)[:-1], dtype=bool)
 
+    def all_finite(self) -> Bool[Array, ""]:
+        """Whether the SDF's own data is finite (True unless overridden); an estimate on an SDF that
+        is not gets ``Status.NON_FINITE_SDF``."""
+        return jnp.array(True)
+
     def normal(self, point: Float[Array, "2"]) -> Float[Array, "2"]:
         """Unit gradient of the distance at one point (outward normal); zero where it vanishes."""
         return unit_gradient(self.distance, point)
@@ -93,6 +98,10 @@ class SDFGrid(AbstractSDF):
         rows, cols = jnp.meshgrid(jnp.arange(shape[0]), jnp.arange(shape[1]), indexing="ij")
         points = origin + jnp.stack([cols, rows], axis=-1) * spacing
         return cls(values=fn(points), origin=origin, spacing=spacing)
+
+    def all_finite(self) -> Bool[Array, ""]:
+        """Whether every cell is finite (a NaN cell would read as "no contact")."""
+        return jnp.all(jnp.isfinite(self.values))
 
     def _grid_coordinates(self, points):
         col = (points[..., 0] - self.origin[0]) / self.spacing[0]
@@ -163,6 +172,10 @@ class PolygonSDF(AbstractSDF):
         t = angle + 2 * jnp.pi * jnp.arange(n_vertices) / n_vertices
         center = jnp.asarray(center, dtype=jnp.result_type(float))
         return cls(center + radius * jnp.stack([jnp.cos(t), jnp.sin(t)], axis=-1))
+
+    def all_finite(self) -> Bool[Array, ""]:
+        """Whether every vertex is finite (checked at construction unless traced)."""
+        return jnp.all(jnp.isfinite(self.vertices))
 
     def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
         a = self.vertices

@@ -17,6 +17,7 @@ import json
 import math
 import os
 import shutil
+import stat
 import uuid
 import zlib
 from dataclasses import asdict, dataclass
@@ -259,8 +260,25 @@ def _describe(array: Any) -> str:
     return f"{bits} with {channels} channel(s)"
 
 
+#: Largest width or height of a frame image (px), checked in the PNG header before decoding, so that a
+#: file claiming 60000x60000 px (or a small file that inflates to gigabytes) is refused at once.
+MAX_IMAGE_SIDE = 8192
+
+
+def png_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's header (its IHDR chunk), or None if there is none."""
+    if len(data) >= 24 and data.startswith(_PNG_SIGNATURE) and data[12:16] == b"IHDR":
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    return None
+
+
 def _read_png(path: Path) -> np.ndarray:
     data = _read_file(path)
+    size = png_size(data)
+    if size is not None and not all(1 <= side <= MAX_IMAGE_SIDE for side in size):
+        raise FrameError(f"{path}: its header says {size[0]}x{size[1]} px; a frame image may be at most "
+                         f"{MAX_IMAGE_SIDE} px wide and high (a RealSense gives up to 1920x1080): is it the "
+                         f"right file, or damaged?")
     problem = _png_damage(data)
     image = None if problem else cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
@@ -302,8 +320,19 @@ def _read_json(path: Path) -> Any:
                          f"{', '.join(_FIELDS)}") from None
 
 
+#: Largest frame file read (bytes): a 1920x1080 16-bit PNG without compression is about 4 MB.
+MAX_FILE_BYTES = 256 * 1024 * 1024
+
+
 def _read_file(path: Path) -> bytes:
     try:
+        st = path.stat()
+        if not stat.S_ISREG(st.st_mode):
+            raise FrameError(f"{path} is not a regular file (a folder, FIFO or device): a frame folder needs the "
+                             f"files {COLOR_FILE}, {DEPTH_FILE} and {INTRINSICS_FILE}")
+        if st.st_size > MAX_FILE_BYTES:
+            raise FrameError(f"{path} is {st.st_size / 2**20:.0f} MiB, more than a frame file can be "
+                             f"({MAX_FILE_BYTES // 2**20} MiB): is it the right file?")
         return path.read_bytes()
     except FileNotFoundError:
         raise FrameError(f"{path} is missing: a frame folder needs {COLOR_FILE}, {DEPTH_FILE} and "

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from softgrip_cli import main
+from softgrip_cli._main import EXIT_USER_ERROR
 from softgrip_jax import CASE_NAMES, DEFAULT_METHOD, SoftgripError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -24,7 +25,8 @@ DATA = ROOT / "data"
 PROFILE = DATA / "sample_profile.json"
 SCENES = ("circle", "square", "star_a")
 FRAMES = [str(DATA / f"{name}_open") for name in SCENES]
-FINGER_KEYS = {"side", "case", "theta_entire", "joints_px", "joints_mm", "contacts_px", "contacts_mm"}
+FINGER_KEYS = {"side", "valid", "status", "case", "theta_entire", "joints_px", "joints_mm", "contacts_px",
+               "contacts_mm"}
 CANDIDATE_KEYS = {"pose", "score", "components", "valid", "status", "fingers"}
 TOP = 40
 
@@ -88,7 +90,9 @@ def test_estimate_prints_one_json_object_per_frame_in_order(estimated):
     n_links = profile_data()["fingers"]["left"]["n_links"]
     assert [r["frame"] for r in records] == FRAMES
     for record in records:
-        assert set(record) == {"frame", "method", "n_links", "fingers"}
+        assert set(record) == {"frame", "valid", "status", "method", "n_links", "fingers"}
+        assert record["valid"] is True and record["status"] == "ok"
+        assert all(f["valid"] is True and f["status"] == "ok" for f in record["fingers"])
         assert record["method"] == DEFAULT_METHOD  # the sample profile records no fitted estimate
         assert record["n_links"] == n_links
         assert [f["side"] for f in record["fingers"]] == ["left", "right"]
@@ -176,10 +180,15 @@ def test_an_unknown_method_is_a_usage_error(command, capsys):
 
 @pytest.fixture(scope="module")
 def scored(tmp_path_factory):
-    heatmap = tmp_path_factory.mktemp("score") / "heat.png"
+    folder = tmp_path_factory.mktemp("score")
+    heatmap, output = folder / "heat.png", folder / "scored.json"
+    output.write_text("old")
+    output.chmod(0o600)
     code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--json", "--heatmap", str(heatmap),
-                              "--top", str(TOP)])
+                              "--top", str(TOP), "-o", str(output)])
     assert code == 0, err
+    # -o holds what --json prints, written atomically over the old file, whose mode it keeps.
+    assert json.loads(output.read_text()) == json.loads(out) and (output.stat().st_mode & 0o777) == 0o600
     return json.loads(out), heatmap
 
 
@@ -352,9 +361,20 @@ def frame_without_gripper(tmp_path_factory):
 
 
 def test_unusable_frame_is_a_user_error_naming_the_frame(frame_without_gripper):
-    code, _, err = run_cli(["estimate", FRAMES[0], str(frame_without_gripper), "--profile", str(PROFILE)])
+    code, _, err = run_cli(["estimate", str(frame_without_gripper), "--profile", str(PROFILE)])
     one_line_error(code, err)
     assert str(frame_without_gripper) in err and "no gripper" in err
+
+
+def test_a_frame_list_goes_on_past_a_bad_frame_and_fails_at_the_end_naming_it(frame_without_gripper):
+    bad = str(frame_without_gripper)
+    code, out, err = run_cli(["estimate", bad, FRAMES[0], "--profile", str(PROFILE), "--json"])
+    assert code == EXIT_USER_ERROR and "Traceback" not in err
+    records = [json.loads(line) for line in out.splitlines()]
+    assert [r["frame"] for r in records] == [bad, FRAMES[0]]  # the good frame after the bad one is estimated
+    assert records[0]["valid"] is False and records[0]["status"] == "error" and "no gripper" in records[0]["error"]
+    assert records[1]["valid"] is True and len(records[1]["fingers"]) == 2
+    assert f"1 of 2 frames failed: {bad}" in err.splitlines()[-1]
 
 
 def test_debug_shows_the_exception(frame_without_gripper):
