@@ -19,6 +19,7 @@ import numpy as np
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_method
 from softgrip_jax import DEFAULT_METHOD, SoftgripError
+from vision import scene as scene_api
 from vision import user_json
 
 EPILOG = """examples:
@@ -394,42 +395,26 @@ def _show(value) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-#: Smallest padded batch: every grid or file of up to this many poses shares one compilation (with
-#: the persistent cache, across runs too); evaluating the padding costs a fraction of a second.
-MIN_BATCH = 2048
-
-
-def _pad(poses: np.ndarray) -> np.ndarray:
-    """Poses padded (with copies of the first) to a power of two >= MIN_BATCH, so that batches of
-    similar sizes share one compilation."""
-    size = max(MIN_BATCH, 1 << (len(poses) - 1).bit_length())
-    return np.concatenate([poses, np.repeat(poses[:1], size - len(poses), axis=0)])
+#: Smallest padded batch (``vision.scene.MIN_BATCH``): every grid or file of up to this many poses
+#: shares one compilation.
+MIN_BATCH = scene_api.MIN_BATCH
 
 
 def score_poses(scene: pipe.FrameScene, poses: np.ndarray, method: str = DEFAULT_METHOD):
-    """Score (B, 3) poses on ``scene`` in one compiled call (``softgrip_jax.score``), with the
+    """Score (B, 3) poses on ``scene`` in one compiled call (``vision.scene.Scene.score``), with the
     deformation estimate ``method`` (``"geometric"`` or ``"mechanics"``).
 
     Returns:
         The ``Score`` with numpy leaves of leading axis B, and the seconds it took (compilation
         included the first time a batch size is seen).
     """
-    import jax
-    import jax.numpy as jnp
-
-    from softgrip_jax import score
-
     start = time.perf_counter()
-    padded = jnp.asarray(_pad(poses), scene.gripper.base_separation.dtype)
-    result = pipe.to_numpy(jax.block_until_ready(score(scene.gripper, scene.sdf, padded, method=method)))
-    result = jax.tree_util.tree_map(lambda x: x[:len(poses)], result)
+    result = scene.score(poses, method=method)
     return result, time.perf_counter() - start
 
 
-def rank(result) -> np.ndarray:
-    """Candidate indices, best score first; invalid candidates last, each group in input order."""
-    key = np.where(np.asarray(result.valid) & np.isfinite(result.score), result.score, -np.inf)
-    return np.argsort(-key, kind="stable")
+#: Candidate indices, best score first; invalid candidates last, each group in input order.
+rank = scene_api.rank
 
 
 # ---------------------------------------------------------------------------------------------
