@@ -27,7 +27,7 @@ from vision.scene import (OPEN_BEND_WARN, SEPARATION_WARN_MM, FrameScene, FrameS
 __all__ = [
     "OPEN_BEND_WARN", "SEPARATION_WARN_MM", "SIDES", "FrameScene", "FrameSceneError", "Scene", "add_force_argument",
     "candidate_json", "caption", "check_output_file", "components_json", "enable_compilation_cache",
-    "ensure_dir", "estimate_grasp_jit", "estimate_scene", "failed_frame_json", "finger_contacts_mm",
+    "ensure_dir", "estimate_grasp_jit", "info", "note", "estimate_scene", "failed_frame_json", "finger_contacts_mm",
     "finger_json", "fingers_json", "frame_inputs", "frame_json", "frame_scene", "gripper_from_profile",
     "grasp_overlay", "load_profile", "number_json", "points_json", "pose_from_bases", "pose_json",
     "segmentation_settings", "status_name", "take", "to_numpy", "unique_png_names", "warn",
@@ -55,8 +55,21 @@ def enable_compilation_cache() -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
-#: Set by ``-q``: warnings are not printed.
+#: Set by ``-q``: warnings and summaries are not printed. ``VERBOSE`` (``-v``): details are.
 QUIET = False
+VERBOSE = False
+
+
+def note(message: str) -> None:
+    """A summary line on stderr (how many, how long); silent with ``-q``."""
+    if not QUIET:
+        print(message, file=sys.stderr)
+
+
+def info(message: str) -> None:
+    """A detail on stderr, printed with ``-v`` only."""
+    if VERBOSE and not QUIET:
+        print(message, file=sys.stderr)
 
 
 def warn(message: str) -> None:

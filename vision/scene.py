@@ -324,9 +324,15 @@ def rank(result) -> np.ndarray:
     return np.argsort(-key, kind="stable")
 
 
-def conventions(camera) -> dict[str, Any]:
+def conventions(camera=None) -> dict[str, Any]:
     """The coordinate conventions of results measured with ``camera`` (a
-    :class:`~vision.geometry.PlaneCamera`), as written into every JSON document."""
+    :class:`~vision.geometry.PlaneCamera`), as written into every JSON document. Without a camera
+    (a document of several frames), ``plane`` says that each frame gives its own."""
+    plane: Any = "each frame's own: its depth_mm, normal and tilt_deg under frames[].plane"
+    if camera is not None:
+        plane = {"depth_mm": round(float(camera.depth_mm), 4),
+                 "normal": [round(float(c), 6) for c in camera.normal],
+                 "tilt_deg": round(float(camera.tilt_deg), 3)}
     return {
         "units": {"length": "mm", "angle": "rad", "image": "px"},
         "origin": "where the camera's optical axis meets the gripper plane (the plane through the fingers' "
@@ -335,9 +341,7 @@ def conventions(camera) -> dict[str, Any]:
         "angle": "radians from the downward vertical (+y), positive toward +x",
         "pose": "gripper pose (x_mm, y_mm, angle_rad): the point midway between the two finger bases and the "
                 "gripper's in-plane rotation (0: fingers hanging toward +y)",
-        "plane": {"depth_mm": round(float(camera.depth_mm), 4),
-                  "normal": [round(float(c), 6) for c in camera.normal],
-                  "tilt_deg": round(float(camera.tilt_deg), 3)},
+        "plane": plane,
     }
 
 
