@@ -61,9 +61,14 @@ def save_figure(figure, path: str | os.PathLike[str], *, inputs=(), force: bool 
 
     fmt = figure_format(path, what)
     buffer = io.BytesIO()
-    figure.savefig(buffer, format=fmt, dpi=dpi, bbox_inches="tight")
+    figure.savefig(buffer, format=fmt, dpi=dpi, bbox_inches="tight", facecolor="white")
+    data = buffer.getvalue()
+    if fmt == "png":  # matplotlib writes RGBA; an opaque plot is an RGB PNG, as every other picture here
+        import cv2
+
+        data = cv2.imencode(".png", cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR))[1].tobytes()
     try:
-        write_atomic(path, buffer.getvalue(), inputs=inputs, force=force, what=what)
+        write_atomic(path, data, inputs=inputs, force=force, what=what)
     except OSError as err:
         raise SoftgripError(f"{what} {path}: cannot write it ({err.strerror}); it is left as it was") from None
 
@@ -98,6 +103,8 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
     """
     require_matplotlib()
     from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
@@ -113,8 +120,7 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
         lo, hi = lo - 0.5, hi + 0.5
     if best is None and finite.size:
         best = int(np.nanargmax(scores))
-    cmap = colormaps["viridis"].copy()
-    cmap.set_bad((0.5, 0.5, 0.5, 0.55))
+    cmap = colormaps["viridis"].with_extremes(bad=(0.5, 0.5, 0.5, 0.55))
 
     figure = Figure(figsize=(8.0, 6.6), layout="constrained")
     FigureCanvasAgg(figure)
@@ -140,7 +146,8 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
         spans_x += [float(poses[:, 0].min()), float(poses[:, 0].max())]
         spans_y += [float(poses[:, 1].min()), float(poses[:, 1].max())]
         label = "score"
-    bar = figure.colorbar(image, ax=ax, shrink=0.85)
+    # The bar shows the colours at full strength (the cells are drawn see-through over the frame).
+    bar = figure.colorbar(ScalarMappable(norm=Normalize(lo, hi), cmap=cmap), ax=ax, shrink=0.85)
     bar.set_label(label if finite.size else f"{label} (no valid candidate)")
 
     handles = [Patch(facecolor=(0.5, 0.5, 0.5, 0.55), label="no valid candidate")]

@@ -369,8 +369,13 @@ def test_demo_writes_its_outputs(demo):
     for name in summary["files"]:
         assert (out_dir / name).is_file(), name
     for name in summary["files"]:
-        if name.endswith(".png"):
+        if name.endswith(".png") and not name.startswith("heatmap_"):
             check_png(out_dir / name, 640, 480)
+    heatmaps = [name for name in summary["files"] if name.startswith("heatmap_")]
+    assert heatmaps  # plotted with mm axes and a colour bar: larger than the frame, RGB
+    for name in heatmaps:
+        image = cv2.imread(str(out_dir / name), cv2.IMREAD_UNCHANGED)
+        assert image.ndim == 3 and image.shape[2] == 3 and image.shape[0] > 480 and image.shape[1] > 640
     assert json.loads((out_dir / "summary.json").read_text()) == summary
     from calib.profile import load_profile
 
