@@ -31,10 +31,12 @@ def test_a_frame_in_memory_gives_the_scene_of_its_folder(scene):
     np.testing.assert_array_equal(np.asarray(memory.sdf.values), np.asarray(scene.sdf.values))
 
 
-def test_finger_frames_sit_at_the_bases_and_the_pose_is_their_midpoint(scene):
+def test_finger_frames_sit_w_apart_about_the_pose_near_the_measured_bases(scene):
     frames = scene.finger_frames
     bases = np.array([frames["left"]["base_mm"], frames["right"]["base_mm"]])
-    np.testing.assert_allclose(bases, scene.bases_mm, atol=1e-3)
+    # The model's bases: W/2 either side of the pose's centre along the measured base line, so
+    # within a fraction of a mm of the measured ones (which are not exactly W apart).
+    np.testing.assert_allclose(bases, scene.bases_mm, atol=0.1)
     np.testing.assert_allclose(pose_from_bases(*bases), scene.pose, atol=1e-4)
     assert (frames["left"]["handedness"], frames["right"]["handedness"]) == (1.0, -1.0)
     assert np.hypot(*(bases[1] - bases[0])) == pytest.approx(float(scene.gripper.base_separation), abs=1e-3)
