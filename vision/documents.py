@@ -185,6 +185,8 @@ class DocumentWriter:
         >>> import io
         >>> out = io.StringIO()
         >>> writer = DocumentWriter(out.write, {"kind": "estimate"}, "frames")
+        >>> out.getvalue()  # nothing until the first element
+        ''
         >>> writer.add({"frame": "a"}); writer.add({"frame": "b"}); writer.close()
         >>> json.loads(out.getvalue())
         {'kind': 'estimate', 'frames': [{'frame': 'a'}, {'frame': 'b'}]}
@@ -194,18 +196,22 @@ class DocumentWriter:
         self._write = write
         self._count = 0
         text = json.dumps(header, allow_nan=False)
-        write((text[:-1] + ", " if len(header) else "{") + json.dumps(list_key) + ": [")
+        # Written with the first element (or at close): a run that fails before any writes nothing.
+        self._head: str | None = (text[:-1] + ", " if len(header) else "{") + json.dumps(list_key) + ": ["
+
+    def _start(self) -> str:
+        head, self._head = self._head or "", None
+        return head
 
     def add(self, item: dict) -> None:
-        self._write((", " if self._count else "") + json.dumps(item, allow_nan=False))
-        self._count += 1
+        self.add_text(json.dumps(item, allow_nan=False))
 
     def add_text(self, text: str) -> None:
         """Add an element already encoded as JSON text."""
-        self._write((", " if self._count else "") + text)
+        self._write(self._start() + (", " if self._count else "") + text)
         self._count += 1
 
     def close(self, trailer: dict | None = None) -> None:
         """End the list; ``trailer``'s fields (if any) follow it in the object."""
         tail = "".join(f", {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in (trailer or {}).items())
-        self._write("]" + tail + "}\n")
+        self._write(self._start() + "]" + tail + "}\n")
