@@ -229,6 +229,10 @@ class CalibrationProfile:
         """How to measure the fingers (defaults for fields the profile leaves out)."""
         return MeasureSettings.from_dict(self.vision)
 
+    def gripper(self) -> Gripper:
+        """The core's :class:`~softgrip_jax.Gripper` (:func:`to_gripper`)."""
+        return to_gripper(self)
+
     def corrected_bases(self, bases_mm: ArrayLike) -> np.ndarray:
         """(2, 2) [left, right] finger bases detected in an open frame (mm) plus each base offset."""
         offsets = np.array([self.fingers[side].base_offset for side in SIDES])

@@ -21,11 +21,31 @@ def build_parser() -> argparse.ArgumentParser:
         prog="softgrip",
         description="Pre-touch deformation estimation of a soft gripper from one RGB-D frame.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version()}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks of user errors too")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="print results and errors only (no warnings, progress or summaries on stderr)")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="print details on stderr too (each frame's measured pose, object and plane)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in (cmd_demo, cmd_calibrate, cmd_estimate, cmd_score, cmd_capture):
         module.add_parser(sub)
+    for command in sub.choices.values():  # -q and -v after the command too (softgrip estimate ... -q)
+        command.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                             help="as softgrip -q: results and errors only on stdout and stderr")
+        command.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                             help="as softgrip -v: details on stderr too")
     return parser
+
+
+def version() -> str:
+    """The installed distribution's version (the source tree's pyproject when not installed)."""
+    from importlib.metadata import PackageNotFoundError, version as _version
+
+    try:
+        return _version("softgrip-jax")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree without installing
+        return "unknown"
 
 
 def one_line(text: str) -> str:
@@ -61,6 +81,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if previous is not None:  # from here Ctrl-C is a KeyboardInterrupt: writes clean up after it
             signal.signal(signal.SIGINT, previous)
+    from softgrip_cli import _pipeline
+
+    _pipeline.QUIET, _pipeline.VERBOSE = bool(args.quiet), bool(args.verbose)
     try:
         return int(args.func(args) or 0)
     except (SoftgripError, OutputRefusedError) as err:

@@ -402,4 +402,7 @@ def _print_frames(profile, start_method: str | None) -> None:
 
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"softgrip calibrate: warning: {message}", file=sys.stderr)
+    from softgrip_cli import _pipeline
+
+    if not _pipeline.QUIET:
+        print(f"softgrip calibrate: warning: {message}", file=sys.stderr)

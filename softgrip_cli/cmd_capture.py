@@ -38,7 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
+    parser.add_argument("-o", "--output", "--out", dest="out", required=True, type=Path, metavar="DIR",
                         help="folder to write the frame folders into (created if missing)")
     parser.add_argument("--bag", type=Path, metavar="FILE",
                         help="read this recording (.db3, or legacy .bag) instead of a camera")
@@ -92,7 +92,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"softgrip capture: warning: {message}", file=sys.stderr)
+    from softgrip_cli import _pipeline
+
+    if not _pipeline.QUIET:
+        print(f"softgrip capture: warning: {message}", file=sys.stderr)
 
 
 def _print_paths(paths, as_json: bool, lost=None) -> None:
