@@ -254,7 +254,9 @@ def fit(
         mechanics: the mechanics estimate's solver settings (used with ``method="mechanics"``).
         max_steps: Levenberg-Marquardt iteration cap.
         skipped: pairs already left out upstream (``{"frame", "reason"}``), carried into the report.
-        progress: show a progress bar on stderr.
+        progress: show a progress bar on stderr. Its per-step report is a host callback: with
+            ``progress=False`` the compiled solve has none and is kept by the persistent
+            compilation cache (``softgrip_jax.enable_compilation_cache``).
 
     Returns:
         ``start`` with the fitted values and ``fit`` describing the fit: method ``"least-squares"``,
@@ -316,7 +318,8 @@ def fit(
         y0, fixed, free = _unknowns(start, names)
         groups, index = _stack(candidates)
         out = _solve(y0, free, fixed, groups, jnp.asarray(loss_scale_mm, jnp.float64), n_links=n_links,
-                     config=config, method=method, mechanics=mechanics, loss=loss, max_steps=max_steps)
+                     config=config, method=method, mechanics=mechanics, loss=loss, max_steps=max_steps,
+                     progress=progress)
         flat, result, start_status, start_residuals, residuals, robust, jacobian = jax.tree.map(np.asarray, out)
 
     start_ok = (_per_frame(start_status, index) == Status.OK).all(axis=1)
@@ -757,10 +760,10 @@ def _evaluate(values, fixed, groups: list[_Frames], n_links: int, config: Contac
     return [r for r, _ in out], [s for _, s in out]
 
 
-@partial(jax.jit, static_argnames=("n_links", "config", "method", "mechanics", "loss", "max_steps"),
+@partial(jax.jit, static_argnames=("n_links", "config", "method", "mechanics", "loss", "max_steps", "progress"),
          compiler_options=_COMPILER_OPTIONS)
 def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, config: ContactConfig, method: str,
-           mechanics: MechanicsConfig, loss: Loss, max_steps: int):
+           mechanics: MechanicsConfig, loss: Loss, max_steps: int, progress: bool = False):
     """Robust Levenberg-Marquardt from ``y0`` over the frames whose estimates are valid at ``y0``.
 
     Returns (flattened solution, optimistix result code, estimate statuses and raw residuals at the
@@ -792,7 +795,9 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
         raw = residuals(with_fixed(y))
         return [jnp.where(u[:, None, None, None], _robust(r, scale, loss), 0.0) for u, r in zip(usable, raw)], raw
 
-    solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6, verbose=_report_step)
+    # The progress hook is a host callback, and a program with one never enters the persistent
+    # compilation cache: it is compiled in only when a progress bar is shown.
+    solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6, verbose=_report_step if progress else False)
     solution = optx.least_squares(objective, solver, y0, has_aux=True, max_steps=max_steps, throw=False)
     # The solver's state holds the residuals and the linearisation at the last accepted step: the solution.
     robust = ravel_pytree(solution.state.f_info.residual)[0]

@@ -68,6 +68,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     # at its top, so that the handler below covers those imports.
     import signal
 
+    # equinox's runtime checks (inside optimistix's and lineax's solves) as NaNs, not host callbacks:
+    # programs with callbacks never enter the compilation cache. Read once, when equinox is imported,
+    # so it is set before anything below imports it; a value the user set (e.g. "raise") is kept.
+    os.environ.setdefault("EQX_ON_ERROR", "nan")
     try:
         previous = signal.signal(signal.SIGINT, _interrupted_while_starting)
     except ValueError:  # not the main thread: signals are not ours to handle
@@ -85,6 +89,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     _pipeline.QUIET, _pipeline.VERBOSE = bool(args.quiet), bool(args.verbose)
     try:
+        from softgrip_cli._pipeline import enable_compilation_cache
+
+        enable_compilation_cache()  # every command: compiled programs persist across runs
         return int(args.func(args) or 0)
     except (SoftgripError, OutputRefusedError) as err:
         if args.debug:

@@ -35,24 +35,18 @@ __all__ = [
 
 
 def enable_compilation_cache() -> None:
-    """Keep JAX's compiled programs on disk, so that the second run of a command starts in seconds.
+    """Keep JAX's compiled programs on disk (``softgrip_jax.enable_compilation_cache`` with its default
+    folder), so that the second run of a command starts in seconds. ``SOFTGRIP_JAX_CACHE=0`` turns it
+    off. The command sets ``EQX_ON_ERROR=nan`` before equinox is imported (``softgrip_cli._main``), so
+    its warning about equinox's checks only concerns a caller that imported equinox first: not shown."""
+    import warnings
 
-    Uses ``$JAX_COMPILATION_CACHE_DIR`` when set, else ``$XDG_CACHE_HOME/softgrip-jax/jax`` (by
-    default ``~/.cache/softgrip-jax/jax``). ``SOFTGRIP_JAX_CACHE=0`` turns it off. Without it every
-    command pays the compilations again (about 15 s for an estimate and 30 s for scoring here).
-    """
-    import jax
+    from softgrip_jax import enable_compilation_cache as enable
+    from softgrip_jax._cache import CacheWarning
 
-    if os.environ.get("SOFTGRIP_JAX_CACHE", "1") == "0" or jax.config.jax_compilation_cache_dir:
-        return
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    folder = base / "softgrip-jax" / "jax"
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return  # a read-only home: run without the cache
-    jax.config.update("jax_compilation_cache_dir", str(folder))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CacheWarning)
+        enable()
 
 
 #: Set by ``-q``: warnings and summaries are not printed. ``VERBOSE`` (``-v``): details are.

@@ -264,8 +264,10 @@ def _fit(args: argparse.Namespace):
     elif args.profile is None:  # (a --profile's pair was looked for above, and its absence reported)
         print("softgrip calibrate: note: no pair of the gripper closed without an object in the fit, so nothing "
               "keeps it from making the free closure worse; add one with --empty OPEN CLOSED", file=sys.stderr)
+    # A progress bar only on a terminal: its per-step callback keeps the solve out of the compilation
+    # cache, so scripted runs (stderr not a terminal) compile once per machine instead of once per run.
     fitted = fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, method=method,
-                 skipped=skipped)
+                 skipped=skipped, progress=sys.stderr.isatty())
     # The start's method says what the free closure's start residual is (e.g. the one-frame calibration's).
     return dataclasses.replace(fitted, vision={**fitted.vision, **measure.to_dict()}), start.fit.method
 

@@ -64,7 +64,6 @@ def run(args: argparse.Namespace) -> int:
         raise SoftgripError(f"--out {args.out} lies inside the sample frames' folder {data}, the demo's input: "
                             f"choose an output folder outside it")
     out = pipe.ensure_dir(args.out, "output folder")
-    pipe.enable_compilation_cache()
     timings: dict[str, float] = {}
     written: list[str] = []
 

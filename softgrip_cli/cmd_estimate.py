@@ -92,7 +92,6 @@ def run(args: argparse.Namespace) -> int:
     from vision.overlay import save_png
     from vision.scene import conventions
 
-    pipe.enable_compilation_cache()
     profile = pipe.load_profile(args.profile)
     method = resolve_method(args.method, profile)
     settings = pipe.segmentation_settings(profile)

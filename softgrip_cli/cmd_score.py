@@ -99,7 +99,6 @@ def run(args: argparse.Namespace) -> int:
 
     if args.top < 0:
         raise SoftgripError(f"--top must be >= 0 (0 prints every candidate), got {args.top}")
-    pipe.enable_compilation_cache()
     profile = pipe.load_profile(args.profile)
     method = resolve_method(args.method, profile)
     grid = None

@@ -34,7 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from softgrip_jax._errors import SoftgripError
-from vision.frames import Frame, FrameError, Intrinsics, next_frame_dir, save_frame
+from vision.frames import DISTORTION_MODELS, Frame, FrameError, Intrinsics, next_frame_dir, save_frame
 
 RECORDING_SUFFIXES = (".db3", ".bag")
 _CAMERA_WAIT_MS = 5000
@@ -130,6 +130,18 @@ def import_realsense() -> ModuleType:
             f"Debian's libusb-1.0-0 (apt-get install libusb-1.0-0)"
         ) from err
     return pyrealsense2
+
+
+def _distortion(intr) -> tuple[str, tuple[float, ...]]:
+    """The colour stream's lens distortion as ``Intrinsics`` keeps it: pyrealsense2's model name and
+    its five coefficients (``"none"`` when they are all zero)."""
+    coeffs = tuple(_f32(c) for c in getattr(intr, "coeffs", ()))
+    name = str(getattr(intr, "model", "none")).rsplit(".", 1)[-1]
+    if not any(coeffs) or name not in DISTORTION_MODELS:
+        if any(coeffs):
+            warnings.warn(f"the camera's lens distortion {name!r} is not one softgrip knows; recorded without it")
+        return "none", ()
+    return name, coeffs[:5] if name != "kannala_brandt4" else coeffs[:4]
 
 
 def list_devices() -> list[DeviceInfo]:
@@ -542,8 +554,11 @@ def _video_stream(rs: ModuleType, stream: Any, fmt: Any, bpp: int, uid: int,
     rs_intrinsics.width, rs_intrinsics.height = intrinsics.width, intrinsics.height
     rs_intrinsics.fx, rs_intrinsics.fy = intrinsics.fx, intrinsics.fy
     rs_intrinsics.ppx, rs_intrinsics.ppy = intrinsics.ppx, intrinsics.ppy
-    rs_intrinsics.model = rs.distortion.none
-    rs_intrinsics.coeffs = [0.0] * 5
+    # The lens distortion too, so that capture from the recording gives it back (a model pyrealsense2
+    # has no name for is written as none).
+    model = getattr(rs.distortion, intrinsics.model, None)
+    rs_intrinsics.model = model if model is not None else rs.distortion.none
+    rs_intrinsics.coeffs = (list(intrinsics.coeffs) + [0.0] * 5)[:5] if model is not None else [0.0] * 5
     video = rs.video_stream()
     video.type, video.index, video.uid = stream, 0, uid
     video.width, video.height, video.fps = intrinsics.width, intrinsics.height, fps
@@ -602,9 +617,10 @@ def _to_frame(rs: ModuleType, depth: Any, color: Any, depth_scale: float) -> Fra
     if depth.get_profile().format() != rs.format.z16:
         raise CameraError(f"depth stream format {depth.get_profile().format()} is not z16")
     intr = color.get_profile().as_video_stream_profile().get_intrinsics()
+    model, coeffs = _distortion(intr)
     intrinsics = Intrinsics(width=intr.width, height=intr.height, fx=_f32(intr.fx),
                             fy=_f32(intr.fy), ppx=_f32(intr.ppx), ppy=_f32(intr.ppy),
-                            depth_scale=_f32(depth_scale))
+                            depth_scale=_f32(depth_scale), model=model, coeffs=coeffs)
     return Frame(color=_rgb(rs, color), depth=np.array(depth.get_data(), dtype=np.uint16),
                  intrinsics=intrinsics)
 
