@@ -207,25 +207,16 @@ class Intrinsics:
     def from_dict(cls, d: Any, source: str = "intrinsics") -> Intrinsics:
         """Build from a JSON object; errors name ``source`` (usually the file) and the key.
 
-        Keys other than the seven fields are ignored. Integers are accepted for the float fields.
+        Keys other than the seven fields (and ``model``, ``coeffs``) are ignored. Integers are accepted
+        for the float fields. The layout is the pydantic model :class:`vision.intrinsics_schema.IntrinsicsDocument`
+        (its JSON Schema: ``schemas/intrinsics.schema.json``).
         """
-        if not isinstance(d, dict):
-            raise FrameError(
-                f"{source}: expected a JSON object with keys {', '.join(_FIELDS)}, "
-                f"got {type(d).__name__}"
-            )
-        missing = [key for key in _FIELDS if key not in d]
-        if missing:
-            raise FrameError(
-                f"{source}: missing key(s) {', '.join(missing)}; "
-                f"intrinsics need {', '.join(_FIELDS)} (pyrealsense2 names)"
-            )
-        for key in ("width", "height"):
-            if not _is_int(d[key]):
-                raise FrameError(f"{source}: {key} must be an integer, got {d[key]!r}")
-        for key in ("fx", "fy", "ppx", "ppy", "depth_scale"):
-            if not _is_number(d[key]):
-                raise FrameError(f"{source}: {key} must be a number, got {d[key]!r}")
+        from vision.intrinsics_schema import validate  # pydantic: imported only where intrinsics are read
+
+        document, problem = validate(d)
+        if problem is not None:
+            raise FrameError(f"{source}: {problem}")
+        d = document.model_dump()
         try:
             return cls(**{key: d[key] for key in _FIELDS}, model=d.get("model", "none"), coeffs=d.get("coeffs", ()))
         except FrameError as err:
