@@ -72,9 +72,13 @@ def is_traced(tree) -> bool:
 
 
 def pad_rows(xs: jax.Array, rows: int) -> jax.Array:
-    """``xs`` padded to ``rows`` rows with copies of its first row (results for them are dropped)."""
+    """``xs`` padded to ``rows`` rows with copies of its first row (zeros if it has none; results for
+    them are dropped)."""
     pad = rows - xs.shape[0]
-    return jnp.concatenate([xs, jnp.broadcast_to(xs[:1], (pad,) + xs.shape[1:])]) if pad > 0 else xs
+    if pad <= 0:
+        return xs
+    first = xs[:1] if xs.shape[0] else jnp.zeros((1,) + xs.shape[1:], xs.dtype)
+    return jnp.concatenate([xs, jnp.broadcast_to(first, (pad,) + xs.shape[1:])])
 
 
 #: A chunk of several is a multiple of this many rows: 8 solve groups of 16 float32 lanes (a chunk

@@ -104,6 +104,8 @@ LOCAL = textwrap.dedent("""
     from softgrip_jax import estimate_batch
     est = estimate_batch(FINGER, DISC, BASES, method="geometric", chunk_size=4)
     assert len(est.joints.sharding.device_set) == 2, est.joints.sharding
+    empty = estimate_batch(FINGER, DISC, np.zeros((0, 2), np.float32), method="geometric", chunk_size=4)
+    assert empty.joints.shape == (0, FINGER.n_links + 1, 2) and empty.valid.shape == (0,), empty.joints.shape
     np.savez(sys.argv[1], joints=np.asarray(est.joints), case=np.asarray(est.case), valid=np.asarray(est.valid))
     print("OK")
 """)
