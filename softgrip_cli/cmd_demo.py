@@ -20,7 +20,7 @@ import numpy as np
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_method
 from softgrip_jax import SoftgripError
-from vision.atomic_write import write_atomic
+from softgrip_base.atomic_write import write_atomic
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 CALIB_OPEN, CALIB_CLOSED = "calib_open", "calib_closed"

@@ -21,7 +21,7 @@ from softgrip_cli._args import add_method_argument, resolve_method
 from softgrip_jax import DEFAULT_METHOD, SoftgripError
 from vision import documents
 from vision import scene as scene_api
-from vision import user_json
+from softgrip_base import user_json
 
 EPILOG = """examples:
   softgrip score data/circle_open --profile data/sample_profile.json --heatmap heat.png
@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
               "frame": scene.path, "method": method, "n_links": scene.n_links, "n_candidates": len(poses),
               "n_valid": n_valid, "frame_pose": documents.pose_json(scene.pose)}
     if output:
-        from vision.atomic_write import atomic_open
+        from softgrip_base.atomic_write import atomic_open
 
         try:
             with atomic_open(output, inputs=inputs, force=args.force, what="-o") as handle:

@@ -21,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 import jax
 import jax.numpy as jnp
 
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 
 #: Fewest candidates per part: below this a part's fixed costs outweigh the parallelism.
 MIN_PART = 256

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, pcc_turning
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import direction_angle, safe_divide, unit_direction

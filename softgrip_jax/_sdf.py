@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 from softgrip_jax._safe import safe_divide, safe_norm
 
 #: Distance (mm) reported outside an :class:`SDFGrid`: farther than any finger can reach.

@@ -29,8 +29,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from softgrip_jax._errors import SoftgripError
-from vision import user_json
+from softgrip_base.errors import SoftgripError
+from softgrip_base import user_json
 
 COLOR_FILE = "color.png"
 DEPTH_FILE = "depth.png"
