@@ -264,7 +264,7 @@ def _second_contact(dist, centre, radius, n_circle):
     angle = phi + frac * step
     angle = jnp.where(angle >= jnp.pi, angle - 2.0 * jnp.pi, angle)
     # Nearest the downward vertical: the largest cos(angle), i.e. the smallest |angle| in [-pi, pi)
-    # (compared without the 64 cosines, which XLA:CPU computes at several ns each).
+    # (compared without computing the 64 cosines).
     ranking = jnp.where(crossing, -jnp.abs(angle), -jnp.inf)
     best = jnp.argmax(ranking)
     has = jnp.any(crossing)

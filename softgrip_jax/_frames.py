@@ -47,8 +47,8 @@ class FingerFrame(eqx.Module):
         y = ex[1] * q[..., 0] + ey[1] * q[..., 1] + self.origin[1]
         # The barrier makes XLA compute the points once. Without it XLA:CPU fuses this sum into
         # each of the SDF lookup's four gathers and recomputes it (and whatever produced ``q``)
-        # there, about 3x slower; written as a matrix product instead, it becomes a batched dot of
-        # 2x3 matrices, which XLA:CPU runs about 1.5x slower than this over the whole estimate.
+        # there; written as a matrix product instead, it becomes a batched dot of 2x3 matrices,
+        # which XLA:CPU runs slower than this over the whole estimate (benchmarks/RESULTS.md).
         return jax.lax.optimization_barrier(jnp.stack([x, y], axis=-1))
 
     def to_local(self, p: Float[Array, "*batch 2"]) -> Float[Array, "*batch 2"]:
