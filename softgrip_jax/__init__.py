@@ -14,7 +14,8 @@ The spring chain at equilibrium (the paper's ref. [16]) is beyond the paper: an 
 ``method="mechanics"`` in every estimate, score and refine function.
 
 The object is a signed-distance function (:mod:`softgrip_jax._sdf`); fingers at other places,
-rotated or mirrored, see it through a frame (:mod:`softgrip_jax._frames`).
+rotated or mirrored, see it through a frame (:mod:`softgrip_jax._frames`). The layers, conventions,
+frames and units and the estimators' assumptions are described in the source tree's ``docs/design.md``.
 """
 
 from softgrip_jax._cache import enable_compilation_cache
