@@ -314,12 +314,8 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
         ('one-frame', 52.2)
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ProfileError(f"{path}: no such calibration profile; make one with `softgrip calibrate`") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ProfileError(f"{path}: cannot read the profile ({err})") from None
+    text = user_json.read_text(path, ProfileError, "no such calibration profile; make one with `softgrip calibrate`",
+                               "the profile")
     try:
         data = user_json.loads(text)
     except json.JSONDecodeError as err:

@@ -19,6 +19,7 @@ Example:
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
 #: Integers with more digits than this are read as floats (+-inf beyond 1.8e308): no JSON field
@@ -41,3 +42,22 @@ def loads(text: str) -> Any:
         return json.loads(text, parse_int=_parse_int)
     except RecursionError:
         raise json.JSONDecodeError("nested too deeply to read", text, 0) from None
+
+
+def read_text(path: Path, error: type[Exception], missing: str, what: str) -> str:
+    """The UTF-8 text of the file a person named, for :func:`loads` or a CSV reader: a missing file
+    raises ``error("<path>: <missing>")`` and one that cannot be read (a folder, no permission, not
+    UTF-8) ``error("<path>: cannot read <what> (<reason>)")``.
+
+    Example:
+        >>> read_text(Path("no-such.json"), ValueError, "no such pose file", "the pose file")
+        Traceback (most recent call last):
+        ...
+        ValueError: no-such.json: no such pose file
+    """
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise error(f"{path}: {missing}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise error(f"{path}: cannot read {what} ({err})") from None

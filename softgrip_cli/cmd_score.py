@@ -18,7 +18,7 @@ import numpy as np
 
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_method
-from softgrip_jax import DEFAULT_METHOD, SoftgripError
+from softgrip_jax import DEFAULT_METHOD, SoftgripError, finger_frames
 from vision import documents
 from vision import scene as scene_api
 from softgrip_base import user_json
@@ -236,12 +236,7 @@ def read_poses(path: str) -> np.ndarray:
     if path == "-":
         return _stdin_poses()
     file = Path(path)
-    try:
-        text = file.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise PoseInputError(f"{file}: no such pose file") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise PoseInputError(f"{file}: cannot read the pose file ({err})") from None
+    text = user_json.read_text(file, PoseInputError, "no such pose file", "the pose file")
     suffix = file.suffix.lower()
     if suffix == ".json":
         poses = _json_poses(text, file)
@@ -521,10 +516,9 @@ def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best:
     valid = bool(chosen.valid)
     image = pipe.grasp_overlay(blended, chosen.grasp, scene.camera) if valid else blended
     if valid:
-        # The finger bases sit W/2 either side of the centre along (cos a, -sin a) (softgrip_jax.finger_frames).
         x, y, angle = poses[best]
-        half = 0.5 * float(scene.gripper.base_separation) * np.array([math.cos(angle), -math.sin(angle)])
-        ends = scene.camera.mm_to_px(np.array([[x, y] - half, [x, y] + half]))
+        bases = [np.asarray(frame.origin, np.float64) for frame in finger_frames(scene.gripper, poses[best])]
+        ends = scene.camera.mm_to_px(np.array(bases))
         centre = scene.camera.mm_to_px([x, y])
         for colour, width in (((255, 255, 255), 4), ((0, 0, 0), 1)):
             cv2.line(image, tuple(np.rint(ends[0]).astype(int)), tuple(np.rint(ends[1]).astype(int)), colour, width,

@@ -15,6 +15,14 @@ from jaxtyping import Array, Float
 from softgrip_jax._safe import unit_direction
 
 
+def across_direction(angle: Float[Array, "*batch"]) -> Float[Array, "*batch 2"]:
+    """The unit vector across a gripper at ``angle`` (rad from the downward vertical): "down",
+    ``(sin a, cos a)``, turned by +90 degrees, ``(cos a, -sin a)``. A left finger closes along it, and
+    the finger bases sit either side of the gripper's centre along it."""
+    down = unit_direction(angle)
+    return jnp.stack([down[..., 1], -down[..., 0]], axis=-1)
+
+
 class FingerFrame(eqx.Module):
     """A finger's frame in the image plane.
 
@@ -36,9 +44,7 @@ class FingerFrame(eqx.Module):
         return cls(origin=base, angle=jnp.zeros((), base.dtype), handedness=jnp.ones((), base.dtype))
 
     def _axes(self):
-        down = unit_direction(self.angle)
-        across = jnp.stack([down[1], -down[0]])  # "down" turned by +90 deg: the closing direction
-        return self.handedness * across, down
+        return self.handedness * across_direction(self.angle), unit_direction(self.angle)
 
     def to_world(self, q: Float[Array, "*batch 2"]) -> Float[Array, "*batch 2"]:
         """Finger-frame points (mm) to image-plane points (mm)."""
