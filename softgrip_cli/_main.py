@@ -97,13 +97,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         words = sys.argv[1:] if argv is None else list(argv)
         parser = build_parser(only=_command_named(words))
         args = parser.parse_args(words)
+        uses_jax = getattr(args, "uses_jax", True)  # every command but capture
+        if uses_jax:  # imported here, under the handler above, as the command modules are
+            from softgrip_cli import _pipeline
     finally:
         if previous is not None:  # from here Ctrl-C is a KeyboardInterrupt: writes clean up after it
             signal.signal(signal.SIGINT, previous)
     try:
-        if getattr(args, "uses_jax", True):  # every command but capture
-            from softgrip_cli import _pipeline
-
+        if uses_jax:
             _pipeline.QUIET, _pipeline.VERBOSE = bool(args.quiet), bool(args.verbose)
             _pipeline.enable_compilation_cache()  # compiled programs persist across runs
         return int(args.func(args) or 0)
