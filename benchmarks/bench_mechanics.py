@@ -15,7 +15,7 @@ Two tables, printed as markdown:
    the methods and keep the best of several repeats, so that load from other processes biases
    neither. At 10k the mechanics rows vary the iteration budget ``MechanicsConfig.max_steps``
    (a candidate that misses its tolerances within it is ``MECHANICS_NOT_CONVERGED``).
-2. Accuracy against the observed-closure rod (``vision.synthetic.rod``: 96 segments, its own
+2. Accuracy against the observed-closure rod (``synthetic.rod``: 96 segments, its own
    stiffness profile) on circles and squares touched at the tip and at another area, stiffness
    ratio 1 and 2: joint errors (mm) of the mechanics estimate for each iteration budget, and of
    the geometric estimate, on the same scenes.
@@ -103,7 +103,7 @@ SCENES = {  # kind, arc fraction, size (radius or half side, mm), overlap (mm), 
 
 def placed(kind, arc_fraction, size, overlap, along):
     """A 64-vertex object on the inner side of the free closed finger (see test_mechanics.py)."""
-    from vision.synthetic.rod import free_arc_points
+    from synthetic.rod import free_arc_points
 
     s = arc_fraction * LENGTH
     with jax.enable_x64(True):
@@ -121,7 +121,7 @@ def placed(kind, arc_fraction, size, overlap, along):
 
 def accuracy(budgets: list[int], ratios: list[float]) -> list[dict]:
     from softgrip_jax import estimate
-    from vision.synthetic.rod import RodMechanics, close_rod, observed_joints
+    from synthetic.rod import RodMechanics, close_rod, observed_joints
 
     estimates = {}
     for s in budgets:

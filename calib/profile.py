@@ -61,10 +61,10 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from softgrip_jax import FingerModel, Gripper, SoftgripError
-from vision import user_json
+from softgrip_base import user_json
 from calib import profile_schema
 from calib.profile_schema import MAX_MAGNITUDE, MAX_N_LINKS, _show  # noqa: F401 - the limits are this module's API too
-from vision.atomic_write import write_atomic
+from softgrip_base.atomic_write import write_atomic
 from vision.frames import FrameError, Intrinsics
 from vision.measure import MeasureSettings, MeasureSettingsError
 from vision.segmentation import SegmentationError, SegmentationSettings
@@ -271,7 +271,7 @@ def _non_finite_number(value: Any, path: str) -> str | None:
 def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str], *, inputs=(),
                  force: bool = False) -> Path:
     """Validate ``profile`` and write it to ``path`` atomically (replacing an existing regular file,
-    keeping its mode; ``inputs`` and ``force`` as in ``vision.atomic_write.check_output``).
+    keeping its mode; ``inputs`` and ``force`` as in ``softgrip_base.atomic_write.check_output``).
 
     Raises:
         ProfileError: a field is out of range (named, as when loading), or the file cannot be written.
@@ -314,12 +314,8 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
         ('one-frame', 52.2)
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ProfileError(f"{path}: no such calibration profile; make one with `softgrip calibrate`") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ProfileError(f"{path}: cannot read the profile ({err})") from None
+    text = user_json.read_text(path, ProfileError, "no such calibration profile; make one with `softgrip calibrate`",
+                               "the profile")
     try:
         data = user_json.loads(text)
     except json.JSONDecodeError as err:

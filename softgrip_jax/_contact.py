@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, pcc_turning
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import direction_angle, safe_divide, unit_direction
@@ -264,7 +264,7 @@ def _second_contact(dist, centre, radius, n_circle):
     angle = phi + frac * step
     angle = jnp.where(angle >= jnp.pi, angle - 2.0 * jnp.pi, angle)
     # Nearest the downward vertical: the largest cos(angle), i.e. the smallest |angle| in [-pi, pi)
-    # (compared without the 64 cosines, which XLA:CPU computes at several ns each).
+    # (compared without computing the 64 cosines).
     ranking = jnp.where(crossing, -jnp.abs(angle), -jnp.inf)
     best = jnp.argmax(ranking)
     has = jnp.any(crossing)

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 from softgrip_jax._safe import safe_divide, safe_norm
 
 #: Distance (mm) reported outside an :class:`SDFGrid`: farther than any finger can reach.
@@ -151,10 +151,9 @@ class SDFGrid(AbstractSDF):
         row = jnp.clip(jnp.where(inside, row, 0.0), 0, h - 1)
         col = jnp.clip(jnp.where(inside, col, 0.0), 0, w - 1)
         # Bilinear between the four corners of the cell (the last row and column read the cell
-        # before them), addressed by one flat index into the grid: on XLA:CPU this is about 8 %
-        # faster over the whole estimate than map_coordinates' two-dimensional gathers. The index is
-        # unsigned so that JAX does not wrap negative indices (a select per corner; the lookup is
-        # 1.14x faster without).
+        # before them), addressed by one flat index into the grid: on XLA:CPU this is faster over
+        # the whole estimate than map_coordinates' two-dimensional gathers. The index is unsigned so
+        # that JAX does not wrap negative indices (which would cost a select per corner).
         row0 = jnp.minimum(jnp.floor(row), h - 2)
         col0 = jnp.minimum(jnp.floor(col), w - 2)
         fy, fx = row - row0, col - col0

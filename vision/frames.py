@@ -29,8 +29,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from softgrip_jax._errors import SoftgripError
-from vision import user_json
+from softgrip_base.errors import SoftgripError
+from softgrip_base import user_json
 
 COLOR_FILE = "color.png"
 DEPTH_FILE = "depth.png"
@@ -413,7 +413,7 @@ def save_frame(frame: Frame, path: str | os.PathLike[str]) -> Path:
         >>> import tempfile
         >>> from pathlib import Path
         >>> import numpy as np
-        >>> from vision.synthetic.render import d405_intrinsics
+        >>> from synthetic.render import d405_intrinsics
         >>> frame = Frame(np.zeros((480, 640, 3), np.uint8), np.full((480, 640), 1200, np.uint16), d405_intrinsics())
         >>> with tempfile.TemporaryDirectory() as root:
         ...     path = save_frame(frame, next_frame_dir(root))

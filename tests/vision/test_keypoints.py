@@ -27,9 +27,9 @@ from vision.keypoints import (
 )
 from vision.overlay import CONTACT_RGB, JOINT_RGB, OBSERVED_RGB, draw_overlay, save_png
 from vision.segmentation import SegmentationSettings, segment
-from vision.synthetic.render import LABEL_FIRST_FINGER, Scene, d405_intrinsics, mm_to_px, render, render_labels
-from vision.synthetic.rod import free_arc_points
-from vision.synthetic.scenes import gripper_centrelines
+from synthetic.render import LABEL_FIRST_FINGER, Scene, d405_intrinsics, mm_to_px, render, render_labels
+from synthetic.rod import free_arc_points
+from synthetic.scenes import gripper_centrelines
 
 INTR = d405_intrinsics()
 PLANE_MM = 120.0
