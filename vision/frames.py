@@ -313,7 +313,7 @@ class Frame:
     :func:`vision.plausibility.check_channel_order` compares a region with its known colour.
 
     Example:
-        >>> from vision.synthetic.render import d405_intrinsics
+        >>> from synthetic.render import d405_intrinsics
         >>> metres = np.full((480, 640), 0.12, np.float32)  # 120 mm
         >>> metres[0, 0] = np.nan
         >>> frame = Frame(np.zeros((480, 640, 3), np.uint8), metres, d405_intrinsics())
