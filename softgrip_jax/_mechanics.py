@@ -16,7 +16,8 @@ than at the tip, with mean 1. The base spring has compliance ``base_compliance``
 whole finger's bending compliance L / mean(k) (c = 1: the base turns as much under a moment as the
 whole finger bends); c = 0 clamps the base (psi = 0). These are the parametrisations of the
 observed-closure rod (``synthetic.rod``, a test-support package of the source tree), so a
-calibration against it can recover rho and c; both are ``FingerModel`` fields and the estimate is differentiable in them.
+calibration against it can recover rho and c; both are ``FingerModel`` fields and the estimate is
+differentiable in them.
 
 Contact is frictionless and quasi-static: a penalty mu / 2 (max(0, r - d) / L)^2 on each of
 ``stations_per_link`` centreline stations per link and the tip, with d the object's signed distance
