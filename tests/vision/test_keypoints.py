@@ -274,3 +274,21 @@ def test_overlay_rejects_bad_input(tmp_path: Path) -> None:
         draw_overlay(np.zeros((10, 10, 3), np.uint8), joints=[np.zeros(4)])
     with pytest.raises(Exception, match="could not write.*missing"):
         save_png(tmp_path / "missing" / "x.png", np.zeros((4, 4, 3), np.uint8))
+
+
+def test_bilinear_sampling_of_more_points_than_opencv_remap_takes_at_once() -> None:
+    """A painted-over frame once asked for more than 2**15 samples, beyond cv2.remap's limit on a
+    map's rows: sampling goes in blocks, and agrees with scipy's map_coordinates (an independent
+    bilinear interpolation) inside the image."""
+    from scipy.ndimage import map_coordinates
+
+    from vision.keypoints import _bilinear
+
+    image = np.random.default_rng(0).random((50, 60)).astype(np.float32)
+    points = np.random.default_rng(1).uniform(-2.0, 62.0, (100_000, 2))  # (u, v) px
+    values = _bilinear(image, points)
+    reference = map_coordinates(image.astype(np.float64), [points[:, 1], points[:, 0]], order=1, mode="constant")
+    inside = (points[:, 0] > 0.5) & (points[:, 0] < 58.5) & (points[:, 1] > 0.5) & (points[:, 1] < 48.5)
+    assert values.shape == (100_000,)
+    np.testing.assert_allclose(values[inside], reference[inside], atol=1e-4)
+    assert _bilinear(image, points.reshape(1000, 100, 2)).shape == (1000, 100)
