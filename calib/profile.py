@@ -63,7 +63,7 @@ from jaxtyping import ArrayLike
 from softgrip_jax import FingerModel, Gripper, SoftgripError
 from softgrip_base import user_json
 from calib import profile_schema
-from calib.profile_schema import MAX_MAGNITUDE, MAX_N_LINKS, _show  # noqa: F401 - the limits are this module's API too
+from calib.profile_schema import MAX_MAGNITUDE, MAX_N_LINKS, show_value  # noqa: F401 - the limits are this module's API too
 from softgrip_base.atomic_write import write_atomic
 from vision.frames import FrameError, Intrinsics
 from vision.measure import MeasureSettings, MeasureSettingsError
@@ -329,7 +329,7 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
 
 def _parse(data: Any, source: str) -> CalibrationProfile:
     if not isinstance(data, dict):
-        raise ProfileError(f"{source}: expected a JSON object, got {_show(data)}")
+        raise ProfileError(f"{source}: expected a JSON object, got {show_value(data)}")
     document, problem = profile_schema.validate(data)
     if problem is not None:
         raise ProfileError(f"{source}: {problem}")
@@ -358,10 +358,10 @@ def _parse(data: Any, source: str) -> CalibrationProfile:
         values = getattr(fit, name)
         if values and len(values) != len(fit.frames):
             raise ProfileError(f"{source}: fit.{name}: expected one value per frame in fit.frames "
-                               f"({len(fit.frames)}), got {_show(values)}")
+                               f"({len(fit.frames)}), got {show_value(values)}")
     if fit.free_closure is not None and fit.free_closure not in fit.frames:
         raise ProfileError(f"{source}: fit.free_closure: expected the label of one of fit.frames, got "
-                           f"{_show(fit.free_closure)}")
+                           f"{show_value(fit.free_closure)}")
     fingers = {side: FingerEntry(**{**getattr(document.fingers, side).model_dump(),
                                     "base_offset": tuple(getattr(document.fingers, side).base_offset)})
                for side in SIDES}
