@@ -66,7 +66,7 @@ from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import pcc_turning
 from softgrip_jax._model import FingerModel
-from softgrip_jax._sdf import AbstractSDF, unit_gradient
+from softgrip_jax._sdf import AbstractSDF, surface_point
 
 #: The deformation estimates, by name (the ``method`` argument of the estimate functions).
 METHODS: tuple[str, ...] = ("geometric", "mechanics")
@@ -459,7 +459,7 @@ def solve_equilibrium(
     case = jnp.where(tip, jnp.where(other, ContactCase.TIP_AND_OTHER, ContactCase.TIP),
                      jnp.where(other, ContactCase.OTHER, ContactCase.NONE)).astype(jnp.int32)
     tip_point = joints[-1]
-    tip_foot = tip_point - problem.distance(tip_point) * unit_gradient(problem.distance, tip_point)
+    tip_foot = surface_point(problem.distance, tip_point)
     penetration = jnp.maximum(jnp.max(r - d), 0.0)
     return Equilibrium(
         psi=psi, turning=turning, case=case, converged=solution.result == optx.RESULTS.successful,
