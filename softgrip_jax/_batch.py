@@ -28,6 +28,7 @@ from softgrip_jax._deformation import (
     stage_of,
 )
 from softgrip_jax._errors import SoftgripError
+from softgrip_jax._export import exportable
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, finger_frames
 from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
@@ -176,7 +177,7 @@ def _estimate_share(finger, sdf, bases, config, mechanics, chunk_size, method):
                       chunk_size)
 
 
-_estimate_batch = partial(tuned_jit, static_argnames=("chunk_size", "method"))(_estimate_share)
+_estimate_batch = exportable(tuned_jit(_estimate_share, static_argnames=("chunk_size", "method")), ("chunk_size", "method"))
 
 
 @partial(tuned_jit, static_argnames=("chunk_size", "method"))
@@ -196,7 +197,7 @@ def _estimate_grasp_share(gripper, sdf, poses, config, mechanics, chunk_size, me
     return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, mechanics, method), poses, chunk_size)
 
 
-_estimate_grasp_batch = partial(tuned_jit, static_argnames=("chunk_size", "method"))(_estimate_grasp_share)
+_estimate_grasp_batch = exportable(tuned_jit(_estimate_grasp_share, static_argnames=("chunk_size", "method")), ("chunk_size", "method"))
 
 
 @partial(tuned_jit, static_argnames=("chunk_size", "method"))

@@ -25,8 +25,10 @@ from pathlib import Path
 
 #: Environment variable that turns :func:`enable_compilation_cache` off (``0``).
 DISABLE_VARIABLE = "SOFTGRIP_JAX_CACHE"
-#: Programs that compile faster than this (s) are not written (JAX's own default is 1 s).
-MIN_COMPILE_SECONDS = 1.0
+#: Programs that compile faster than this (s) are not written. JAX's own default is 1 s, which
+#: leaves out the dozens of small programs that eager operations (slicing, concatenating the parts
+#: of a batch, building poses) compile in every new process; reading them back is faster.
+MIN_COMPILE_SECONDS = 0.0
 
 
 def default_cache_dir() -> Path:
@@ -53,9 +55,14 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
     """Keep compiled programs on disk, so that a new process starts in seconds instead of compiling.
 
     Call it once, before the first compiled call (calling it again is harmless). It sets JAX's
-    ``jax_compilation_cache_dir``; programs that take under :data:`MIN_COMPILE_SECONDS` to compile
-    are not written. ``SOFTGRIP_JAX_CACHE=0`` in the environment turns it off, and a cache directory
-    already configured (``jax.config`` or ``JAX_COMPILATION_CACHE_DIR``) is kept.
+    ``jax_compilation_cache_dir`` and writes every compiled program (:data:`MIN_COMPILE_SECONDS`).
+    ``SOFTGRIP_JAX_CACHE=0`` in the environment turns it off, and a cache directory already
+    configured (``jax.config`` or ``JAX_COMPILATION_CACHE_DIR``) is kept.
+
+    The batch functions (``score``, ``refine``, ``estimate_batch``, ``estimate_grasp_batch``) also
+    keep their exported programs in the folder's ``softgrip-export`` subfolder
+    (:mod:`softgrip_jax._export`): a new process with the same shapes and settings neither traces
+    nor compiles them.
 
     Args:
         path: the cache folder; by default :func:`default_cache_dir` (a per-user cache directory).
@@ -76,19 +83,23 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
 
     if os.environ.get(DISABLE_VARIABLE, "1") == "0":
         return None
+    from softgrip_jax._export import set_folder
+
     configured = jax.config.jax_compilation_cache_dir
-    if configured and path is None:
-        return Path(configured)
-    folder = Path(path) if path is not None else default_cache_dir()
+    keep = bool(configured) and path is None
+    folder = Path(configured) if keep else Path(path) if path is not None else default_cache_dir()
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         warnings.warn(f"softgrip_jax: compilation cache off, cannot create {folder}: {err}", stacklevel=2)
         return None
-    jax.config.update("jax_compilation_cache_dir", str(folder))
+    if not keep:
+        jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    _reset_cache_backend(jax)
+    if not keep:
+        _reset_cache_backend(jax)
+    set_folder(folder)
     if not equinox_errors_cacheable():
         warnings.warn(
             "softgrip_jax: EQX_ON_ERROR is not 'nan', so gradients through the mechanics estimate "

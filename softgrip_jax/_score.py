@@ -37,6 +37,7 @@ from softgrip_jax._compile import tuned_jit
 from softgrip_jax._concurrent import run_in_parts
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._deformation import Estimate, Status
+from softgrip_jax._export import exportable
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
 from softgrip_jax._kinematics import chain_stations
 from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
@@ -162,7 +163,7 @@ def _score_share(gripper, sdf, poses, weights, config, mechanics, chunk_size, me
     return map_chunks(chunk, poses, chunk_size)
 
 
-_score_one_device = partial(tuned_jit, static_argnames=("chunk_size", "method"))(_score_share)
+_score_one_device = exportable(tuned_jit(_score_share, static_argnames=("chunk_size", "method")), ("chunk_size", "method"))
 
 
 @partial(tuned_jit, static_argnames=("chunk_size", "method"))
@@ -285,10 +286,12 @@ def _refine_one(gripper, sdf, pose, weights, config, mechanics, max_steps, angle
     )
 
 
-@partial(tuned_jit, static_argnames=("max_steps", "method"))
-def _refine_batch(gripper, sdf, poses, weights, config, mechanics, max_steps, angle_scale, method):
+def _refine_poses(gripper, sdf, poses, weights, config, mechanics, max_steps, angle_scale, method):
     return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, mechanics, max_steps, angle_scale,
                                           method))(poses)
+
+
+_refine_batch = exportable(tuned_jit(_refine_poses, static_argnames=("max_steps", "method")), ("max_steps", "method"))
 
 
 def refine(

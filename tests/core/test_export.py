@@ -1,0 +1,168 @@
+"""Exported programs kept with the compilation cache (softgrip_jax._export).
+
+What is checked: the exported path gives the same results as the jitted one (bit for bit); a stale
+or broken file falls back silently; a new process with a warm cache traces none of the batch
+functions and misses the compilation cache for no program (counted, not timed).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import softgrip_jax
+from softgrip_jax import ContactConfig, FingerModel, Gripper, MechanicsConfig, PolygonSDF, ScoreWeights
+from softgrip_jax import _export
+
+ROOT = Path(__file__).resolve().parents[2]
+FINGER = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=5)
+GRIPPER = Gripper(left=FINGER, right=FINGER, base_separation=56.0)
+DISC = PolygonSDF.regular((0.0, 38.0), 15.0, 16)
+POSES = jnp.stack([jnp.linspace(-6.0, 6.0, 8), jnp.linspace(-4.0, 4.0, 8), jnp.linspace(-0.1, 0.1, 8)], axis=-1)
+
+
+@pytest.fixture
+def export_cache(tmp_path, monkeypatch):
+    """The compilation cache (and so the exports) on in ``tmp_path``; everything put back after."""
+    monkeypatch.delenv("SOFTGRIP_JAX_CACHE", raising=False)
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+             "jax_persistent_cache_min_entry_size_bytes")
+    saved = {n: getattr(jax.config, n) for n in names}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        softgrip_jax.enable_compilation_cache(tmp_path)
+    yield tmp_path / _export.EXPORT_SUBFOLDER
+    _export.set_folder(None)
+    for name, value in saved.items():
+        jax.config.update(name, value)
+    from jax.experimental.compilation_cache import compilation_cache
+    compilation_cache.reset_cache()
+
+
+def _assert_identical(a, b) -> None:
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    assert ta == tb
+    for x, y in zip(la, lb):
+        assert x.shape == y.shape and x.dtype == y.dtype
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def _score_args():
+    return (GRIPPER, DISC, POSES, ScoreWeights(), ContactConfig(), MechanicsConfig())
+
+
+def test_exported_score_equals_the_jitted_one(export_cache) -> None:
+    from softgrip_jax._score import _score_one_device
+
+    before = dict(_export.stats)
+    exported = _score_one_device(*_score_args(), chunk_size=8, method="geometric")
+    assert _export.stats["exported"] == before["exported"] + 1  # written to disk
+    assert len(list(export_cache.glob("score_share-*.export"))) == 1
+    jitted = _score_one_device._jitted(*_score_args(), chunk_size=8, method="geometric")
+    _assert_identical(exported, jitted)
+    # The public function goes the same way.
+    _assert_identical(softgrip_jax.score(GRIPPER, DISC, POSES, method="geometric", chunk_size=8), jitted)
+
+
+def test_a_broken_or_stale_export_falls_back_silently(export_cache) -> None:
+    from softgrip_jax._score import _score_one_device
+
+    reference = _score_one_device._jitted(*_score_args(), chunk_size=8, method="geometric")
+    _score_one_device(*_score_args(), chunk_size=8, method="geometric")
+    (path,) = export_cache.glob("score_share-*.export")
+    path.write_bytes(b"not an export")
+    _score_one_device._calls.clear()  # as a new process: read the file again
+    before = dict(_export.stats)
+    _assert_identical(_score_one_device(*_score_args(), chunk_size=8, method="geometric"), reference)
+    assert _export.stats["loaded"] == before["loaded"]
+    assert _export.stats["exported"] == before["exported"] + 1  # exported again, over the broken file
+    _score_one_device._calls.clear()
+    _assert_identical(_score_one_device(*_score_args(), chunk_size=8, method="geometric"), reference)
+    assert _export.stats["loaded"] == before["loaded"] + 1
+
+
+def test_without_the_cache_nothing_is_exported(tmp_path, monkeypatch) -> None:
+    from softgrip_jax._score import _score_one_device
+
+    monkeypatch.setattr(_export, "_folder", None)
+    before = dict(_export.stats)
+    _score_one_device(*_score_args(), chunk_size=8, method="geometric")
+    assert _export.stats == before
+
+
+@pytest.mark.slow
+def test_exported_refine_equals_the_jitted_one(export_cache) -> None:
+    from softgrip_jax._score import _refine_batch
+
+    args = (GRIPPER, DISC, POSES[:2], ScoreWeights(), ContactConfig(), MechanicsConfig(), 10, jnp.asarray(0.05),
+            "geometric")
+    _assert_identical(_refine_batch(*args), _refine_batch._jitted(*args))
+    assert len(list(export_cache.glob("refine_poses-*.export"))) == 1
+
+
+PLANNER = textwrap.dedent("""
+    import json, sys
+    import jax, jax.monitoring
+    import softgrip_jax
+    softgrip_jax.enable_compilation_cache(sys.argv[1])
+    import jax.numpy as jnp
+    from softgrip_jax import FingerModel, Gripper, PolygonSDF, refine, score
+    from softgrip_jax import _export, _score
+
+    events = {}
+    jax.monitoring.register_event_listener(lambda name, **kw: events.__setitem__(name, events.get(name, 0) + 1))
+    traced = {"score": 0, "refine": 0}
+    score_grasp, refine_one = _score._score_grasp, _score._refine_one
+    def counting(name, fn):
+        def wrapped(*args, **kwargs):
+            traced[name] += 1
+            return fn(*args, **kwargs)
+        return wrapped
+    _score._score_grasp = counting("score", score_grasp)
+    _score._refine_one = counting("refine", refine_one)
+
+    finger = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=5)
+    gripper = Gripper(left=finger, right=finger, base_separation=56.0)
+    obj = PolygonSDF.regular(center=(0.0, 38.0), radius=15.0, n_vertices=16)
+    x, y = jnp.meshgrid(jnp.linspace(-10.0, 10.0, 4), jnp.linspace(-10.0, 10.0, 4), indexing="ij")
+    poses = jnp.stack([x.ravel(), y.ravel(), jnp.zeros(16)], axis=-1)
+    result = score(gripper, obj, poses, method="geometric")
+    best = int(jnp.argmax(result.score))
+    refined = refine(gripper, obj, poses[best], method="geometric", max_steps=10)
+    print(json.dumps({"stats": _export.stats, "traced": traced, "score": float(refined.score.score),
+                      "pose": [float(v) for v in refined.pose],
+                      "misses": events.get("/jax/compilation_cache/cache_misses", 0),
+                      "hits": events.get("/jax/compilation_cache/cache_hits", 0)}))
+""")
+
+
+@pytest.mark.slow
+def test_a_new_process_with_a_warm_cache_traces_and_compiles_nothing(tmp_path) -> None:
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "EQX_ON_ERROR": "nan"}
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    env.pop("SOFTGRIP_JAX_CACHE", None)
+
+    def run() -> dict:
+        out = subprocess.run([sys.executable, "-c", PLANNER, str(tmp_path / "cache")], env=env, cwd=ROOT,
+                             capture_output=True, text=True, timeout=900)
+        assert out.returncode == 0, out.stderr[-3000:]
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    cold, warm = run(), run()
+    assert cold["stats"] == {"loaded": 0, "exported": 2, "fallback": 0}
+    assert cold["traced"]["score"] > 0 and cold["traced"]["refine"] > 0
+    assert warm["stats"] == {"loaded": 2, "exported": 0, "fallback": 0}
+    assert warm["traced"] == {"score": 0, "refine": 0}
+    assert warm["misses"] == 0 and warm["hits"] > 0  # every program, small ones included, from the cache
+    assert (warm["score"], warm["pose"]) == (cold["score"], cold["pose"])
