@@ -62,7 +62,8 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
     The batch functions (``score``, ``refine``, ``estimate_batch``, ``estimate_grasp_batch``) also
     keep their exported programs in the folder's ``softgrip-export`` subfolder
     (:mod:`softgrip_jax._export`): a new process with the same shapes and settings neither traces
-    nor compiles them.
+    nor compiles them. They follow JAX's configured cache folder at each call, whoever set it, and
+    stop with ``SOFTGRIP_JAX_CACHE=0``.
 
     Args:
         path: the cache folder; by default :func:`default_cache_dir` (a per-user cache directory).
@@ -83,8 +84,6 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
 
     if os.environ.get(DISABLE_VARIABLE, "1") == "0":
         return None
-    from softgrip_jax._export import set_folder
-
     configured = jax.config.jax_compilation_cache_dir
     keep = bool(configured) and path is None
     folder = Path(configured) if keep else Path(path) if path is not None else default_cache_dir()
@@ -99,7 +98,6 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     if not keep:
         _reset_cache_backend(jax)
-    set_folder(folder)
     if not equinox_errors_cacheable():
         warnings.warn(
             "softgrip_jax: EQX_ON_ERROR is not 'nan', so gradients through the mechanics estimate "

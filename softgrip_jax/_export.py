@@ -18,6 +18,13 @@ and the backend. A file that does not match, does not load, or a function that c
 ordinary ``jax.jit`` path, silently. Results are those of the jitted function: the same program,
 compiled with the same options.
 
+"The cache on" is read from JAX's configuration at every call (:func:`active_folder`): exports are
+kept while ``jax.config.jax_compilation_cache_dir`` is set (by
+:func:`~softgrip_jax.enable_compilation_cache`, ``JAX_COMPILATION_CACHE_DIR`` or
+``jax.config.update``) and ``SOFTGRIP_JAX_CACHE`` is not ``0``. Each wrapped function remembers
+what it prepared per (folder, signature), so a changed folder prepares its signatures again, and
+counts what it did (:meth:`exportable.export_info`). The module itself holds no mutable state.
+
 Inside another trace (``jit``, ``grad``, ``vmap`` of a batch function) the wrapped function is the
 jitted one, unchanged.
 """
@@ -33,6 +40,7 @@ import pickle
 import tempfile
 import threading
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 
@@ -44,37 +52,29 @@ EXPORT_SUBFOLDER = "softgrip-export"
 #: Bumped when the file layout below changes.
 FORMAT = 1
 
-_folder: Path | None = None  # set by enable_compilation_cache
-_lock = threading.Lock()
 _log = logging.getLogger(__name__)
-#: Counters of this process, for tests: ``loaded`` (read from disk), ``exported`` (written),
-#: ``fallback`` (signatures that run on the jitted path).
-stats = {"loaded": 0, "exported": 0, "fallback": 0}
-_instances: list[exportable] = []  # every wrapped function, whose signatures set_folder forgets
 
 
-def set_folder(folder: Path | None) -> None:
-    """Keep exported programs under ``folder / EXPORT_SUBFOLDER`` (None: do not export); the
-    signatures prepared for another folder are forgotten."""
-    global _folder
-    new = None if folder is None else Path(folder) / EXPORT_SUBFOLDER
-    if new == _folder:
-        return
-    _folder = new
-    with _lock:
-        for instance in _instances:
-            instance._calls.clear()
+class ExportInfo(NamedTuple):
+    """What one :class:`exportable` function did in this process (like ``functools``'
+    ``cache_info()``), counted per signature: ``loaded`` (read from disk), ``exported`` (written),
+    ``fallback`` (signatures that run on the jitted path)."""
+
+    loaded: int
+    exported: int
+    fallback: int
 
 
 def active_folder() -> Path | None:
-    """The folder in use, or None when exporting is off (no cache, or JAX's cache folder changed
-    since :func:`set_folder`)."""
-    if _folder is None or os.environ.get("SOFTGRIP_JAX_CACHE", "1") == "0":
+    """The folder for exported programs, from JAX's configuration at this call:
+    ``<jax_compilation_cache_dir>/EXPORT_SUBFOLDER``; None (exporting off) when JAX's cache folder
+    is unset or ``SOFTGRIP_JAX_CACHE=0``."""
+    if os.environ.get("SOFTGRIP_JAX_CACHE", "1") == "0":
         return None
     configured = jax.config.jax_compilation_cache_dir
-    if not configured or Path(configured) != _folder.parent:
+    if not configured:
         return None
-    return _folder
+    return Path(configured) / EXPORT_SUBFOLDER
 
 
 @functools.cache
@@ -115,8 +115,15 @@ class exportable:  # noqa: N801 - used like jax.jit
         self._fn = jitted._fn  # the Python function (tuned_jit keeps it)
         self._signature = inspect.signature(self._fn)
         self._static = tuple(static_argnames)
-        self._calls: dict = {}  # signature -> (compiled call, output structure) or None (fallback)
-        _instances.append(self)
+        # (folder, signature) -> (compiled call, output structure), or None (the jitted path)
+        self._calls: dict = {}
+        self._lock = threading.Lock()
+        self._loaded = self._exported = self._fallback = 0
+
+    def export_info(self) -> ExportInfo:
+        """How many signatures this function loaded from disk, exported, or runs jitted."""
+        with self._lock:
+            return ExportInfo(self._loaded, self._exported, self._fallback)
 
     def __getattr__(self, name):
         if name.startswith("__"):
@@ -135,19 +142,19 @@ class exportable:  # noqa: N801 - used like jax.jit
         leaves, treedef = jax.tree_util.tree_flatten(tuple(v for _, v in dynamic))
         try:
             avals = tuple(jax.typeof(x) for x in leaves)
-            key = (names, treedef, tuple((a.shape, a.dtype, a.weak_type) for a in avals), static)
+            key = (folder, names, treedef, tuple((a.shape, a.dtype, a.weak_type) for a in avals), static)
             hash(key)
         except Exception:  # noqa: BLE001 - an argument this path does not handle: the jitted path
             return self._jitted(*args, **kwargs)
         entry = self._calls.get(key, False)
         if entry is False:
-            with _lock:
+            with self._lock:
                 entry = self._calls.get(key, False)
                 if entry is False:
                     entry = self._prepare(folder, names, static, treedef, avals)
                     self._calls[key] = entry
                     if entry is None:
-                        stats["fallback"] += 1
+                        self._fallback += 1
         if entry is None:
             return self._jitted(*args, **kwargs)
         call, out_treedef = entry
@@ -171,7 +178,7 @@ class exportable:  # noqa: N801 - used like jax.jit
 
     def _prepare(self, folder: Path, names, static, treedef, avals):
         """(compiled call, output structure) for a signature, from disk or exported now; None when
-        this signature runs on the jitted path."""
+        this signature runs on the jitted path. Called with ``self._lock`` held."""
         try:
             from jax import export
         except ImportError:
@@ -191,7 +198,7 @@ class exportable:  # noqa: N801 - used like jax.jit
                     if out_treedef.num_leaves != len(exported.out_avals):
                         exported = None
                     else:
-                        stats["loaded"] += 1
+                        self._loaded += 1
         except Exception:  # noqa: BLE001 - an unreadable or stale file: export again
             _log.debug("softgrip_jax: cannot load %s", path, exc_info=True)
             exported = None
@@ -209,7 +216,7 @@ class exportable:  # noqa: N801 - used like jax.jit
                 payload = pickle.dumps({"ident": ident, "exported": bytes(exported.serialize()), "template": template})
                 if jax.tree_util.tree_structure(pickle.loads(payload)["template"]) == out_treedef:
                     _write(path, payload)
-                    stats["exported"] += 1
+                    self._exported += 1
             except Exception:  # noqa: BLE001 - not kept on disk; this process still uses the export
                 _log.debug("softgrip_jax: cannot write %s", path, exc_info=True)
         options = compiler_options() or None

@@ -23,12 +23,20 @@ import pytest
 import softgrip_jax
 from softgrip_jax import ContactConfig, FingerModel, Gripper, MechanicsConfig, PolygonSDF, ScoreWeights
 from softgrip_jax import _export
+from softgrip_jax._batch import _estimate_batch, _estimate_grasp_batch
+from softgrip_jax._score import _refine_batch, _score_one_device
 
 ROOT = Path(__file__).resolve().parents[2]
 FINGER = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=5)
 GRIPPER = Gripper(left=FINGER, right=FINGER, base_separation=56.0)
 DISC = PolygonSDF.regular((0.0, 38.0), 15.0, 16)
 POSES = jnp.stack([jnp.linspace(-6.0, 6.0, 8), jnp.linspace(-4.0, 4.0, 8), jnp.linspace(-0.1, 0.1, 8)], axis=-1)
+#: Every function wrapped by ``_export.exportable``; their counters summed are the process's.
+EXPORTABLE = (_score_one_device, _refine_batch, _estimate_batch, _estimate_grasp_batch)
+
+
+def _totals() -> _export.ExportInfo:
+    return _export.ExportInfo._make(map(sum, zip(*(fn.export_info() for fn in EXPORTABLE))))
 
 
 @pytest.fixture
@@ -42,7 +50,6 @@ def export_cache(tmp_path, monkeypatch):
         warnings.simplefilter("ignore")
         softgrip_jax.enable_compilation_cache(tmp_path)
     yield tmp_path / _export.EXPORT_SUBFOLDER
-    _export.set_folder(None)
     for name, value in saved.items():
         jax.config.update(name, value)
     from jax.experimental.compilation_cache import compilation_cache
@@ -63,11 +70,10 @@ def _score_args():
 
 
 def test_exported_score_equals_the_jitted_one(export_cache) -> None:
-    from softgrip_jax._score import _score_one_device
-
-    before = dict(_export.stats)
+    assert _export.active_folder() == export_cache
+    before = _score_one_device.export_info()
     exported = _score_one_device(*_score_args(), chunk_size=8, method="geometric")
-    assert _export.stats["exported"] == before["exported"] + 1  # written to disk
+    assert _score_one_device.export_info() == before._replace(exported=before.exported + 1)  # written to disk
     assert len(list(export_cache.glob("score_share-*.export"))) == 1
     jitted = _score_one_device._jitted(*_score_args(), chunk_size=8, method="geometric")
     _assert_identical(exported, jitted)
@@ -76,35 +82,48 @@ def test_exported_score_equals_the_jitted_one(export_cache) -> None:
 
 
 def test_a_broken_or_stale_export_falls_back_silently(export_cache) -> None:
-    from softgrip_jax._score import _score_one_device
-
     reference = _score_one_device._jitted(*_score_args(), chunk_size=8, method="geometric")
     _score_one_device(*_score_args(), chunk_size=8, method="geometric")
     (path,) = export_cache.glob("score_share-*.export")
     path.write_bytes(b"not an export")
     _score_one_device._calls.clear()  # as a new process: read the file again
-    before = dict(_export.stats)
+    before = _score_one_device.export_info()
     _assert_identical(_score_one_device(*_score_args(), chunk_size=8, method="geometric"), reference)
-    assert _export.stats["loaded"] == before["loaded"]
-    assert _export.stats["exported"] == before["exported"] + 1  # exported again, over the broken file
+    after = _score_one_device.export_info()
+    assert after.loaded == before.loaded
+    assert after.exported == before.exported + 1  # exported again, over the broken file
     _score_one_device._calls.clear()
     _assert_identical(_score_one_device(*_score_args(), chunk_size=8, method="geometric"), reference)
-    assert _export.stats["loaded"] == before["loaded"] + 1
+    assert _score_one_device.export_info().loaded == before.loaded + 1
 
 
-def test_without_the_cache_nothing_is_exported(tmp_path, monkeypatch) -> None:
-    from softgrip_jax._score import _score_one_device
-
-    monkeypatch.setattr(_export, "_folder", None)
-    before = dict(_export.stats)
+def test_another_cache_folder_prepares_its_own_exports(export_cache, tmp_path) -> None:
+    """The folder is part of each signature's memo: a cache folder configured later gets its own
+    files instead of the programs prepared for the first one."""
     _score_one_device(*_score_args(), chunk_size=8, method="geometric")
-    assert _export.stats == before
+    other = tmp_path / "other"
+    jax.config.update("jax_compilation_cache_dir", str(other))  # the fixture puts it back
+    before = _score_one_device.export_info()
+    _score_one_device(*_score_args(), chunk_size=8, method="geometric")
+    assert _score_one_device.export_info().exported == before.exported + 1
+    assert len(list((other / _export.EXPORT_SUBFOLDER).glob("score_share-*.export"))) == 1
+
+
+@pytest.mark.parametrize("off", ["SOFTGRIP_JAX_CACHE=0", "no cache folder"])
+def test_without_the_cache_nothing_is_exported(export_cache, monkeypatch, off) -> None:
+    if off == "SOFTGRIP_JAX_CACHE=0":
+        monkeypatch.setenv("SOFTGRIP_JAX_CACHE", "0")
+    else:
+        jax.config.update("jax_compilation_cache_dir", None)  # the fixture puts it back
+    assert _export.active_folder() is None
+    before = _totals()
+    _score_one_device(*_score_args(), chunk_size=8, method="geometric")
+    assert _totals() == before
+    assert not export_cache.exists()
 
 
 @pytest.mark.slow
 def test_exported_refine_equals_the_jitted_one(export_cache) -> None:
-    from softgrip_jax._score import _refine_batch
-
     args = (GRIPPER, DISC, POSES[:2], ScoreWeights(), ContactConfig(), MechanicsConfig(), 10, jnp.asarray(0.05),
             "geometric")
     _assert_identical(_refine_batch(*args), _refine_batch._jitted(*args))
@@ -118,7 +137,7 @@ PLANNER = textwrap.dedent("""
     softgrip_jax.enable_compilation_cache(sys.argv[1])
     import jax.numpy as jnp
     from softgrip_jax import FingerModel, Gripper, PolygonSDF, refine, score
-    from softgrip_jax import _export, _score
+    from softgrip_jax import _batch, _score
 
     events = {}
     jax.monitoring.register_event_listener(lambda name, **kw: events.__setitem__(name, events.get(name, 0) + 1))
@@ -140,7 +159,10 @@ PLANNER = textwrap.dedent("""
     result = score(gripper, obj, poses, method="geometric")
     best = int(jnp.argmax(result.score))
     refined = refine(gripper, obj, poses[best], method="geometric", max_steps=10)
-    print(json.dumps({"stats": _export.stats, "traced": traced, "score": float(refined.score.score),
+    exportable = (_score._score_one_device, _score._refine_batch, _batch._estimate_batch,
+                  _batch._estimate_grasp_batch)
+    stats = dict(zip(("loaded", "exported", "fallback"), map(sum, zip(*(f.export_info() for f in exportable)))))
+    print(json.dumps({"stats": stats, "traced": traced, "score": float(refined.score.score),
                       "pose": [float(v) for v in refined.pose],
                       "misses": events.get("/jax/compilation_cache/cache_misses", 0),
                       "hits": events.get("/jax/compilation_cache/cache_hits", 0)}))
