@@ -32,7 +32,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from softgrip_jax._contact import Bracket, Contact, ContactCase, ContactConfig, bracket_contact, free_contact, refine_contact
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics, pcc_turning
-from softgrip_jax._mechanics import DEFAULT_METHOD, Equilibrium, MechanicsConfig, check_method, mechanics_start, solve_equilibrium
+from softgrip_jax._mechanics import DEFAULT_METHOD, Equilibrium, MechanicsConfig, check_method, closing_start, solve_equilibrium
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
@@ -68,6 +68,14 @@ class Estimate(eqx.Module):
             geometric construction of Fig. 8.
         valid: the inputs were usable and the pose is collision-free at the start.
         status: a :class:`Status` value saying why not, when not valid.
+        residual: mm. For ``method="mechanics"`` where the finger touches, how far the last
+            Gauss-Newton step of the equilibrium solve moved the joints (to first order): converged
+            estimates have it at most ``MechanicsConfig.step_tol``. 0 otherwise.
+        event: the closing path passed an event that makes the estimate jump with the pose: the
+            tip carried contact force while the finger closed, then slid off the object (the
+            finger snapped past it). A planner should treat such poses as a boundary, where
+            neighbouring poses may close into a different equilibrium. False for the geometric
+            estimate.
     """
 
     joints: Float[Array, "joints 2"]
@@ -77,6 +85,8 @@ class Estimate(eqx.Module):
     contact: Contact
     valid: Bool[Array, ""]
     status: Int[Array, ""]
+    residual: Float[Array, ""]
+    event: Bool[Array, ""]
 
 
 def case_shapes(finger: FingerModel, contact: Contact) -> tuple[Float[Array, "4"], Float[Array, "4 n"]]:
@@ -224,11 +234,15 @@ def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = 
     """
     contact, psi, turning = stage.contact, stage.psi, stage.turning
     solved = jnp.array(True)
+    residual = jnp.zeros((), psi.dtype)
+    event = jnp.array(False)
     if equilibrium is not None:
         eq, use = equilibrium, needs_mechanics(stage)
         psi = jnp.where(use, eq.psi, psi)
         turning = jnp.where(use, eq.turning, turning)
         solved = eq.converged | ~use
+        residual = jnp.where(use, eq.residual, residual).astype(psi.dtype)
+        event = use & eq.slid_off
         tip_touches = use & ((eq.case == ContactCase.TIP) | (eq.case == ContactCase.TIP_AND_OTHER))
         contact = eqx.tree_at(lambda c: (c.case, c.p_o2), contact,
                               (jnp.where(use, eq.case, contact.case),
@@ -252,16 +266,16 @@ def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = 
     )
     return Estimate(
         joints=world(joints_local), psi=psi, turning=turning, case=contact.case, contact=contact,
-        valid=status == Status.OK, status=status,
+        valid=status == Status.OK, status=status, residual=residual, event=event,
     )
 
 
 def mechanics_of(
     finger: FingerModel, sdf: AbstractSDF, stage: Stage, mechanics: MechanicsConfig, config: ContactConfig
 ) -> Equilibrium:
-    """The spring chain's equilibrium started from a stage's geometric estimate."""
-    psi, turning = mechanics_start(finger, stage.contact, stage.psi, stage.turning, config)
-    return solve_equilibrium(finger, sdf, stage.frame, psi, turning, mechanics, config)
+    """The spring chain's equilibrium reached by closing from a stage's first touch (the closing path)."""
+    s, psi, turning = closing_start(finger, stage.contact, config)
+    return solve_equilibrium(finger, sdf, stage.frame, psi, turning, mechanics, config, start_actuation=s)
 
 
 def estimate_in_frame(

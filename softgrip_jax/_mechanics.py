@@ -108,6 +108,10 @@ class MechanicsConfig(eqx.Module):
         step_tol: mm. Converged when the Gauss-Newton step (before it is shortened) moves no joint
             by more than this (to first order).
         max_turn: rad. A step changes no turning angle (or psi) by more than this.
+        path_step: rad. The closing path raises the actuation from first touch to Theta in
+            increments of at most this (fewer steps where less actuation remains after the touch).
+        path_steps: the most increments of the closing path (a longer remainder takes larger ones).
+        path_iterations: Gauss-Newton iterations at each increment of the closing path.
 
     Example:
         >>> import jax.numpy as jnp
@@ -128,13 +132,17 @@ class MechanicsConfig(eqx.Module):
     contact_tol: float = eqx.field(static=True, default=0.05)
     step_tol: float = eqx.field(static=True, default=0.01)
     max_turn: float = eqx.field(static=True, default=0.3)
+    path_step: float = eqx.field(static=True, default=0.1)
+    path_steps: int = eqx.field(static=True, default=8)
+    path_iterations: int = eqx.field(static=True, default=2)
 
     def __check_init__(self):
-        for name, low in (("max_steps", 1), ("stations_per_link", 1), ("active_rows", 1)):
+        for name, low in (("max_steps", 1), ("stations_per_link", 1), ("active_rows", 1), ("path_steps", 1),
+                          ("path_iterations", 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise SoftgripError(f"MechanicsConfig.{name} must be an integer >= {low}, got {value!r}")
-        for name in ("penalty", "contact_tol", "step_tol", "max_turn"):
+        for name in ("penalty", "contact_tol", "step_tol", "max_turn", "path_step"):
             value = getattr(self, name)
             ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0 and value < float("inf")
             if not ok:
@@ -383,19 +391,84 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
         return y, aux, {}
 
 
-def mechanics_start(
-    finger: FingerModel,
-    contact: Contact,
-    psi: Float[Array, ""],
-    turning: Float[Array, " n"],
+def closing_start(
+    finger: FingerModel, contact: Contact, config: ContactConfig = ContactConfig()
+) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, " n"]]:
+    """Where the closing path leaves the free closure: ``(s, psi, turning)``, the actuation (rad)
+    and the chain's shape (rad; psi (), turning (N,)) at first touch.
+
+    Until the first touch the chain closes freely through its PCC shapes (eqs. 1-3), so the path
+    starts at the PCC shape of ``contact.s1``. A rigid contact sweep (``config.sweep="rigid"``)
+    measures its s1 on other shapes: the path then starts from the open finger (s = 0).
+    """
+    s = contact.s1 if config.sweep == "pcc" else jnp.zeros_like(contact.s1)
+    s = jnp.clip(s, 0.0, finger.theta_entire)
+    return s, jnp.zeros_like(s), pcc_turning(s, finger.n_links)
+
+
+class _PathState(eqx.Module):
+    step: Int[Array, ""]
+    y: Float[Array, " n1"]
+    previous: Float[Array, " n1"]
+    tip_pressed: Bool[Array, ""]
+
+
+def _at_actuation(problem: _Problem, s) -> _Problem:
+    """The same problem with the rest turning of actuation ``s`` (rad) in place of Theta's."""
+    return eqx.tree_at(lambda p: p.finger.theta_entire, problem, s)
+
+
+def _tip_zone(problem: _Problem, config: ContactConfig) -> Bool[Array, " m"]:
+    """(M,) the stations within ``config.tip_tolerance`` links of the tip."""
+    f = problem.finger
+    arc = jnp.linspace(0.0, 1.0, problem.n_stations, dtype=f.length.dtype)
+    return arc >= 1.0 - config.tip_tolerance / f.n_links
+
+
+def follow_closing_path(
+    problem: _Problem, s_start: Float[Array, ""], psi: Float[Array, ""], turning: Float[Array, " n"],
     config: ContactConfig = ContactConfig(),
-) -> tuple[Float[Array, ""], Float[Array, " n"]]:
-    """The start of the solve: the geometric estimate ``(psi, turning)`` of ``contact``'s case,
-    except where it turns the base like a pin (cases b and c): there the shape at first touch
-    (the closing sweep at s1, eqs. 5-8), the last shape on which both models agree."""
-    pinned = (contact.case == ContactCase.TIP) | (contact.case == ContactCase.TIP_AND_OTHER)
-    touch_psi, touch_turning = sweep_shape(finger, contact.s1, config.sweep)
-    return jnp.where(pinned, touch_psi, psi), jnp.where(pinned, touch_turning, turning)
+) -> tuple[Float[Array, ""], Float[Array, " n"], Bool[Array, ""]]:
+    """Close the chain quasi-statically from actuation ``s_start`` (rad) and shape ``(psi, turning)``
+    to Theta: the rest turning ramps in ``n = clip(ceil((Theta - s_start) / path_step), 1,
+    path_steps)`` equal increments, each followed by ``path_iterations`` Gauss-Newton steps
+    (:func:`_newton_step`) warm-started from the last shape, contact frictionless.
+
+    Returns the shape at Theta (psi () and turning (N,), rad; not yet converged: the caller's
+    least-squares solve finishes it) and whether the tip carried contact force at some increment.
+
+    Every element of a batch runs its own n increments: under ``vmap`` the loop runs for the
+    longest path and holds each finished element (``lax.while_loop``'s per-element select), so
+    no element's answer depends on the others.
+    """
+    mech = problem.config
+    theta = problem.finger.theta_entire
+    remain = jnp.maximum(theta - s_start, 0.0)
+    count = jnp.clip(jnp.ceil(remain / mech.path_step), 1, mech.path_steps).astype(jnp.int32)
+    tip_zone = _tip_zone(problem, config)
+
+    def increment(state: _PathState) -> _PathState:
+        s_before = s_start + remain * state.step / count
+        s_after = jnp.where(state.step + 1 >= count, theta, s_start + remain * (state.step + 1) / count)
+        shape = _at_actuation(problem, s_before).shape(state.y)
+        here = _at_actuation(problem, s_after)
+        y = here.variables(*shape)
+
+        def iteration(_, carry):
+            y, previous, pressed = carry
+            step, _moved, _penetration, pushed = _newton_step(here, y, previous)
+            return y + step, step, pressed | jnp.any(pushed & tip_zone)
+
+        y, previous, pressed = jax.lax.fori_loop(0, mech.path_iterations, iteration,
+                                                 (y, state.previous, state.tip_pressed))
+        return _PathState(step=state.step + 1, y=y, previous=previous, tip_pressed=pressed)
+
+    start = _at_actuation(problem, s_start).variables(psi, turning)
+    state = _PathState(step=jnp.array(0, jnp.int32), y=start, previous=jnp.zeros_like(start),
+                       tip_pressed=jnp.array(False))
+    state = jax.lax.while_loop(lambda st: st.step < count, increment, state)
+    psi, turning = problem.shape(state.y)
+    return psi, turning, state.tip_pressed
 
 
 class Equilibrium(eqx.Module):
@@ -408,6 +481,8 @@ class Equilibrium(eqx.Module):
     penetration: Float[Array, ""]  #: deepest station inside r (mm)
     tip_foot: Float[Array, "2"]  #: the tip moved onto the object surface (mm, finger frame)
     steps: Int[Array, ""]
+    residual: Float[Array, ""]  #: the last Gauss-Newton step's largest joint displacement (mm)
+    slid_off: Bool[Array, ""]  #: the tip carried force along the closing path, but not at its end
 
 
 def solve_equilibrium(
@@ -418,12 +493,16 @@ def solve_equilibrium(
     start_turning: Float[Array, " n"],
     mechanics: MechanicsConfig = MechanicsConfig(),
     config: ContactConfig = ContactConfig(),
+    *,
+    start_actuation: Float[Array, ""] | None = None,
 ) -> Equilibrium:
     """Equilibrium of the spring chain placed by ``frame`` against ``sdf``, from a start shape.
 
     ``start_psi, start_turning`` (finger frame) start the solve and carry no derivative: the
-    equilibrium's derivatives come from implicit differentiation. See :func:`mechanics_start` for
-    the start the estimate uses.
+    equilibrium's derivatives come from implicit differentiation. With ``start_actuation`` (rad)
+    they are the shape at that actuation and the chain first closes along the path to Theta
+    (:func:`follow_closing_path`; :func:`closing_start` gives the estimate's start); without it
+    the solve starts at Theta directly.
 
     The case says where the equilibrium carries contact force: a station carries force where it
     lies inside r (the penalty pushes it) or the solver's last step modelled a positive multiplier
@@ -434,6 +513,11 @@ def solve_equilibrium(
     the edge of the tip zone is a tip contact, as the observed-closure rod's case counts areas.
     """
     problem = _Problem(finger=finger, sdf=sdf, frame=frame, config=mechanics)
+    tip_pressed = jnp.array(False)
+    if start_actuation is not None:
+        start_psi, start_turning, tip_pressed = follow_closing_path(
+            jax.lax.stop_gradient(problem), jax.lax.stop_gradient(start_actuation),
+            jax.lax.stop_gradient(start_psi), jax.lax.stop_gradient(start_turning), config)
     y0 = jax.lax.stop_gradient(problem.variables(start_psi, start_turning))
     solver = ChainGaussNewton(rtol=mechanics.contact_tol, atol=mechanics.step_tol)
     solution = optx.least_squares(
@@ -463,4 +547,5 @@ def solve_equilibrium(
     return Equilibrium(
         psi=psi, turning=turning, case=case, converged=solution.result == optx.RESULTS.successful,
         penetration=penetration, tip_foot=tip_foot, steps=solution.stats["num_steps"],
+        residual=solution.state.moved, slid_off=tip_pressed & ~tip,
     )
