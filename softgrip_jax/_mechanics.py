@@ -125,7 +125,7 @@ class MechanicsConfig(eqx.Module):
         ('other', True)
     """
 
-    max_steps: int = eqx.field(static=True, default=12)
+    max_steps: int = eqx.field(static=True, default=24)
     stations_per_link: int = eqx.field(static=True, default=3)
     penalty: float = eqx.field(static=True, default=1e4)
     active_rows: int = eqx.field(static=True, default=6)
