@@ -39,10 +39,26 @@ its tolerances gets ``Status.MECHANICS_NOT_CONVERGED``) and derivatives by impli
 differentiation of the optimality condition: the equilibrium's derivatives in Theta, L, r, rho, c,
 the base pose and the object never go through the iterations.
 
-The solve starts from the geometric estimate; where that estimate turns the base like a pin (cases
-b and c), from the shape at first touch (the closing sweep at its first contact s1, eqs. 5-8), the
-last shape on which both models agree. Where the finger does not touch the object at all, the
-equilibrium is the PCC shape and batched code skips the solve (:mod:`softgrip_jax._batch`).
+The closing path. A contact problem of this kind has several equilibria (a tip held on the object,
+or the finger pressed along its middle after the tip slid past); the estimate is the one the finger
+reaches by closing. Model and assumptions: the actuation is ramped quasi-statically from the open
+finger (0) to Theta, the rest turning 2 s / N following the actuation s; contact is frictionless
+(the tip slides along the surface); inertia is neglected (a snap-through lands in the equilibrium
+the next increments find from the shape before it). Until the first touch s1 (the contact sweep,
+eqs. 5-8) the chain closes freely through its PCC shapes, so the path costs nothing there and
+starts at the PCC shape of s1 (:func:`closing_start`); from there the actuation rises to Theta in
+at most ``path_steps`` increments of at most ``path_step`` rad, each followed by
+``path_iterations`` Gauss-Newton steps warm-started from the last shape
+(:func:`follow_closing_path`), and the least-squares solve above finishes at Theta. The path
+carries no derivative: the equilibrium's derivatives come from implicit differentiation at Theta.
+When the tip carried force along the path but does not at the end, the tip slid off the object
+(``Equilibrium.slid_off``, the estimate's ``event``): near such poses the equilibrium may jump with
+the pose. Where the finger does not touch the object at all, the equilibrium is the PCC shape and
+batched code skips the solve (:mod:`softgrip_jax._batch`).
+
+Batch independence: the path's increments and the solve's iterations are per-element loops
+(``lax.while_loop`` under ``vmap`` holds each finished element), so an element's estimate does
+not depend on which other elements share its batch.
 
 Beyond the paper: the paper's own first modelling approach, the spring-joint chain of its ref.
 [16], at equilibrium against the object with a stiffness profile and a base spring, in place of
