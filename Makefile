@@ -5,32 +5,42 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
-STAMP  := $(VENV)/.installed
+# Two stamps: `make demo` installs the core only (no torch, kornia, pyrealsense2, matplotlib);
+# `make test` adds the development extras (every backend, pytest) to the same .venv.
+CORE_STAMP := $(VENV)/.installed-core
+TEST_STAMP := $(VENV)/.installed-test
 
-.PHONY: setup test test-fast demo bench clean
+.PHONY: setup setup-demo test test-fast demo bench clean
 
-$(STAMP): pyproject.toml constraints.txt
+$(PY):
 	$(PYTHON) -m venv $(VENV)
-	$(PIP) install --quiet --upgrade pip
-	$(PIP) install --quiet -c constraints.txt -e '.[test]'
-	touch $(STAMP)
 
-setup: $(STAMP)
+$(CORE_STAMP): pyproject.toml constraints.txt | $(PY)
+	$(PIP) install --quiet --disable-pip-version-check -c constraints.txt -e .
+	touch $(CORE_STAMP)
+
+$(TEST_STAMP): $(CORE_STAMP)
+	$(PIP) install --quiet --disable-pip-version-check -c constraints.txt -e '.[test]'
+	touch $(TEST_STAMP)
+
+setup: $(TEST_STAMP)
+
+setup-demo: $(CORE_STAMP)
 
 # Two worker processes (pytest-xdist), a test file per worker at a time: the suite is mostly XLA
 # compilation, which runs on one core per process.
 PYTEST := $(PY) -m pytest -n auto --dist loadfile
 
-test: $(STAMP)
+test: $(TEST_STAMP)
 	$(PYTEST)
 
-test-fast: $(STAMP)
+test-fast: $(TEST_STAMP)
 	$(PYTEST) -m "not slow"
 
-demo: $(STAMP)
+demo: $(CORE_STAMP)
 	$(VENV)/bin/softgrip demo
 
-bench: $(STAMP)
+bench: $(TEST_STAMP)
 	$(PY) benchmarks/bench_estimate.py
 
 clean:

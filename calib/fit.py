@@ -39,8 +39,8 @@ the solver's unknown is a PyTree ``{side: {parameter: value}}`` of every registe
 those not being fitted are held at their start values (their Jacobian columns are zero, which the
 damped solve handles), so every choice of fitted parameters reuses one compilation. Frames are
 stacked per SDF type and shape and padded to a multiple of :data:`FRAME_BUCKET` with masked copies,
-so fits over similar numbers of frames reuse it too. The first fit in a process compiles (15-25 s on
-two CPU cores); a later fit of 20 frame pairs with objects takes about 2 s.
+so fits over similar numbers of frames reuse it too. The first fit in a process compiles; later fits
+reuse the compilation.
 
 After the solve: the standard error of each fitted parameter, ``sqrt(diag(sigma^2 (J^T J)^-1))``
 with J the Jacobian of the robust residuals at the solution (the solver's own linearisation, so the
@@ -48,7 +48,10 @@ robust loss weights it: an outlying joint counts less) with respect to the param
 units (the solver's columns divided by the derivative of each transform above: the delta method,
 so the stiffness ratio's standard error is in units of the ratio, not of its logarithm) and
 ``sigma^2 = sum r_rho^2 / (m - p)`` (m scalar residuals of the used frames, p fitted parameters);
-and the residual RMS (mm, of the raw joint distances) per frame and overall.
+from :data:`MIN_CLUSTERED_FRAMES` pairs on, the larger of that and the frame-clustered estimate
+(:func:`_covariance`: a frame's joints share its measurement errors). A stiffness parameter whose
+effect on the joints stays below the residuals gets a :class:`PoorlyDeterminedWarning`. And the
+residual RMS (mm, of the raw joint distances) per frame and overall.
 """
 
 from __future__ import annotations
@@ -97,6 +100,14 @@ COMPLIANCE_START = 0.01
 #: of frame pairs share one compilation.
 FRAME_BUCKET = 16
 
+#: With at least this many frame pairs, standard errors also allow for errors shared by the joints
+#: of one frame (see :func:`_covariance`); with fewer, the frame-clustered estimate is too noisy.
+MIN_CLUSTERED_FRAMES = 8
+
+#: A stiffness parameter is reported as poorly determined (:class:`PoorlyDeterminedWarning`) when a
+#: change of this fraction moves no joint of the used frames by as much as the residual RMS.
+RESOLUTION_CHANGE = 0.1
+
 # A calibration runs one fit per process: XLA's backend optimisations would double its compile time
 # (some 15 s more) to make later fits about three times faster.
 _COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
@@ -108,6 +119,11 @@ class FitError(SoftgripError):
 
 class SkippedFrameWarning(UserWarning):
     """A frame pair left out of the fit; the message names it and says why."""
+
+
+class PoorlyDeterminedWarning(UserWarning):
+    """A fitted parameter whose effect on the frames is below their residuals: its value rests on
+    how the measurement errors happen to fall, more than its standard error says."""
 
 
 @dataclass(frozen=True)
@@ -238,7 +254,9 @@ def fit(
         mechanics: the mechanics estimate's solver settings (used with ``method="mechanics"``).
         max_steps: Levenberg-Marquardt iteration cap.
         skipped: pairs already left out upstream (``{"frame", "reason"}``), carried into the report.
-        progress: show a progress bar on stderr.
+        progress: show a progress bar on stderr. Its per-step report is a host callback: with
+            ``progress=False`` the compiled solve has none and is kept by the persistent
+            compilation cache (``softgrip_jax.enable_compilation_cache``).
 
     Returns:
         ``start`` with the fitted values and ``fit`` describing the fit: method ``"least-squares"``,
@@ -300,7 +318,8 @@ def fit(
         y0, fixed, free = _unknowns(start, names)
         groups, index = _stack(candidates)
         out = _solve(y0, free, fixed, groups, jnp.asarray(loss_scale_mm, jnp.float64), n_links=n_links,
-                     config=config, method=method, mechanics=mechanics, loss=loss, max_steps=max_steps)
+                     config=config, method=method, mechanics=mechanics, loss=loss, max_steps=max_steps,
+                     progress=progress)
         flat, result, start_status, start_residuals, residuals, robust, jacobian = jax.tree.map(np.asarray, out)
 
     start_ok = (_per_frame(start_status, index) == Status.OK).all(axis=1)
@@ -313,9 +332,39 @@ def fit(
         raise FitError(f"the least-squares fit did not converge within {max_steps} steps (optimistix result "
                        f"{int(result)}); raise max_steps, or start closer (e.g. from a one-frame calibration)")
     final = _per_frame(residuals, index)[start_ok]
-    fitted = _report(start, names, flat, final, robust, jacobian, y0, [o.label for o in used], skipped, method)
+    # The frame pair of each of the solver's residuals, flattened the way the solver's are.
+    clusters = np.concatenate([np.broadcast_to((start_row + np.arange(len(g.real)))[:, None, None, None],
+                                               g.observed.shape).ravel()
+                               for start_row, g in zip(np.cumsum([0] + [len(g.real) for g in groups]), groups)])
+    fitted = _report(start, names, flat, final, robust, jacobian, y0, [o.label for o in used], skipped, method,
+                     clusters)
     return _with_frame_report(fitted, _per_frame(start_residuals, index)[start_ok], final,
                               next((o.label for o in used if o.free_closure), None))
+
+
+class PairOrderError(SoftgripError):
+    """A frame pair given CLOSED OPEN instead of OPEN CLOSED (the "open" fingers curl more)."""
+
+
+#: How much straighter (chord over arc length) the open frame's fingers must not be than the closed
+#: frame's for a pair to count as swapped. Open fingers measure about 1.0, closed ones 0.9 and less;
+#: two frames of the same state differ by measuring noise of a few thousandths.
+PAIR_ORDER_MARGIN = 0.01
+
+
+def check_pair_order(open_keypoints, closed_keypoints, label: str) -> None:
+    """Refuse a pair whose "open" frame shows the fingers more curled than its "closed" frame.
+
+    Raises:
+        PairOrderError: names the pair, both frames' straightness and the fix.
+    """
+    from vision.plausibility import straightness
+
+    opened, closed = straightness(open_keypoints), straightness(closed_keypoints)
+    if np.isfinite(opened) and np.isfinite(closed) and opened < closed - PAIR_ORDER_MARGIN:
+        raise PairOrderError(f"{label}: the pair looks swapped: the fingers of the first ('open') frame are more "
+                             f"curled (chord/arc {opened:.3f}) than those of the second ('closed') frame "
+                             f"({closed:.3f}); give each pair as OPEN CLOSED")
 
 
 def observations_from_frames(
@@ -358,6 +407,7 @@ def _measured_pair(open_frame: Frame, closed_frame: Frame, settings: Segmentatio
     """(the pair's Observation, the closed frame's measurement)."""
     opened = frame_measurement(open_frame, settings, measure)
     closed = frame_measurement(closed_frame, settings, measure, center_hint=opened.segmentation.center_column)
+    check_pair_order(opened.keypoints, closed.keypoints, label)
     # Both frames' millimetres are their own fitted planes: the same plane when the camera stayed.
     observation = Observation(
         sdf=opened.object_sdf(open_frame),
@@ -452,6 +502,8 @@ def load_observations(
         try:
             observations.append(observations_from_frames(load_frame(open_path), load_frame(closed_path),
                                                          settings, n_links, label, measure=measure))
+        except PairOrderError:
+            raise  # a mistake in the command, not in one pair's data: never skipped silently
         except SoftgripError as err:
             skipped.append(_skip(label, str(err)))
     return observations, skipped
@@ -708,10 +760,10 @@ def _evaluate(values, fixed, groups: list[_Frames], n_links: int, config: Contac
     return [r for r, _ in out], [s for _, s in out]
 
 
-@partial(jax.jit, static_argnames=("n_links", "config", "method", "mechanics", "loss", "max_steps"),
+@partial(jax.jit, static_argnames=("n_links", "config", "method", "mechanics", "loss", "max_steps", "progress"),
          compiler_options=_COMPILER_OPTIONS)
 def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, config: ContactConfig, method: str,
-           mechanics: MechanicsConfig, loss: Loss, max_steps: int):
+           mechanics: MechanicsConfig, loss: Loss, max_steps: int, progress: bool = False):
     """Robust Levenberg-Marquardt from ``y0`` over the frames whose estimates are valid at ``y0``.
 
     Returns (flattened solution, optimistix result code, estimate statuses and raw residuals at the
@@ -743,7 +795,9 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
         raw = residuals(with_fixed(y))
         return [jnp.where(u[:, None, None, None], _robust(r, scale, loss), 0.0) for u, r in zip(usable, raw)], raw
 
-    solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6, verbose=_report_step)
+    # The progress hook is a host callback, and a program with one never enters the persistent
+    # compilation cache: it is compiled in only when a progress bar is shown.
+    solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6, verbose=_report_step if progress else False)
     solution = optx.least_squares(objective, solver, y0, has_aux=True, max_steps=max_steps, throw=False)
     # The solver's state holds the residuals and the linearisation at the last accepted step: the solution.
     robust = ravel_pytree(solution.state.f_info.residual)[0]
@@ -769,14 +823,57 @@ def _columns(y0) -> list[tuple[str, str]]:
     return [(path[0].key, path[1].key) for path, leaf in paths for _ in range(int(np.size(leaf)))]
 
 
+def _covariance(jac: np.ndarray, robust: np.ndarray, clusters: np.ndarray, m: int, frames: int) -> np.ndarray:
+    """Covariance (P, P) of the fitted values from the Jacobian ``jac`` (M, P) of the robust
+    residuals ``robust`` (M,) at the solution; ``clusters`` (M,) the frame pair of each residual,
+    ``m`` the number of scalar residuals of the ``frames`` used pairs.
+
+    The textbook estimate ``sigma^2 (J^T J)^-1`` treats every joint coordinate as an independent
+    measurement. Vision's errors are not: a base point, a finger's measured length or the outline's
+    offset moves every joint of a frame together, and then that estimate is several times too
+    small. With :data:`MIN_CLUSTERED_FRAMES` pairs or more, each parameter's variance is the larger
+    of it and the frame-clustered sandwich ``B (sum_f J_f^T r_f r_f^T J_f) B G / (G - 1)``,
+    ``B = (J^T J)^-1`` over G pairs (errors independent between pairs, any correlation within one).
+    Neither sees an error every frame shares."""
+    bread = np.linalg.inv(jac.T @ jac)
+    covariance = np.sum(robust**2) / (m - jac.shape[1]) * bread
+    if frames < MIN_CLUSTERED_FRAMES:
+        return covariance
+    scores = np.stack([jac[clusters == c].T @ robust[clusters == c] for c in np.unique(clusters)])  # (G', P)
+    clustered = bread @ (scores.T @ scores) @ bread * frames / (frames - 1)
+    scale = np.sqrt(np.maximum(np.diag(clustered), np.diag(covariance)) / np.diag(covariance))
+    return covariance * np.outer(scale, scale)
+
+
+def _warn_if_poorly_determined(jac: np.ndarray, columns: list[tuple[str, str]],
+                               values: dict[tuple[str, str], list[float]], residuals: np.ndarray) -> None:
+    """Warn for each fitted stiffness parameter whose :data:`RESOLUTION_CHANGE` moves no joint of
+    the used frames by the residual RMS. ``jac`` (M, P) in the parameters' own units, its columns
+    named by ``columns``; ``residuals`` (F, 2, J, 2) mm."""
+    rms = float(np.sqrt(np.mean(np.sum(residuals**2, axis=-1))))
+    for (side, name), column in zip(columns, jac.T):
+        if name not in ("stiffness_ratio", "base_compliance"):
+            continue
+        value = values[(side, name)][0]
+        change = RESOLUTION_CHANGE * (value if name == "stiffness_ratio" else max(value, COMPLIANCE_START))
+        largest = float(np.max(np.hypot(*column.reshape(-1, 2).T))) * change
+        if largest < rms:
+            warnings.warn(PoorlyDeterminedWarning(
+                f"{side}.{name} = {value:.3f} is poorly determined by these frame pairs: changing it by "
+                f"{100 * RESOLUTION_CHANGE:.0f} % moves no joint by more than {largest:.3f} mm, less than the residual "
+                f"RMS {rms:.3f} mm, so measurement errors shared along a finger can move it far more than its standard "
+                f"error says. Add pairs whose object presses on the outer half of the fingers, or keep the stiffness "
+                f"from the fingers' design"), stacklevel=4)
+
+
 def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, residuals: np.ndarray,
             robust: np.ndarray, jacobian: np.ndarray, y0, labels: list[str],
-            skipped: list[dict[str, str]], method: str) -> CalibrationProfile:
+            skipped: list[dict[str, str]], method: str, clusters: np.ndarray) -> CalibrationProfile:
     """The fitted profile: values, residual RMS per frame and overall, standard errors.
 
     ``residuals`` (F, 2, J, 2) are the raw residuals of the F used frames; ``robust`` (M,) and
     ``jacobian`` (M, P) the solver's residuals (zero for unused frames) and their Jacobian with
-    respect to the solver's unknowns ``flat`` (P,).
+    respect to the solver's unknowns ``flat`` (P,); ``clusters`` (M,) the frame pair of each.
     """
     columns = _columns(y0)
     fitted = [k for k, (_, name) in enumerate(columns) if name in names]
@@ -799,8 +896,8 @@ def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, r
                 else "")
         raise FitError(f"the frame pairs do not constrain {what}: the residuals do not change with it{hint}; "
                        f"add frame pairs, or do not fit it")
-    sigma2 = np.sum(robust**2) / (residuals.size - len(fitted))
-    covariance = sigma2 * np.linalg.inv(jac.T @ jac)
+    covariance = _covariance(jac, robust, clusters, residuals.size, residuals.shape[0])
+    _warn_if_poorly_determined(jac, [columns[k] for k in fitted], values, residuals)
     errors: dict[tuple[str, str], list[float]] = {}
     for k, se in zip(fitted, np.sqrt(np.diag(covariance)).tolist()):
         errors.setdefault(columns[k], []).append(se)

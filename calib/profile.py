@@ -53,7 +53,6 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -63,6 +62,8 @@ from jaxtyping import ArrayLike
 
 from softgrip_jax import FingerModel, Gripper, SoftgripError
 from vision import user_json
+from calib import profile_schema
+from calib.profile_schema import MAX_MAGNITUDE, MAX_N_LINKS, _show  # noqa: F401 - the limits are this module's API too
 from vision.atomic_write import write_atomic
 from vision.frames import FrameError, Intrinsics
 from vision.measure import MeasureSettings, MeasureSettingsError
@@ -71,11 +72,6 @@ from vision.segmentation import SegmentationError, SegmentationSettings
 #: The profile format this code writes and reads.
 PROFILE_VERSION = 1
 SIDES: tuple[str, str] = ("left", "right")
-#: Most links a finger may have: the paper uses N <= 20, and memory grows with N^2 per candidate
-#: in the mechanics estimate.
-MAX_N_LINKS = 100
-#: Largest magnitude of a number in a profile: the core computes in float32 (max 3.4e38).
-MAX_MAGNITUDE = 1e30
 Method = Literal["one-frame", "least-squares"]
 METHODS: tuple[str, ...] = ("one-frame", "least-squares")
 #: The estimates a least-squares fit can go through (``fit.estimate_method``; softgrip_jax.METHODS).
@@ -229,6 +225,10 @@ class CalibrationProfile:
         """How to measure the fingers (defaults for fields the profile leaves out)."""
         return MeasureSettings.from_dict(self.vision)
 
+    def gripper(self) -> Gripper:
+        """The core's :class:`~softgrip_jax.Gripper` (:func:`to_gripper`)."""
+        return to_gripper(self)
+
     def corrected_bases(self, bases_mm: ArrayLike) -> np.ndarray:
         """(2, 2) [left, right] finger bases detected in an open frame (mm) plus each base offset."""
         offsets = np.array([self.fingers[side].base_offset for side in SIDES])
@@ -268,8 +268,10 @@ def _non_finite_number(value: Any, path: str) -> str | None:
     return None
 
 
-def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str]) -> Path:
-    """Validate ``profile`` and write it to ``path`` atomically (replacing an existing file).
+def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str], *, inputs=(),
+                 force: bool = False) -> Path:
+    """Validate ``profile`` and write it to ``path`` atomically (replacing an existing regular file,
+    keeping its mode; ``inputs`` and ``force`` as in ``vision.atomic_write.check_output``).
 
     Raises:
         ProfileError: a field is out of range (named, as when loading), or the file cannot be written.
@@ -290,7 +292,7 @@ def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str]) -> P
     _parse(data, str(path))  # the same checks as loading: never write a profile that cannot be read
     text = json.dumps(data, indent=2, allow_nan=False) + "\n"
     try:
-        write_atomic(path, text.encode("utf-8"))
+        write_atomic(path, text.encode("utf-8"), inputs=inputs, force=force, what="profile")
     except OSError as err:
         raise ProfileError(f"{path}: cannot write the profile there ({err.strerror}): check that the folder "
                            f"{path.parent} exists and is writable") from None
@@ -326,175 +328,51 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
 
 
 # ---------------------------------------------------------------------------------------------
-# Validation: each reader takes the value, its path in the document, and raises naming both.
-
-
-class _Reader:
-    """Field checks that raise a :class:`ProfileError` as ``source: path: expected ..., got ...``."""
-
-    def __init__(self, source: str):
-        self.source = source
-
-    def fail(self, path: str, expected: str, value: Any = ...) -> ProfileError:
-        got = "" if value is ... else f", got {_show(value)}"
-        return ProfileError(f"{self.source}: {path}: expected {expected}{got}")
-
-    def obj(self, value: Any, path: str, required: tuple[str, ...], optional: tuple[str, ...] = ()) -> dict:
-        if not isinstance(value, dict):
-            raise self.fail(path, "a JSON object", value)
-        for key in required:
-            if key not in value:
-                raise self.fail(f"{path}.{key}" if path else key, "a value (the field is missing)")
-        unknown = sorted(set(value) - set(required) - set(optional))
-        if unknown:
-            where = f"{path}.{unknown[0]}" if path else unknown[0]
-            raise ProfileError(f"{self.source}: {where}: unknown field (valid: {', '.join(required + optional)})")
-        return value
-
-    def number(self, value: Any, path: str, ok: Callable[[float], bool], expected: str) -> float:
-        if not _is_number(value) or not math.isfinite(value) or not ok(float(value)):
-            raise self.fail(path, expected, value)
-        if abs(value) > MAX_MAGNITUDE:  # the core computes in float32: this would become inf there
-            raise self.fail(path, f"{expected}, at most {MAX_MAGNITUDE:g} in magnitude", value)
-        return float(value)
-
-    def integer(self, value: Any, path: str, lower: int, upper: int) -> int:
-        if not _is_int(value) or not lower <= value <= upper:
-            raise self.fail(path, f"an integer >= {lower} and <= {upper}", value)
-        return int(value)
-
-    def text(self, value: Any, path: str, choices: tuple[str, ...] | None = None) -> str:
-        if choices is not None and value not in choices:
-            raise self.fail(path, "one of " + ", ".join(f'"{c}"' for c in choices), value)
-        if not isinstance(value, str) or not value:
-            raise self.fail(path, "a non-empty string", value)
-        return value
-
-    def array(self, value: Any, path: str) -> list:
-        if not isinstance(value, list):
-            raise self.fail(path, "a JSON array", value)
-        return value
+# Validation: the layout by calib.profile_schema (pydantic), then what a field's type cannot say.
 
 
 def _parse(data: Any, source: str) -> CalibrationProfile:
-    r = _Reader(source)
-    root = r.obj(data, "", ("version", "gripper", "fingers", "segmentation", "camera", "fit"), ("vision",))
-    version = root["version"]
-    if not _is_int(version) or version != PROFILE_VERSION:
-        newer = _is_int(version) and version > PROFILE_VERSION
-        raise r.fail("version", f"{PROFILE_VERSION}" + (" (the file was written by a newer softgrip-jax)"
-                                                         if newer else ""), version)
-    gripper = r.obj(root["gripper"], "gripper", ("base_separation",))
-    base_separation = r.number(gripper["base_separation"], "gripper.base_separation", lambda v: v > 0,
-                               "a distance in mm > 0")
-    fingers_obj = r.obj(root["fingers"], "fingers", SIDES)
-    fingers = {side: _parse_finger(r, fingers_obj[side], f"fingers.{side}") for side in SIDES}
-    segmentation = root["segmentation"]
-    if not isinstance(segmentation, dict):
-        raise r.fail("segmentation", "a JSON object of segmentation settings ({} for the defaults)", segmentation)
+    if not isinstance(data, dict):
+        raise ProfileError(f"{source}: expected a JSON object, got {_show(data)}")
+    document, problem = profile_schema.validate(data)
+    if problem is not None:
+        raise ProfileError(f"{source}: {problem}")
+    if document.version != PROFILE_VERSION:
+        newer = " (the file was written by a newer softgrip-jax)" if document.version > PROFILE_VERSION else ""
+        raise ProfileError(f"{source}: version: expected {PROFILE_VERSION}{newer}, got {document.version}")
     try:
-        SegmentationSettings.from_dict(segmentation, source=f"{source}: segmentation")
+        SegmentationSettings.from_dict(document.segmentation, source=f"{source}: segmentation")
     except SegmentationError as err:
         raise ProfileError(str(err)) from None
-    camera = r.obj(root["camera"], "camera", ("name", "intrinsics"))
-    r.text(camera["name"], "camera.name")
-    if camera["intrinsics"] is not None:
+    if document.camera.intrinsics is not None:
         try:
-            Intrinsics.from_dict(camera["intrinsics"], source=f"{source}: camera.intrinsics")
+            Intrinsics.from_dict(document.camera.intrinsics, source=f"{source}: camera.intrinsics")
         except FrameError as err:
             raise ProfileError(str(err)) from None
-    vision = root.get("vision", {})
+    vision = data.get("vision", {})
     try:
         MeasureSettings.from_dict(vision, source=f"{source}: vision")
     except MeasureSettingsError as err:
         raise ProfileError(str(err)) from None
-    if not isinstance(vision.get("detected", {}), dict):
-        raise r.fail("vision.detected", "a JSON object (what calibration detected)", vision["detected"])
     where = _non_finite_number(vision.get("detected", {}), "vision.detected")
     if where is not None:  # a record only, but it must survive being written again
-        raise r.fail(where, "a finite number (a record of what calibration detected)")
-    return CalibrationProfile(fingers=fingers, base_separation=base_separation, segmentation=dict(segmentation),
-                              camera=dict(camera), fit=_parse_fit(r, root["fit"]), version=PROFILE_VERSION,
-                              vision=dict(vision))
-
-
-def _parse_finger(r: _Reader, value: Any, path: str) -> FingerEntry:
-    f = r.obj(value, path, ("length", "theta_entire", "half_thickness", "n_links"),
-              ("base_offset", "stiffness_ratio", "base_compliance"))
-    offset = r.array(f.get("base_offset", [0.0, 0.0]), f"{path}.base_offset")
-    if len(offset) != 2:
-        raise r.fail(f"{path}.base_offset", "[dx, dy] in mm (two numbers)", offset)
-    return FingerEntry(
-        length=r.number(f["length"], f"{path}.length", lambda v: v > 0, "a length in mm > 0"),
-        theta_entire=r.number(f["theta_entire"], f"{path}.theta_entire", lambda v: 0 <= v < math.pi / 2,
-                              "a number in [0, pi/2)"),
-        half_thickness=r.number(f["half_thickness"], f"{path}.half_thickness", lambda v: v >= 0,
-                                "a half-thickness in mm >= 0"),
-        n_links=r.integer(f["n_links"], f"{path}.n_links", 1, MAX_N_LINKS),
-        base_offset=tuple(r.number(v, f"{path}.base_offset[{i}]", lambda _: True, "a finite number of mm")
-                          for i, v in enumerate(offset)),
-        stiffness_ratio=r.number(f.get("stiffness_ratio", 1.0), f"{path}.stiffness_ratio", lambda v: v > 0,
-                                 "a base-to-tip stiffness ratio > 0 (1: uniform)"),
-        base_compliance=r.number(f.get("base_compliance", 0.0), f"{path}.base_compliance", lambda v: v >= 0,
-                                 "a base compliance >= 0 (0: clamped base)"),
-    )
-
-
-def _parse_fit(r: _Reader, value: Any) -> FitEntry:
-    f = r.obj(value, "fit", ("method", "frames"),
-              ("estimate_method", "residual_rms_mm", *_PER_FRAME, "standard_errors", "skipped", "free_closure"))
-    method = r.text(f["method"], "fit.method", METHODS)
-    estimate_method = f.get("estimate_method")
-    if estimate_method is not None:
-        estimate_method = r.text(estimate_method, "fit.estimate_method", ESTIMATE_METHODS)
-    frames = [r.text(v, f"fit.frames[{i}]") for i, v in enumerate(r.array(f["frames"], "fit.frames"))]
-    non_negative = (lambda v: v >= 0, "a number >= 0")
-    rms = f.get("residual_rms_mm")
-    if rms is not None:
-        rms = r.number(rms, "fit.residual_rms_mm", *non_negative)
-    per_frame = {}
+        raise ProfileError(f"{source}: {where}: expected a finite number (a record of what calibration detected)")
+    fit = document.fit
     for name in _PER_FRAME:
-        path = f"fit.{name}"
-        values = [r.number(v, f"{path}[{i}]", *non_negative) for i, v in enumerate(r.array(f.get(name, []), path))]
-        if values and len(values) != len(frames):
-            raise r.fail(path, f"one value per frame in fit.frames ({len(frames)})", values)
-        per_frame[name] = values
-    free_closure = f.get("free_closure")
-    if free_closure is not None:
-        free_closure = r.text(free_closure, "fit.free_closure")
-        if free_closure not in frames:
-            raise r.fail("fit.free_closure", "the label of one of fit.frames", free_closure)
-    errors_obj = f.get("standard_errors", {})
-    if not isinstance(errors_obj, dict):
-        raise r.fail("fit.standard_errors", "a JSON object (parameter name -> standard error)", errors_obj)
-    errors: dict[str, float | list[float]] = {}
-    for name, v in errors_obj.items():
-        path = f"fit.standard_errors.{name}"
-        if isinstance(v, list):
-            errors[name] = [r.number(x, f"{path}[{i}]", *non_negative) for i, x in enumerate(v)]
-        else:
-            errors[name] = r.number(v, path, *non_negative)
-    skipped = []
-    for i, v in enumerate(r.array(f.get("skipped", []), "fit.skipped")):
-        entry = r.obj(v, f"fit.skipped[{i}]", ("frame", "reason"))
-        skipped.append({"frame": r.text(entry["frame"], f"fit.skipped[{i}].frame"),
-                        "reason": r.text(entry["reason"], f"fit.skipped[{i}].reason")})
-    return FitEntry(method=method, frames=frames, residual_rms_mm=rms, standard_errors=errors, skipped=skipped,
-                    estimate_method=estimate_method, free_closure=free_closure, **per_frame)
-
-
-def _show(value: Any) -> str:
-    """A value as JSON text (strings quoted), shortened."""
-    try:
-        text = json.dumps(value)
-    except (TypeError, ValueError):
-        text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+        values = getattr(fit, name)
+        if values and len(values) != len(fit.frames):
+            raise ProfileError(f"{source}: fit.{name}: expected one value per frame in fit.frames "
+                               f"({len(fit.frames)}), got {_show(values)}")
+    if fit.free_closure is not None and fit.free_closure not in fit.frames:
+        raise ProfileError(f"{source}: fit.free_closure: expected the label of one of fit.frames, got "
+                           f"{_show(fit.free_closure)}")
+    fingers = {side: FingerEntry(**{**getattr(document.fingers, side).model_dump(),
+                                    "base_offset": tuple(getattr(document.fingers, side).base_offset)})
+               for side in SIDES}
+    return CalibrationProfile(
+        fingers=fingers, base_separation=document.gripper.base_separation, segmentation=dict(data["segmentation"]),
+        camera=dict(data["camera"]), version=PROFILE_VERSION, vision=dict(vision),
+        fit=FitEntry(method=fit.method, frames=list(fit.frames), residual_rms_mm=fit.residual_rms_mm,
+                     standard_errors=dict(data["fit"].get("standard_errors", {})),
+                     skipped=[s.model_dump() for s in fit.skipped], estimate_method=fit.estimate_method,
+                     free_closure=fit.free_closure, **{name: list(getattr(fit, name)) for name in _PER_FRAME}))

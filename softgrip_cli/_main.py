@@ -7,12 +7,11 @@ import os
 import sys
 from collections.abc import Sequence
 
-from softgrip_jax import SoftgripError
-
 # Exit codes: 0 success, 1 unexpected failure (a bug: traceback shown), 2 user error (bad input,
 # message only), 130 interrupted, 141 output pipe closed early (as `yes | head` gives).
 EXIT_USER_ERROR = 2
 EXIT_BROKEN_PIPE = 141
+EXIT_INTERRUPTED = 130
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,11 +21,31 @@ def build_parser() -> argparse.ArgumentParser:
         prog="softgrip",
         description="Pre-touch deformation estimation of a soft gripper from one RGB-D frame.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version()}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks of user errors too")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="print results and errors only (no warnings, progress or summaries on stderr)")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="print details on stderr too (each frame's measured pose, object and plane)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in (cmd_demo, cmd_calibrate, cmd_estimate, cmd_score, cmd_capture):
         module.add_parser(sub)
+    for command in sub.choices.values():  # -q and -v after the command too (softgrip estimate ... -q)
+        command.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                             help="as softgrip -q: results and errors only on stdout and stderr")
+        command.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                             help="as softgrip -v: details on stderr too")
     return parser
+
+
+def version() -> str:
+    """The installed distribution's version (the source tree's pyproject when not installed)."""
+    from importlib.metadata import PackageNotFoundError, version as _version
+
+    try:
+        return _version("softgrip-jax")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree without installing
+        return "unknown"
 
 
 def one_line(text: str) -> str:
@@ -35,19 +54,53 @@ def one_line(text: str) -> str:
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
+def _interrupted_while_starting(signum, frame) -> None:
+    """Ctrl-C while JAX and OpenCV are imported: nothing is written yet, so leave at once. (A
+    KeyboardInterrupt raised in the middle of an extension module's import can leave it half set
+    up, and the interpreter then crashes on the way out.)"""
+    os.write(2, b"interrupted\n")
+    os._exit(EXIT_INTERRUPTED)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    # Ctrl-C at any moment, also while JAX and OpenCV are being imported (the first second or so),
+    # ends with "interrupted" and exit 130, never a traceback. This module imports nothing heavy
+    # at its top, so that the handler below covers those imports.
+    import signal
+
+    # equinox's runtime checks (inside optimistix's and lineax's solves) as NaNs, not host callbacks:
+    # programs with callbacks never enter the compilation cache. Read once, when equinox is imported,
+    # so it is set before anything below imports it; a value the user set (e.g. "raise") is kept.
+    os.environ.setdefault("EQX_ON_ERROR", "nan")
     try:
+        previous = signal.signal(signal.SIGINT, _interrupted_while_starting)
+    except ValueError:  # not the main thread: signals are not ours to handle
+        previous = None
+    try:
+        from softgrip_jax import SoftgripError
+        from vision.atomic_write import OutputRefusedError
+
+        parser = build_parser()
+        args = parser.parse_args(argv)
+    finally:
+        if previous is not None:  # from here Ctrl-C is a KeyboardInterrupt: writes clean up after it
+            signal.signal(signal.SIGINT, previous)
+    from softgrip_cli import _pipeline
+
+    _pipeline.QUIET, _pipeline.VERBOSE = bool(args.quiet), bool(args.verbose)
+    try:
+        from softgrip_cli._pipeline import enable_compilation_cache
+
+        enable_compilation_cache()  # every command: compiled programs persist across runs
         return int(args.func(args) or 0)
-    except SoftgripError as err:
+    except (SoftgripError, OutputRefusedError) as err:
         if args.debug:
             raise
         print(f"softgrip {args.command}: error: {one_line(str(err))}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except BrokenPipeError:
         # The reader of our standard output went away (`softgrip score ... | head`): not an error of
         # ours. Point stdout at /dev/null so that flushing it at exit cannot raise again.

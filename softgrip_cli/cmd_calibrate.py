@@ -106,7 +106,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help="camera name or serial number to record (default: the --profile's, else "
                              "'unspecified')")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="PROFILE",
-                        help="profile file to write (JSON; replaced atomically if it exists)")
+                        help="profile file to write (JSON; replaced atomically if it exists; never one of the "
+                             "command's inputs)")
+    from softgrip_cli._pipeline import add_force_argument
+
+    add_force_argument(parser)
     parser.add_argument("--json", action="store_true", help="print the report as JSON on stdout")
     parser.set_defaults(func=run)
     return parser
@@ -147,14 +151,15 @@ def run(args: argparse.Namespace) -> int:
     from calib.fit import SkippedFrameWarning
     from softgrip_cli._pipeline import check_output_file
 
-    check_output_file(args.output, "-o")  # before a fit that may take minutes
+    inputs = _inputs(args)
+    check_output_file(args.output, "-o", inputs, args.force)  # before a fit that may take minutes
     with warnings.catch_warnings():
         warnings.simplefilter("always", SkippedFrameWarning)
         warnings.showwarning = _print_warning
         profile, start_method = _fit(args) if args.fit else (_one_frame(args), None)
     from calib.profile import save_profile
 
-    save_profile(profile, args.output)
+    save_profile(profile, args.output, inputs=inputs, force=args.force)
     if args.fit:
         _warn_if_free_closure_worse(profile, start_method)
     if args.json:
@@ -165,6 +170,14 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print_summary(profile, args.output, start_method if args.fit else None)
     return 0
+
+
+def _inputs(args: argparse.Namespace) -> list[Path]:
+    """Every file the command reads: the frames' files and the start profile (output policy)."""
+    from softgrip_cli._pipeline import frame_inputs
+
+    frames = [args.closed, args.open_frame, *(args.fit or ()), *(args.empty or ())]
+    return frame_inputs(*frames) + ([args.profile] if args.profile is not None else [])
 
 
 def _one_frame(args: argparse.Namespace):
@@ -251,8 +264,10 @@ def _fit(args: argparse.Namespace):
     elif args.profile is None:  # (a --profile's pair was looked for above, and its absence reported)
         print("softgrip calibrate: note: no pair of the gripper closed without an object in the fit, so nothing "
               "keeps it from making the free closure worse; add one with --empty OPEN CLOSED", file=sys.stderr)
+    # A progress bar only on a terminal: its per-step callback keeps the solve out of the compilation
+    # cache, so scripted runs (stderr not a terminal) compile once per machine instead of once per run.
     fitted = fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, method=method,
-                 skipped=skipped)
+                 skipped=skipped, progress=sys.stderr.isatty())
     # The start's method says what the free closure's start residual is (e.g. the one-frame calibration's).
     return dataclasses.replace(fitted, vision={**fitted.vision, **measure.to_dict()}), start.fit.method
 
@@ -389,4 +404,7 @@ def _print_frames(profile, start_method: str | None) -> None:
 
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"softgrip calibrate: warning: {message}", file=sys.stderr)
+    from softgrip_cli import _pipeline
+
+    if not _pipeline.QUIET:
+        print(f"softgrip calibrate: warning: {message}", file=sys.stderr)

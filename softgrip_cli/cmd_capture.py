@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+import warnings
 from pathlib import Path
 
-from vision.realsense import CameraError, capture_from_camera, capture_from_recording
+from vision.realsense import CameraError, RecordingDamagedError, capture_from_camera, capture_from_recording
 from softgrip_cli._args import positive_int
 
 EPILOG = """\
@@ -20,7 +22,9 @@ examples:
 Each frame is a new folder DIR/frame_0000, frame_0001, ... (the first free names) holding
 color.png (8-bit RGB), depth.png (16-bit, units of depth_scale metres, 0 = no reading,
 aligned to colour) and intrinsics.json (colour intrinsics and depth_scale). Existing folders
-are never overwritten. Needs pyrealsense2: pip install 'softgrip-jax[realsense]'.
+are never overwritten. A .db3 recording's frames are counted from its container: if playback
+delivers fewer (a damaged file), the readable frames are written, the lost frame numbers named,
+and the command exits with 2 (0 with --allow-partial). Needs pyrealsense2: pip install 'softgrip-jax[realsense]'.
 """
 
 
@@ -34,7 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
+    parser.add_argument("-o", "--output", "--out", dest="out", required=True, type=Path, metavar="DIR",
                         help="folder to write the frame folders into (created if missing)")
     parser.add_argument("--bag", type=Path, metavar="FILE",
                         help="read this recording (.db3, or legacy .bag) instead of a camera")
@@ -46,6 +50,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--fps", type=positive_int, help="camera frame rate (default: 30)")
     parser.add_argument("--count", type=positive_int, metavar="N",
                         help="number of frames (default: 1 from a camera, all of a recording)")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="with --bag, accept a damaged recording: write the frames that can be read, warn "
+                             "about the lost ones and exit 0 (default: exit 2 naming the lost frames)")
     parser.add_argument("--json", action="store_true",
                         help='print {"frames": [folder, ...]} on stdout')
     parser.set_defaults(func=run)
@@ -60,7 +67,17 @@ def run(args: argparse.Namespace) -> int:
         if camera_only:
             raise CameraError(f"{', '.join(camera_only)} apply to a camera, not to --bag "
                               f"{args.bag}: a recording keeps the settings it was made with")
-        paths = capture_from_recording(args.bag, args.out, count=args.count)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("always")
+                warnings.showwarning = _print_warning
+                paths = capture_from_recording(args.bag, args.out, count=args.count,
+                                               allow_partial=args.allow_partial)
+        except RecordingDamagedError as err:
+            _print_paths(err.written, args.json, lost=err.lost)  # what was written is still reported
+            raise
+    elif args.allow_partial:
+        raise CameraError("--allow-partial applies to --bag (a recording), not to a camera")
     else:
         paths = capture_from_camera(
             args.out,
@@ -70,9 +87,23 @@ def run(args: argparse.Namespace) -> int:
             fps=args.fps or 30,
             count=args.count or 1,
         )
-    if args.json:
-        print(json.dumps({"frames": [str(path) for path in paths]}))
+    _print_paths(paths, args.json)
+    return 0
+
+
+def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    from softgrip_cli import _pipeline
+
+    if not _pipeline.QUIET:
+        print(f"softgrip capture: warning: {message}", file=sys.stderr)
+
+
+def _print_paths(paths, as_json: bool, lost=None) -> None:
+    if as_json:
+        record = {"frames": [str(path) for path in paths]}
+        if lost is not None:
+            record.update(complete=False, lost_frame_numbers=list(lost))
+        print(json.dumps(record))
     else:
         for path in paths:
             print(path)
-    return 0

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -46,7 +47,8 @@ def add_parser(subparsers) -> None:
         description="Run the whole pipeline on the sample frames shipped in data/: calibrate from the "
                     "calibration pair, estimate each scene, score a grid of poses and refine the best.",
     )
-    parser.add_argument("--out", default="demo-out", metavar="DIR", help="output folder (default: demo-out)")
+    parser.add_argument("-o", "--output", "--out", dest="out", default="demo-out", metavar="DIR",
+                        help="output folder (default: demo-out)")
     parser.add_argument("--data", default=None, metavar="DIR",
                         help=f"sample frames (default: the repository's data/, {DATA_DIR})")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
@@ -58,8 +60,10 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     data = Path(args.data) if args.data else DATA_DIR
     scenes = _scene_names(data)
+    if Path(os.path.realpath(args.out)).is_relative_to(os.path.realpath(data)):
+        raise SoftgripError(f"--out {args.out} lies inside the sample frames' folder {data}, the demo's input: "
+                            f"choose an output folder outside it")
     out = pipe.ensure_dir(args.out, "output folder")
-    pipe.enable_compilation_cache()
     timings: dict[str, float] = {}
     written: list[str] = []
 
@@ -100,8 +104,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(_table(summary))
     sys.stdout.flush()
-    print(f"demo finished in {timings['total']:.1f} s (including compilation; later runs reuse it)",
-          file=sys.stderr)
+    pipe.note(f"demo finished in {timings['total']:.1f} s (including compilation; later runs reuse it)")
     return 0
 
 
@@ -218,7 +221,15 @@ def _score_scene(scene: pipe.FrameScene, out: Path, method: str) -> dict:
     best = int(order[0])
     name = scene.name[:-len("_open")] if scene.name.endswith("_open") else scene.name
     heatmap = f"heatmap_{name}.png"
-    save_png(out / heatmap, cmd_score.heatmap_image(scene, poses, result, grid, best))
+    from vision import plots
+
+    try:
+        plots.require_matplotlib()
+    except SoftgripError:  # no matplotlib: the OpenCV drawing on the frame's pixels
+        pipe.note(f"{heatmap} drawn without mm axes: for the plot, {plots.INSTALL_HINT}")
+        save_png(out / heatmap, cmd_score.heatmap_image(scene, poses, result, grid, best))
+    else:
+        plots.save_figure(plots.heatmap_figure(scene, poses, result, grid, best), out / heatmap)
     return {
         "scene": name, "n_candidates": len(poses), "n_valid": int(np.sum(result.valid)),
         "seconds": round(elapsed, 3),

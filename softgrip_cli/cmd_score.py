@@ -7,6 +7,7 @@ import csv
 import io
 import json
 import math
+import os
 import re
 import sys
 import time
@@ -18,6 +19,8 @@ import numpy as np
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_method
 from softgrip_jax import DEFAULT_METHOD, SoftgripError
+from vision import documents
+from vision import scene as scene_api
 from vision import user_json
 
 EPILOG = """examples:
@@ -37,12 +40,17 @@ Poses:
               or this command's own --json output; FILE.csv: rows x_mm,y_mm[,angle_rad], optional
               header naming the columns; angle 0 when left out
 
-With --json, stdout is {"frame", "method", "n_links", "n_candidates", "n_valid", "candidates": [...]}, the
+With --json (or -o FILE), one JSON document (schema: schemas/score.schema.json): {"format":
+"softgrip-score/1", "kind": "score", "units", "conventions" (origin, axes, units, the gripper plane's
+depth_mm, normal and tilt_deg), "profile" (path, sha256, camera, fit, geometry), "frame", "method",
+"n_links", "n_candidates", "n_valid", "frame_pose" (the gripper's pose read from the frame), "candidates": [...]}, the
 candidates ranked best first (--top K of them, 0 for all), each {"pose": {"x_mm", "y_mm",
 "angle_rad"}, "score" (null when not valid), "components", "valid", "status", "fingers": [left,
 right]} with the fingers' fields as in `softgrip estimate --json`.
-The heat map (--heatmap PNG) colours each gripper-centre position by its best score over the angles,
-blended over the frame, with the best pose's estimate drawn (joints blue, contacts red).
+The heat map (--heatmap IMAGE; .png, .jpg, .pdf, .svg, ... as the extension says; needs matplotlib:
+pip install softgrip-jax[plots]) shows the frame in the gripper plane's mm, each gripper-centre
+position coloured by its best score over the angles (grey: none valid), a colour bar, the whole grid
+in view, and the best pose's estimate (fingers blue, contacts red, centre and base line black).
 """
 
 #: Poses of the default grid along x, y and the angle (fixed, so every frame reuses one compilation).
@@ -68,9 +76,16 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--profile", required=True, metavar="P", help="calibration profile (JSON)")
     poses = parser.add_mutually_exclusive_group()
     poses.add_argument("--grid", metavar="X0:X1:NX,Y0:Y1:NY,A0:A1:NA", help="a grid of poses (mm, mm, rad)")
-    poses.add_argument("--poses", metavar="FILE", help="poses from a .json or .csv file")
+    poses.add_argument("--poses", metavar="FILE", help="poses from a .json or .csv file ('-': standard input, JSON "
+                                                       "or CSV told apart by the first character)")
     parser.add_argument("--json", action="store_true", help="print the ranked candidates as JSON")
-    parser.add_argument("--heatmap", metavar="PNG", help="write the score heat map over the frame")
+    parser.add_argument("--heatmap", metavar="IMAGE",
+                        help="write the score heat map over the frame, in mm with a colour bar (matplotlib); the "
+                             "format from the extension: .png, .jpg, .pdf, .svg, ...")
+    parser.add_argument("-o", "--output", metavar="FILE",
+                        help="write the ranked candidates as JSON (as --json prints them) to FILE, atomically: "
+                             "a run that is stopped leaves FILE as it was ('-': stdout)")
+    pipe.add_force_argument(parser)
     parser.add_argument("--top", type=int, default=10, metavar="K",
                         help="how many of the best candidates to print (default 10; 0 for all)")
     parser.add_argument("--length-from-frame", action="store_true",
@@ -80,11 +95,10 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vision.overlay import save_png
+    from vision import plots
 
     if args.top < 0:
         raise SoftgripError(f"--top must be >= 0 (0 prints every candidate), got {args.top}")
-    pipe.enable_compilation_cache()
     profile = pipe.load_profile(args.profile)
     method = resolve_method(args.method, profile)
     grid = None
@@ -92,9 +106,18 @@ def run(args: argparse.Namespace) -> int:
         poses = read_poses(args.poses)  # before the frame: a bad file fails fast
     elif args.grid:
         grid = parse_grid(args.grid)
+    inputs = pipe.frame_inputs(args.frame) + [Path(args.profile)] + ([Path(args.poses)] if args.poses not in
+                                                                       (None, "-") else [])
+    to_stdout = args.json or args.output == "-"
+    output = None if args.output in (None, "-") else args.output
     if args.heatmap:
         pipe.ensure_dir(Path(args.heatmap).parent, "heat map's folder")
-        pipe.check_output_file(args.heatmap, "--heatmap")
+        pipe.check_output_file(args.heatmap, "--heatmap", inputs, args.force)
+        plots.figure_format(args.heatmap, "--heatmap")  # matplotlib installed, a format it writes
+    if output:
+        pipe.check_output_file(output, "-o", inputs, args.force)
+        if args.heatmap and os.path.realpath(args.heatmap) == os.path.realpath(output):
+            raise SoftgripError(f"-o and --heatmap name the same file {args.output}: give two file names")
     scene = pipe.frame_scene(args.frame, profile, length_from_frame=args.length_from_frame)
     if not args.poses:
         grid = grid or default_grid(scene)
@@ -105,23 +128,49 @@ def run(args: argparse.Namespace) -> int:
     result, elapsed = score_poses(scene, poses, method)
     order = rank(result)
     n_valid = int(np.sum(result.valid))
-    print(f"scored {len(poses)} candidate poses ({method} estimate) in {elapsed:.1f} s "
-          f"(including compilation the first "
-          f"time); {n_valid} valid", file=sys.stderr)
+    pipe.note(f"scored {len(poses)} candidate poses ({method} estimate) in {elapsed:.1f} s (including compilation "
+              f"the first time); {n_valid} valid")
 
     shown = order if args.top == 0 else order[:args.top]
     if args.heatmap:
-        image = heatmap_image(scene, poses, result, grid, int(order[0]))
-        save_png(args.heatmap, image)
-    if args.json:
-        out = {"frame": scene.path, "method": method, "n_links": scene.n_links, "n_candidates": len(poses), "n_valid": n_valid,
-               "candidates": [pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera)
-                              for i in shown]}
-        json.dump(out, sys.stdout, allow_nan=False)
-        print()
+        figure = plots.heatmap_figure(scene, poses, result, grid, int(order[0]))
+        plots.save_figure(figure, args.heatmap, inputs=inputs, force=args.force, what="--heatmap")
+    header = {**documents.document_header("score", documents.profile_identity(profile, args.profile),
+                                          scene.conventions),
+              "frame": scene.path, "method": method, "n_links": scene.n_links, "n_candidates": len(poses),
+              "n_valid": n_valid, "frame_pose": documents.pose_json(scene.pose)}
+    if output:
+        from vision.atomic_write import atomic_open
+
+        try:
+            with atomic_open(output, inputs=inputs, force=args.force, what="-o") as handle:
+                write_json_stream(lambda text: handle.write(text.encode("utf-8")), header, scene, poses, result,
+                                  shown)
+        except OSError as err:
+            raise SoftgripError(f"-o {output}: cannot write it ({err.strerror}); it is left as it was") from None
+    if to_stdout:
+        write_json_stream(sys.stdout.write, header, scene, poses, result, shown)
+        sys.stdout.flush()
     else:
         print(_table(scene, poses, result, shown, n_valid))
     return 0
+
+
+def write_json_stream(write, header: dict, scene: pipe.FrameScene, poses: np.ndarray, result,
+                      shown: np.ndarray) -> None:
+    """Write ``header`` with its ``"candidates"`` list (``shown``, in order) through ``write`` (a
+    function taking text) as one JSON object and a newline, a few hundred candidates at a time:
+    memory stays that of a few hundred candidates however many there are."""
+    text = json.dumps(header, allow_nan=False)
+    write(text[:-1] + ', "candidates": [')
+    chunk: list[str] = []
+    for k, i in enumerate(shown):
+        chunk.append(json.dumps(pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera),
+                                allow_nan=False))
+        if len(chunk) == 256 or k == len(shown) - 1:
+            write((", " if k >= len(chunk) else "") + ", ".join(chunk))
+            chunk = []
+    write("]}\n")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -184,6 +233,8 @@ def read_poses(path: str) -> np.ndarray:
     Raises:
         PoseInputError: a missing or unreadable file, or a bad entry (named by its line).
     """
+    if path == "-":
+        return _stdin_poses()
     file = Path(path)
     try:
         text = file.read_text(encoding="utf-8")
@@ -198,14 +249,29 @@ def read_poses(path: str) -> np.ndarray:
         poses = _csv_poses(text, file)
     else:
         raise PoseInputError(f"{file}: a pose file must be .json or .csv, got {suffix or 'no suffix'!r}")
-    if not poses:
+    if len(poses) == 0:
         raise PoseInputError(f"{file}: no poses in the file")
     if len(poses) > MAX_POSES:
         raise PoseInputError(f"{file}: {len(poses)} poses; at most {MAX_POSES} per call (split the file)")
     return np.asarray(poses, np.float64)
 
 
-def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
+def _stdin_poses() -> np.ndarray:
+    """Poses from standard input: JSON when it starts with '[' or '{', else CSV."""
+    label = Path("<stdin>")
+    try:
+        text = sys.stdin.read()
+    except (OSError, UnicodeDecodeError) as err:
+        raise PoseInputError(f"--poses -: cannot read standard input ({err})") from None
+    poses = _json_poses(text, label) if text.lstrip()[:1] in ("[", "{") else _csv_poses(text, label)
+    if len(poses) == 0:
+        raise PoseInputError(f"{label}: no poses on standard input")
+    if len(poses) > MAX_POSES:
+        raise PoseInputError(f"{label}: {len(poses)} poses; at most {MAX_POSES} per call (split the input)")
+    return np.asarray(poses, np.float64)
+
+
+def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]] | np.ndarray:
     try:
         data = user_json.loads(text)
     except json.JSONDecodeError as err:
@@ -221,12 +287,40 @@ def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
         items = data
     else:
         raise PoseInputError(f"{file}, line 1: expected a list of poses, got {type(data).__name__}")
-    lines = _element_lines(text, key, len(items))
+    fast = _numeric_rows(items)
+    if fast is not None:
+        return fast
     poses = []
     for i, item in enumerate(items):
-        where = f"{file}, line {lines[i]}" if lines else f"{file}, pose {i + 1}"
-        poses.append(_json_pose(item, where))
+        try:
+            poses.append(_json_pose(item, f"{file}, pose {i + 1}"))
+        except PoseInputError as err:
+            # Name the line: found only now, as scanning for every element's line is slow.
+            lines = _element_lines(text, key, len(items))
+            if lines is None:
+                raise
+            raise PoseInputError(str(err).replace(f"{file}, pose {i + 1}", f"{file}, line {lines[i]}", 1)) from None
     return poses
+
+
+def _numeric_rows(items: list) -> np.ndarray | None:
+    """(B, 3) poses when every item is a list of 2 or 3 finite numbers (the common, large case: read
+    at numpy's speed), else None (the item-by-item reader then names the bad item)."""
+    number = (int, float)
+    try:
+        if not all(type(row) is list and 2 <= len(row) <= 3 for row in items):
+            return None
+        if not all(type(v) in number for row in items for v in row):
+            return None
+        if all(len(row) == 3 for row in items):
+            poses = np.array(items, np.float64)
+        else:
+            poses = np.zeros((len(items), 3))
+            for i, row in enumerate(items):
+                poses[i, :len(row)] = row
+    except (OverflowError, ValueError):
+        return None
+    return poses if np.isfinite(poses).all() else None
 
 
 def _json_pose(item, where: str) -> tuple[float, float, float]:
@@ -331,42 +425,26 @@ def _show(value) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-#: Smallest padded batch: every grid or file of up to this many poses shares one compilation (with
-#: the persistent cache, across runs too); evaluating the padding costs a fraction of a second.
-MIN_BATCH = 2048
-
-
-def _pad(poses: np.ndarray) -> np.ndarray:
-    """Poses padded (with copies of the first) to a power of two >= MIN_BATCH, so that batches of
-    similar sizes share one compilation."""
-    size = max(MIN_BATCH, 1 << (len(poses) - 1).bit_length())
-    return np.concatenate([poses, np.repeat(poses[:1], size - len(poses), axis=0)])
+#: Smallest padded batch (``vision.scene.MIN_BATCH``): every grid or file of up to this many poses
+#: shares one compilation.
+MIN_BATCH = scene_api.MIN_BATCH
 
 
 def score_poses(scene: pipe.FrameScene, poses: np.ndarray, method: str = DEFAULT_METHOD):
-    """Score (B, 3) poses on ``scene`` in one compiled call (``softgrip_jax.score``), with the
+    """Score (B, 3) poses on ``scene`` in one compiled call (``vision.scene.Scene.score``), with the
     deformation estimate ``method`` (``"geometric"`` or ``"mechanics"``).
 
     Returns:
         The ``Score`` with numpy leaves of leading axis B, and the seconds it took (compilation
         included the first time a batch size is seen).
     """
-    import jax
-    import jax.numpy as jnp
-
-    from softgrip_jax import score
-
     start = time.perf_counter()
-    padded = jnp.asarray(_pad(poses), scene.gripper.base_separation.dtype)
-    result = pipe.to_numpy(jax.block_until_ready(score(scene.gripper, scene.sdf, padded, method=method)))
-    result = jax.tree_util.tree_map(lambda x: x[:len(poses)], result)
+    result = scene.score(poses, method=method)
     return result, time.perf_counter() - start
 
 
-def rank(result) -> np.ndarray:
-    """Candidate indices, best score first; invalid candidates last, each group in input order."""
-    key = np.where(np.asarray(result.valid) & np.isfinite(result.score), result.score, -np.inf)
-    return np.argsort(-key, kind="stable")
+#: Candidate indices, best score first; invalid candidates last, each group in input order.
+rank = scene_api.rank
 
 
 # ---------------------------------------------------------------------------------------------
@@ -389,7 +467,8 @@ def _table(scene: pipe.FrameScene, poses: np.ndarray, result, shown: np.ndarray,
 
 
 def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best: int) -> np.ndarray:
-    """The frame with the best score over the angles at each gripper-centre position (viridis:
+    """The heat map drawn with OpenCV on the frame's pixels (the demo's picture when matplotlib is
+    not installed; ``vision.plots.heatmap_figure`` is the plot with mm axes): the frame with the best score over the angles at each gripper-centre position (viridis:
     yellow best, purple worst among the valid; grey where no angle is valid), the best candidate's
     estimate (joints blue, contacts red) and its centre and base line, a colour bar and a caption."""
     rgb = scene.frame.color

@@ -17,6 +17,7 @@ The object is a signed-distance function (:mod:`softgrip_jax._sdf`); fingers at 
 rotated or mirrored, see it through a frame (:mod:`softgrip_jax._frames`).
 """
 
+from softgrip_jax._cache import enable_compilation_cache
 from softgrip_jax._batch import estimate_batch, estimate_grasp_batch
 from softgrip_jax._contact import CASE_NAMES, Contact, ContactCase, ContactConfig, predict_contact, predict_contact_local, sweep_shape
 from softgrip_jax._deformation import Estimate, Status, case_shapes, estimate, estimate_in_frame
@@ -35,7 +36,7 @@ __all__ = [
     "AbstractSDF", "CASE_NAMES", "FAR_MM", "Contact", "ContactCase", "ContactConfig", "Estimate", "FingerFrame",
     "FingerModel", "GraspEstimate", "Gripper", "PolygonSDF", "SDFGrid", "SoftgripError",
     "Status", "case_shapes", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
-    "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",
+    "enable_compilation_cache", "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",
     "joint_errors", "link_angles", "link_stiffness", "DEFAULT_METHOD", "METHODS", "MechanicsConfig", "RefineStatus", "Refined", "Score", "ScoreComponents", "ScoreWeights",
     "refine", "score", "score_pose", "pcc_joints", "pcc_turning", "predict_contact", "predict_contact_local", "sweep_shape",
 ]

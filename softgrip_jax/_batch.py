@@ -134,13 +134,28 @@ def finger_chunk(finger, sdf, frames, config, mechanics, method):
 
 
 def map_chunks(fn, xs, chunk_size):
-    """``fn`` on chunks of ``chunk_size`` rows of ``xs`` (padded with its first row), concatenated."""
+    """``fn`` on chunks of ``chunk_size`` rows of ``xs``, concatenated: outputs with ``xs``'s leading axis.
+
+    Each chunk's output is written in place into the output arrays (a loop-carried buffer), so the
+    function holds the result once, not once more for a stacked copy. The last chunk ends at the
+    last row, overlapping the one before it instead of being padded (its overlapping rows are
+    computed twice, to the same values: every row is independent). A batch of at most one chunk
+    is padded with its first row.
+    """
     b = xs.shape[0]
-    n_chunks = -(-b // chunk_size)
-    if n_chunks == 1:  # no loop around one chunk (its per-iteration cost shows in a small batch's latency)
+    if b <= chunk_size:  # no loop around one chunk (its per-iteration cost shows in a small batch's latency)
         return jax.tree_util.tree_map(lambda x: x[:b], fn(pad_rows(xs, chunk_size)))
-    out = jax.lax.map(fn, pad_rows(xs, n_chunks * chunk_size).reshape((n_chunks, chunk_size) + xs.shape[1:]))
-    return jax.tree_util.tree_map(lambda x: x.reshape((n_chunks * chunk_size,) + x.shape[2:])[:b], out)
+    n_chunks = -(-b // chunk_size)
+    starts = jnp.minimum(jnp.arange(n_chunks) * chunk_size, b - chunk_size)
+    shapes = jax.eval_shape(fn, jax.ShapeDtypeStruct((chunk_size,) + xs.shape[1:], xs.dtype))
+    out = jax.tree_util.tree_map(lambda s: jnp.zeros((b,) + s.shape[1:], s.dtype), shapes)
+
+    def write(i, out):
+        start = starts[i]
+        values = fn(jax.lax.dynamic_slice_in_dim(xs, start, chunk_size))
+        return jax.tree_util.tree_map(lambda o, v: jax.lax.dynamic_update_slice_in_dim(o, v, start, 0), out, values)
+
+    return jax.lax.fori_loop(0, n_chunks, write, out)
 
 
 @partial(tuned_jit, static_argnames=("chunk_size", "method"))

@@ -454,19 +454,27 @@ def refine_contact(
     need_root, touches, initial_overlap = bracket.needs_root, bracket.touches, bracket.initial_overlap
     lower, upper, start, first = bracket.lower, bracket.upper, bracket.start, bracket.first
 
-    def fn(s, args):
-        finger_, base_, start_ = args
+    def fn(s):
         # Where there is no bracket, solve a harmless stand-in (root at the start, slope -1), so
         # that the implicit derivative stays finite.
-        real = _window_clearance(finger_, dist, base_, s, config, first)
-        return jnp.where(need_root, real, start_ - s)
+        real = _window_clearance(finger, dist, base, s, config, first)
+        return jnp.where(need_root, real, start - s)
 
-    solution = optx.root_find(
-        fn, optx.Newton(rtol=0.0, atol=config.root_atol), start, args=(finger, base, start),
-        options=dict(lower=lower, upper=upper), throw=False, max_steps=config.root_max_steps,
-    )
-    root_converged = (solution.result == optx.RESULTS.successful) | ~need_root
-    s1 = jnp.where(need_root, solution.value, jnp.where(initial_overlap, 0.0, theta))
+    def solve(fn_, s0):
+        solution = optx.root_find(
+            lambda s, _: fn_(s), optx.Newton(rtol=0.0, atol=config.root_atol), s0,
+            options=dict(lower=lower, upper=upper), throw=False, max_steps=config.root_max_steps,
+        )
+        # The flag as a float: custom_root gives its auxiliary outputs zero tangents of their own dtype.
+        return solution.value, (solution.result == optx.RESULTS.successful).astype(s0.dtype)
+
+    # Gradients through s1 by the implicit function theorem, ds1 = -dg / (dg/ds), with JAX's own
+    # custom_root rather than optimistix's adjoint: that one solves the (here 1x1) tangent system
+    # with lineax, whose checks are host callbacks under reverse mode, and a program with host
+    # callbacks never enters the persistent compilation cache.
+    root, converged = jax.lax.custom_root(fn, start, solve, lambda g, y: y / g(jnp.ones_like(y)), has_aux=True)
+    root_converged = (converged > 0.5) | ~need_root
+    s1 = jnp.where(need_root, root, jnp.where(initial_overlap, 0.0, theta))
 
     # First contact point on the finger (eq. 6-7): the station nearest the base among those
     # touching at s1, refined between stations.

@@ -47,6 +47,34 @@ class Status(enum.IntEnum):
     INITIAL_OVERLAP = 3  #: the object already overlaps the open finger: the pose collides (reported as case none)
     ROOT_NOT_CONVERGED = 4  #: the first-contact root finder hit its iteration cap
     MECHANICS_NOT_CONVERGED = 5  #: the mechanics equilibrium missed its tolerances within its budget
+    NON_FINITE_SDF = 6  #: the object's signed distances hold a NaN or inf (an SDFGrid cell, a vertex)
+    PARAMETER_OUT_OF_RANGE = 7  #: a finger parameter outside its range (Theta not in [0, pi/2), L <= 0, ...)
+    COORDINATE_OUT_OF_RANGE = 8  #: the base lies farther than MAX_COORDINATE_MM from the origin; joints are NaN
+    NON_FINITE_RESULT = 9  #: the estimate (or its score) came out NaN or inf although its inputs looked usable
+
+
+#: Largest base coordinate (mm) an estimate accepts: 100 m. Farther, float32 cannot resolve a link
+#: (its spacing there is a fraction of a millimetre and grows with the distance), so such a pose is
+#: a unit or data mistake, reported as ``Status.COORDINATE_OUT_OF_RANGE``.
+MAX_COORDINATE_MM = 1.0e5
+
+
+def input_problem(finger: FingerModel, sdf: AbstractSDF, origin: Array, method: str) -> Int[Array, ""]:
+    """The :class:`Status` of inputs that are finite but unusable (0 if none): a base beyond
+    :data:`MAX_COORDINATE_MM`, a finger parameter out of its range (checked here because under
+    ``jit``/``vmap`` the model's construction cannot see the values), or non-finite SDF data."""
+    from softgrip_jax._model import THETA_MAX
+
+    in_range = (
+        (finger.theta_entire >= 0) & (finger.theta_entire < THETA_MAX) & (finger.length > 0)
+        & (finger.half_thickness >= 0)
+    )
+    if method == "mechanics":
+        in_range = in_range & (finger.stiffness_ratio > 0) & (finger.base_compliance >= 0)
+    near = jnp.all(jnp.abs(origin) <= MAX_COORDINATE_MM)
+    return jnp.where(~near, Status.COORDINATE_OUT_OF_RANGE,
+                     jnp.where(~in_range, Status.PARAMETER_OUT_OF_RANGE,
+                               jnp.where(~sdf.all_finite(), Status.NON_FINITE_SDF, Status.OK))).astype(jnp.int32)
 
 
 class Estimate(eqx.Module):
@@ -131,6 +159,7 @@ class Stage(eqx.Module):
     contact: Contact
     psi: Float[Array, ""]
     turning: Float[Array, " n"]
+    problem: Int[Array, ""]  #: :func:`input_problem`'s status
 
 
 class Search(eqx.Module):
@@ -145,11 +174,12 @@ class Search(eqx.Module):
     finite: Bool[Array, ""]
     inside: Bool[Array, ""]
     bracket: Bracket
+    problem: Int[Array, ""]  #: :func:`input_problem`'s status
 
     @property
     def need_refining(self) -> Bool[Array, ""]:
         """A usable input whose first contact lies inside (0, Theta]."""
-        return self.finite & self.inside & self.bracket.needs_root
+        return self.finite & self.inside & (self.problem == Status.OK) & self.bracket.needs_root
 
 
 def _distance_in(sdf: AbstractSDF, frame: FingerFrame):
@@ -168,8 +198,9 @@ def search_contact(
     )
     if method == "mechanics":
         finite = finite & jnp.isfinite(finger.stiffness_ratio) & jnp.isfinite(finger.base_compliance)
+    problem = input_problem(finger, sdf, jnp.where(finite, frame.origin, 0.0), method)
     inside = sdf.contains(jnp.where(finite, frame.origin, 0.0))
-    usable = finite & inside
+    usable = finite & inside & (problem != Status.COORDINATE_OUT_OF_RANGE)
     # An unusable input is replaced by a harmless one so it cannot produce NaN gradients;
     # its outputs are then overwritten with NaN.
     safe_frame = FingerFrame(
@@ -178,7 +209,7 @@ def search_contact(
         handedness=frame.handedness,
     )
     return Search(frame=safe_frame, finite=finite, inside=inside,
-                  bracket=bracket_contact(finger, _distance_in(sdf, safe_frame), config, rows))
+                  bracket=bracket_contact(finger, _distance_in(sdf, safe_frame), config, rows), problem=problem)
 
 
 def search_further(
@@ -200,7 +231,7 @@ def stage_of(finger: FingerModel, search: Search, refined: Contact) -> Stage:
     contact = jax.tree_util.tree_map(lambda a, b: jnp.where(need, a, b), refined, free_contact(finger, search.bracket))
     psi_all, turning_all = case_shapes(finger, contact)
     return Stage(frame=search.frame, finite=search.finite, inside=search.inside, contact=contact,
-                 psi=psi_all[contact.case], turning=turning_all[contact.case])
+                 psi=psi_all[contact.case], turning=turning_all[contact.case], problem=search.problem)
 
 
 def geometric_stage(
@@ -224,7 +255,8 @@ def needs_mechanics(stage: Stage) -> Bool[Array, ""]:
     case (a); an unusable or colliding input is reported as such either way.
     """
     c = stage.contact
-    return stage.finite & stage.inside & c.touches & ~c.initial_overlap & c.root_converged
+    return (stage.finite & stage.inside & (stage.problem == Status.OK) & c.touches & ~c.initial_overlap
+            & c.root_converged)
 
 
 def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = None) -> Estimate:
@@ -248,13 +280,18 @@ def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = 
                               (jnp.where(use, eq.case, contact.case),
                                jnp.where(tip_touches, eq.tip_foot, contact.p_o2)))
     joints_local = forward_kinematics(jnp.zeros(2, turning.dtype), psi, turning, finger.length)
-    finite, inside, usable = stage.finite, stage.inside, stage.finite & stage.inside
+    finite, inside = stage.finite, stage.inside
+    far = stage.problem == Status.COORDINATE_OUT_OF_RANGE
+    usable = finite & inside & ~far
     status = jnp.where(
         ~finite, Status.NON_FINITE_INPUT,
-        jnp.where(~inside, Status.BASE_OUTSIDE_SDF,
-                  jnp.where(contact.initial_overlap, Status.INITIAL_OVERLAP,
-                            jnp.where(~contact.root_converged, Status.ROOT_NOT_CONVERGED,
-                                      jnp.where(~solved, Status.MECHANICS_NOT_CONVERGED, Status.OK)))),
+        jnp.where(far, Status.COORDINATE_OUT_OF_RANGE,
+                  jnp.where(~inside, Status.BASE_OUTSIDE_SDF,
+                            jnp.where(stage.problem != Status.OK, stage.problem,
+                                      jnp.where(contact.initial_overlap, Status.INITIAL_OVERLAP,
+                                                jnp.where(~contact.root_converged, Status.ROOT_NOT_CONVERGED,
+                                                          jnp.where(~solved, Status.MECHANICS_NOT_CONVERGED,
+                                                                    Status.OK)))))),
     ).astype(jnp.int32)
 
     def world(q):
@@ -264,8 +301,14 @@ def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = 
         lambda c: (c.p_g1, c.p_o1, c.p_o2), contact,
         (world(contact.p_g1), world(contact.p_o1), world(contact.p_o2)),
     )
+    joints = world(joints_local)
+    # A safety net: nothing reported valid holds a NaN or inf (the points the case uses).
+    used = jnp.where(contact.case != ContactCase.NONE, contact.p_o1, 0.0)
+    used2 = jnp.where(contact.case == ContactCase.TIP_AND_OTHER, contact.p_o2, 0.0)
+    sound = jnp.all(jnp.isfinite(joints)) & jnp.all(jnp.isfinite(used)) & jnp.all(jnp.isfinite(used2))
+    status = jnp.where((status == Status.OK) & ~sound, Status.NON_FINITE_RESULT, status).astype(jnp.int32)
     return Estimate(
-        joints=world(joints_local), psi=psi, turning=turning, case=contact.case, contact=contact,
+        joints=joints, psi=psi, turning=turning, case=contact.case, contact=contact,
         valid=status == Status.OK, status=status, residual=residual, event=event,
     )
 
@@ -273,9 +316,33 @@ def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = 
 def mechanics_of(
     finger: FingerModel, sdf: AbstractSDF, stage: Stage, mechanics: MechanicsConfig, config: ContactConfig
 ) -> Equilibrium:
-    """The spring chain's equilibrium reached by closing from a stage's first touch (the closing path)."""
+    """The spring chain's equilibrium reached by closing from a stage's first touch (the closing path).
+
+    A stage whose input is unusable (a NaN Theta, a base outside the SDF or too far, NaN SDF
+    data) is solved on a harmless stand-in instead: the nominal finger, its shape and contact
+    zeroed, placed far outside the object. Its equilibrium is discarded by :func:`finish` anyway,
+    but solving (and differentiating) the real one would feed NaN to the implicit adjoint's linear
+    solve, which then fails the whole batch's gradient. So one bad row never costs the others
+    theirs; its own gradient is zero or NaN.
+    """
+    bad = ~(stage.finite & stage.inside & (stage.problem == Status.OK))
+    nominal = {"length": 50.0, "theta_entire": 0.5, "half_thickness": 1.0, "stiffness_ratio": 1.0,
+               "base_compliance": 0.0}
+    finger = eqx.tree_at(lambda f: tuple(getattr(f, name) for name in nominal), finger,
+                         tuple(jnp.where(bad, jnp.asarray(value, finger.length.dtype), getattr(finger, name))
+                               for name, value in nominal.items()))
+
+    def harmless(x):
+        if not eqx.is_inexact_array(x):
+            return x
+        return jnp.where(bad, jnp.zeros_like(x), x)
+
+    stage = eqx.tree_at(lambda st: (st.contact, st.psi, st.turning), stage,
+                        jax.tree_util.tree_map(harmless, (stage.contact, stage.psi, stage.turning)))
+    far = jnp.full_like(stage.frame.origin, 2.0 * MAX_COORDINATE_MM)
+    frame = eqx.tree_at(lambda f: f.origin, stage.frame, jnp.where(bad, far, stage.frame.origin))
     s, psi, turning = closing_start(finger, stage.contact, config)
-    return solve_equilibrium(finger, sdf, stage.frame, psi, turning, mechanics, config, start_actuation=s)
+    return solve_equilibrium(finger, sdf, frame, psi, turning, mechanics, config, start_actuation=s)
 
 
 def estimate_in_frame(

@@ -16,6 +16,11 @@ from softgrip_jax._errors import SoftgripError
 #: base-tip chord is horizontal and eq. 4 (an arctangent) can no longer measure it.
 THETA_MAX = math.pi / 2
 
+#: Largest number of links N a finger model accepts. The estimate's work and memory grow with N
+#: (some arrays with its square: N = 10**6 asked for terabytes); the paper uses 10-20 and a
+#: calibration profile at most 100.
+MAX_N_LINKS = 1000
+
 
 def _concrete(x) -> np.ndarray | None:
     """The value of ``x`` as numpy, or None while it is being traced (jit, vmap, grad)."""
@@ -39,7 +44,7 @@ class FingerModel(eqx.Module):
             the vertical and the base-tip chord of the closed, untouched finger.
         half_thickness: half of the finger's thickness r in mm, >= 0; "in contact" means that the
             centreline is within r of the object.
-        n_links: number N of rigid links (static), >= 1.
+        n_links: number N of rigid links (static), 1 to :data:`MAX_N_LINKS`.
         stiffness_ratio: bending stiffness at the base over that at the tip, > 0 (default 1: uniform).
             The profile is linear along the finger with mean 1; only the mechanics estimate uses it.
         base_compliance: compliance of a rotational spring at the base, >= 0, in units of the whole
@@ -64,6 +69,9 @@ class FingerModel(eqx.Module):
     def __check_init__(self):
         if not isinstance(self.n_links, (int, np.integer)) or isinstance(self.n_links, bool) or self.n_links < 1:
             raise SoftgripError(f"FingerModel.n_links must be an integer >= 1, got {self.n_links!r}")
+        if self.n_links > MAX_N_LINKS:
+            raise SoftgripError(f"FingerModel.n_links must be at most {MAX_N_LINKS} (the paper uses 10-20), got "
+                                f"{self.n_links}")
         checks = (
             ("length", lambda v: np.isfinite(v) and v > 0, "a finite length in mm > 0"),
             ("theta_entire", lambda v: np.isfinite(v) and 0 <= v < THETA_MAX,

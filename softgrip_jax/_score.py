@@ -37,7 +37,7 @@ from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._concurrent import balanced_chunk, pad_rows, run_in_parts
 from softgrip_jax._contact import ContactCase, ContactConfig
-from softgrip_jax._deformation import Estimate
+from softgrip_jax._deformation import Estimate, Status
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
 from softgrip_jax._kinematics import chain_stations
 from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
@@ -139,8 +139,10 @@ def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weigh
            - weights.tip_only * jnp.mean(tip) - weights.penetration * jnp.mean(penetration))
     r = jnp.stack([gripper.left.half_thickness, gripper.right.half_thickness])
     penetrating = jnp.any(penetration > weights.max_penetration * r)
-    valid = grasp.valid & ~penetrating
+    sound = jnp.isfinite(raw)  # e.g. a NaN the SDF returns near the fingers: never a valid NaN score
+    valid = grasp.valid & ~penetrating & sound
     status = jnp.where(grasp.left.status != 0, grasp.left.status, grasp.right.status)
+    status = jnp.where((status == 0) & ~sound, Status.NON_FINITE_RESULT, status).astype(status.dtype)
     return Score(
         score=jnp.where(valid, raw, -jnp.inf),
         components=ScoreComponents(touch=touch, wrap=wrap, opposition=opposition, tip_only=tip,

@@ -25,6 +25,21 @@ from softgrip_jax._safe import safe_divide, safe_norm
 FAR_MM = 1.0e4
 
 
+def _as_array(x: ArrayLike) -> Array:
+    """Numpy arrays and lists as JAX arrays of floating point (JAX arrays and tracers as they are;
+    integer grids become the default float type)."""
+    if isinstance(x, jax.core.Tracer):
+        return x
+    x = jnp.asarray(x)
+    return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
+
+
+def _as_pair(x: ArrayLike) -> Array:
+    """A (2,) array from one number (the same along x and y) or two."""
+    x = _as_array(x)
+    return jnp.broadcast_to(x, (2,)) if jnp.ndim(x) == 0 else x
+
+
 class AbstractSDF(eqx.Module):
     """A signed-distance function of the image plane (mm; negative inside the object)."""
 
@@ -36,9 +51,14 @@ class AbstractSDF(eqx.Module):
         """Whether ``points`` lie where the SDF has data (everywhere, unless overridden)."""
         return jnp.ones(jnp.shape(points)[:-1], dtype=bool)
 
-    def normal(self, point: Float[Array, "2"]) -> Float[Array, "2"]:
+    def all_finite(self) -> Bool[Array, ""]:
+        """Whether the SDF's own data is finite (True unless overridden); an estimate on an SDF that
+        is not gets ``Status.NON_FINITE_SDF``."""
+        return jnp.array(True)
+
+    def normal(self, point: Float[ArrayLike, "2"]) -> Float[Array, "2"]:
         """Unit gradient of the distance at one point (outward normal); zero where it vanishes."""
-        return unit_gradient(self.distance, point)
+        return unit_gradient(self.distance, _as_array(point))
 
 
 def unit_gradient(distance: Callable[[Array], Array], point: Float[Array, "2"]) -> Float[Array, "2"]:
@@ -54,8 +74,12 @@ class SDFGrid(AbstractSDF):
         values: (H, W) signed distances in mm; row i, column j is the point
             ``origin + (j * spacing[0], i * spacing[1])``.
         origin: (2,) position in mm of the centre of element (0, 0).
-        spacing: (2,) grid step in mm along x (columns) and y (rows), > 0.
+        spacing: (2,) grid step in mm along x (columns) and y (rows), > 0; a scalar is the same
+            step along both.
         far: distance in mm returned outside the grid (static).
+
+    Arrays may be numpy arrays, JAX arrays or nested lists (stored as JAX arrays of the default
+    float type).
 
     Example:
         >>> import jax.numpy as jnp
@@ -63,11 +87,20 @@ class SDFGrid(AbstractSDF):
         >>> grid = SDFGrid.sample(circle, origin=(-20.0, -20.0), spacing=(0.5, 0.5), shape=(81, 81))
         >>> round(float(grid.distance(jnp.array([15.0, 0.0]))), 1)
         5.0
+
+        From numpy, with one spacing for both axes:
+
+        >>> import numpy as np
+        >>> rows, cols = np.mgrid[0:41, 0:41]
+        >>> values = np.hypot(cols - 20.0, rows - 20.0) - 10.0  # a disc of radius 10 mm, 1 mm cells
+        >>> grid = SDFGrid(values=values, origin=np.array([-20.0, -20.0]), spacing=1.0)
+        >>> round(float(grid.distance(np.array([15.0, 0.0]))), 1), grid.spacing.tolist()
+        (5.0, [1.0, 1.0])
     """
 
-    values: Float[Array, "h w"]
-    origin: Float[Array, "2"]
-    spacing: Float[Array, "2"]
+    values: Float[Array, "h w"] = eqx.field(converter=_as_array)
+    origin: Float[Array, "2"] = eqx.field(converter=_as_array)
+    spacing: Float[Array, "2"] = eqx.field(converter=_as_pair)
     far: float = eqx.field(static=True, default=FAR_MM)
 
     def __check_init__(self):
@@ -94,17 +127,23 @@ class SDFGrid(AbstractSDF):
         points = origin + jnp.stack([cols, rows], axis=-1) * spacing
         return cls(values=fn(points), origin=origin, spacing=spacing)
 
+    def all_finite(self) -> Bool[Array, ""]:
+        """Whether every cell is finite (a NaN cell would read as "no contact")."""
+        return jnp.all(jnp.isfinite(self.values))
+
     def _grid_coordinates(self, points):
         col = (points[..., 0] - self.origin[0]) / self.spacing[0]
         row = (points[..., 1] - self.origin[1]) / self.spacing[1]
         return row, col
 
-    def contains(self, points: Float[Array, "*batch 2"]) -> Bool[Array, "*batch"]:
+    def contains(self, points: Float[ArrayLike, "*batch 2"]) -> Bool[Array, "*batch"]:
+        points = jnp.asarray(points)
         row, col = self._grid_coordinates(points)
         h, w = self.values.shape
         return (row >= 0) & (row <= h - 1) & (col >= 0) & (col <= w - 1)
 
-    def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
+    def distance(self, points: Float[ArrayLike, "*batch 2"]) -> Float[Array, "*batch"]:
+        points = jnp.asarray(points)
         row, col = self._grid_coordinates(points)
         h, w = self.values.shape
         inside = (row >= 0) & (row <= h - 1) & (col >= 0) & (col <= w - 1)
@@ -142,7 +181,7 @@ class PolygonSDF(AbstractSDF):
         [-5.0, 5.0]
     """
 
-    vertices: Float[Array, "v 2"]
+    vertices: Float[Array, "v 2"] = eqx.field(converter=_as_array)
 
     def __check_init__(self):
         shape = jnp.shape(self.vertices)
@@ -164,7 +203,12 @@ class PolygonSDF(AbstractSDF):
         center = jnp.asarray(center, dtype=jnp.result_type(float))
         return cls(center + radius * jnp.stack([jnp.cos(t), jnp.sin(t)], axis=-1))
 
-    def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
+    def all_finite(self) -> Bool[Array, ""]:
+        """Whether every vertex is finite (checked at construction unless traced)."""
+        return jnp.all(jnp.isfinite(self.vertices))
+
+    def distance(self, points: Float[ArrayLike, "*batch 2"]) -> Float[Array, "*batch"]:
+        points = jnp.asarray(points)
         a = self.vertices
         b = jnp.roll(a, -1, axis=0)
         ab = b - a

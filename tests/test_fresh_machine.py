@@ -1,8 +1,8 @@
 """A new user's first run: the README's set-up in an empty virtual environment, then ``softgrip demo``.
 
 The repository's git-tracked files (what a clone or a CI checkout has, nothing the developer left
-lying around) are copied to a temporary folder; the Makefile's ``setup`` target builds a new
-``.venv`` there with the machine's base Python (not this test's virtual environment, so the new
+lying around) are copied to a temporary folder; the Makefile's ``setup-demo`` target (what ``make demo`` installs:
+the core, no optional backend) builds a new ``.venv`` there with the machine's base Python (not this test's virtual environment, so the new
 one starts empty); then ``.venv/bin/softgrip demo`` runs from the copy, as ``make demo`` would.
 Packages come from pip's usual sources (torch 2.13.0, pinned by constraints.txt, is a CPU build on
 this machine's disk), so nothing of gigabytes is downloaded.
@@ -81,7 +81,7 @@ def test_readme_setup_then_demo_on_a_fresh_copy(tmp_path, work):
     python = _base_python()
 
     t0 = time.perf_counter()
-    setup = subprocess.run(["make", "setup", f"PYTHON={python}"], cwd=work, env=env,
+    setup = subprocess.run(["make", "setup-demo", f"PYTHON={python}"], cwd=work, env=env,
                            capture_output=True, text=True, timeout=900)
     t_setup = time.perf_counter() - t0
     assert setup.returncode == 0, f"make setup failed:\n{setup.stdout[-3000:]}\n{setup.stderr[-3000:]}"
@@ -93,6 +93,12 @@ def test_readme_setup_then_demo_on_a_fresh_copy(tmp_path, work):
                            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert where.returncode == 0, where.stderr
     assert Path(where.stdout.strip()).resolve().is_relative_to(work.resolve())
+    # The demo's environment has none of the optional backends.
+    extras = subprocess.run([str(work / ".venv" / "bin" / "python"), "-c",
+                             "import importlib.util as u; print([m for m in ('torch', 'kornia', 'pyrealsense2', "
+                             "'matplotlib', 'pytest') if u.find_spec(m)])"],
+                            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert extras.stdout.strip() == "[]", extras.stdout + extras.stderr
 
     t0 = time.perf_counter()
     demo = subprocess.run([str(softgrip), "demo", "--json"], cwd=work, env=env,

@@ -4,10 +4,12 @@ A frame on disk is a folder of three files::
 
     color.png        8-bit, 3 channels (stored BGR, as every PNG written by OpenCV)
     depth.png        16-bit, 1 channel, in units of ``depth_scale`` metres, 0 = no reading
-    intrinsics.json  {"width", "height", "fx", "fy", "ppx", "ppy", "depth_scale"}
+    intrinsics.json  {"width", "height", "fx", "fy", "ppx", "ppy", "depth_scale"[, "model", "coeffs"]}
 
 The intrinsics are those of the colour camera, with pyrealsense2's names: ``fx``/``fy`` focal
-lengths and ``ppx``/``ppy`` principal point in pixels, ``depth_scale`` in metres per depth unit.
+lengths and ``ppx``/``ppy`` principal point in pixels, ``depth_scale`` in metres per depth unit,
+and optionally the lens distortion, ``model`` (a name from :data:`DISTORTION_MODELS`) and its
+``coeffs`` (absent: no distortion).
 The depth image is registered to the colour image (pixel (u, v) of both sees the same point).
 """
 
@@ -17,6 +19,7 @@ import json
 import math
 import os
 import shutil
+import stat
 import uuid
 import zlib
 from dataclasses import asdict, dataclass
@@ -44,7 +47,13 @@ class Intrinsics:
 
     ``width``/``height`` in pixels; ``fx``, ``fy``, ``ppx``, ``ppy`` in pixels (x right, y down,
     origin at the centre of the top-left pixel, as pyrealsense2); ``depth_scale`` in metres per
-    unit of the depth image (RealSense D4xx default: 0.001).
+    unit of the depth image (RealSense D4xx default: 0.001). ``model`` and ``coeffs``: the lens
+    distortion (:data:`DISTORTION_MODELS`; ``"none"`` and ``()`` by default), honoured by
+    :meth:`undistort_points` and :func:`undistort_frame`.
+
+    Other tools' intrinsics: :meth:`from_matrix` (a 3x3 K and OpenCV's coefficients),
+    :meth:`from_open3d` (``open3d.camera.PinholeCameraIntrinsic``) and :meth:`from_camera_info`
+    (a ROS ``sensor_msgs/CameraInfo`` as a dict).
     """
 
     width: int
@@ -54,6 +63,8 @@ class Intrinsics:
     ppx: float
     ppy: float
     depth_scale: float
+    model: str = "none"
+    coeffs: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("width", "height"):
@@ -70,10 +81,127 @@ class Intrinsics:
         for name in _FIELDS:  # plain Python numbers, so equality and JSON behave
             convert = int if name in ("width", "height") else float
             object.__setattr__(self, name, convert(getattr(self, name)))
+        model, coeffs = _check_distortion(self.model, self.coeffs)
+        object.__setattr__(self, "model", model)
+        object.__setattr__(self, "coeffs", coeffs)
 
-    def to_dict(self) -> dict[str, int | float]:
-        """The JSON object of ``intrinsics.json``."""
-        return asdict(self)
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of ``intrinsics.json`` (``model`` and ``coeffs`` only with a distortion)."""
+        d = asdict(self)
+        if self.model == "none":
+            del d["model"], d["coeffs"]
+        else:
+            d["coeffs"] = list(self.coeffs)
+        return d
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 3x3 camera matrix K (float64)."""
+        return np.array([[self.fx, 0.0, self.ppx], [0.0, self.fy, self.ppy], [0.0, 0.0, 1.0]])
+
+    @property
+    def distorted(self) -> bool:
+        """Whether the lens distortion is anything but the identity."""
+        return self.model != "none" and any(c != 0.0 for c in self.coeffs)
+
+    @classmethod
+    def from_matrix(cls, K: Any, width: int, height: int, depth_scale: float = 0.001, dist: Any = None,
+                    model: str | None = None) -> Intrinsics:
+        """From a 3x3 camera matrix K (pixels; OpenCV's convention, as pyrealsense2's: the origin at
+        the centre of the top-left pixel) and optionally OpenCV's distortion coefficients ``dist``
+        (k1, k2, p1, p2[, k3[, k4, k5, k6]]: ``"brown_conrady"`` for 4-5, ``"rational_polynomial"``
+        for 8; or name the ``model``). K must have no skew.
+
+        Example:
+            >>> K = [[615.0, 0.0, 320.5], [0.0, 614.0, 240.5], [0.0, 0.0, 1.0]]
+            >>> Intrinsics.from_matrix(K, 640, 480, 0.0001).fx
+            615.0
+        """
+        k = np.asarray(K, dtype=np.float64)
+        if k.shape != (3, 3) or not np.isfinite(k).all():
+            raise FrameError(f"K must be a finite 3x3 camera matrix, got shape {k.shape}")
+        if k[0, 1] != 0.0 or k[1, 0] != 0.0 or tuple(k[2]) != (0.0, 0.0, 1.0):
+            raise FrameError(f"K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), got {k.tolist()}")
+        coeffs = () if dist is None else tuple(float(c) for c in np.ravel(dist))
+        if model is None:
+            model = "none" if not coeffs else "rational_polynomial" if len(coeffs) > 5 else "brown_conrady"
+        return cls(width=width, height=height, fx=k[0, 0], fy=k[1, 1], ppx=k[0, 2], ppy=k[1, 2],
+                   depth_scale=depth_scale, model=model, coeffs=coeffs)
+
+    @classmethod
+    def from_open3d(cls, intrinsic: Any = None, *, width: int | None = None, height: int | None = None,
+                    intrinsic_matrix: Any = None, depth_scale: float = 0.001) -> Intrinsics:
+        """From Open3D's ``PinholeCameraIntrinsic`` (or its fields ``width``, ``height``,
+        ``intrinsic_matrix``, without importing open3d).
+
+        ``depth_scale`` is in metres per depth unit, as everywhere here. Open3D's own
+        ``depth_scale`` argument is the inverse (depth units per metre, 1000 for millimetres): a value
+        of 1 or more is refused with that fix.
+
+        Example:
+            >>> Intrinsics.from_open3d(width=640, height=480, intrinsic_matrix=[[600, 0, 320], [0, 600, 240], [0, 0, 1]]).ppx
+            320.0
+        """
+        if intrinsic is not None:
+            width, height, intrinsic_matrix = intrinsic.width, intrinsic.height, intrinsic.intrinsic_matrix
+        if width is None or height is None or intrinsic_matrix is None:
+            raise FrameError("from_open3d needs a PinholeCameraIntrinsic, or width, height and intrinsic_matrix")
+        if _is_number(depth_scale) and depth_scale >= 1.0:
+            raise FrameError(f"depth_scale {depth_scale!r} looks like Open3D's depth units per metre; give metres "
+                             f"per unit instead: depth_scale={1.0 / depth_scale!r}")
+        return cls.from_matrix(intrinsic_matrix, width, height, depth_scale)
+
+    @classmethod
+    def from_camera_info(cls, info: Any, depth_scale: float = 0.001) -> Intrinsics:
+        """From a ROS ``sensor_msgs/CameraInfo`` as a dict (``K`` or ``k``: 9 numbers row by row,
+        ``D``/``d``, ``distortion_model``, ``width``, ``height``; ROS 1 and ROS 2 spellings).
+
+        Example:
+            >>> info = {"width": 640, "height": 480, "distortion_model": "plumb_bob",
+            ...         "D": [0.1, -0.2, 0.0, 0.0, 0.05], "K": [600, 0, 320, 0, 600, 240, 0, 0, 1]}
+            >>> Intrinsics.from_camera_info(info).model
+            'brown_conrady'
+        """
+        if not isinstance(info, dict):
+            raise FrameError(f"CameraInfo must be a dict, got {type(info).__name__}")
+        get = lambda *keys: next((info[k] for k in keys if k in info), None)  # noqa: E731
+        k, d, name = get("K", "k"), get("D", "d"), get("distortion_model") or "plumb_bob"
+        if k is None or get("width") is None or get("height") is None:
+            raise FrameError("CameraInfo needs K (or k), width and height")
+        k = np.asarray(k, dtype=np.float64)
+        if k.size != 9:
+            raise FrameError(f"CameraInfo K must have 9 numbers, got {k.size}")
+        model = _ROS_MODELS.get(str(name))
+        if model is None:
+            raise FrameError(f"CameraInfo distortion_model {name!r} is not supported; use one of "
+                             f"{', '.join(sorted(_ROS_MODELS))}")
+        coeffs = [] if d is None else list(np.ravel(d))
+        return cls.from_matrix(k.reshape(3, 3), int(get("width")), int(get("height")), depth_scale,
+                               dist=coeffs, model=model if any(coeffs) else "none")
+
+    def undistort_points(self, points: Any) -> np.ndarray:
+        """Pixel positions (..., 2) as an ideal pinhole camera with the same K would see them
+        (OpenCV's ``undistortPoints`` with ``P = K``; ``cv2.fisheye`` for the equidistant model).
+        Without distortion, the points unchanged."""
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.shape[-1:] != (2,):
+            raise FrameError(f"points must have shape (..., 2), got {pts.shape}")
+        if not self.distorted:
+            return pts.copy()
+        _check_undistortable(self)
+        flat = pts.reshape(-1, 1, 2)
+        k, coeffs = self.matrix, np.asarray(self.coeffs, np.float64)
+        if self.model == "kannala_brandt4":
+            out = cv2.fisheye.undistortPoints(flat, k, coeffs[:4], P=k)
+        elif self.model == "inverse_brown_conrady":
+            # The coefficients map distorted to undistorted: apply them forward (projectPoints) to the
+            # normalised distorted rays.
+            rays = cv2.undistortPoints(flat, k, None).reshape(-1, 2)
+            homogeneous = np.concatenate([rays, np.ones((len(rays), 1))], axis=1)
+            out, _ = cv2.projectPoints(homogeneous, np.zeros(3), np.zeros(3), k, coeffs)
+        else:
+            out = cv2.undistortPoints(flat, k, coeffs, P=k)
+        return out.reshape(pts.shape)
 
     @classmethod
     def from_dict(cls, d: Any, source: str = "intrinsics") -> Intrinsics:
@@ -99,12 +227,81 @@ class Intrinsics:
             if not _is_number(d[key]):
                 raise FrameError(f"{source}: {key} must be a number, got {d[key]!r}")
         try:
-            return cls(**{key: d[key] for key in _FIELDS})
+            return cls(**{key: d[key] for key in _FIELDS}, model=d.get("model", "none"), coeffs=d.get("coeffs", ()))
         except FrameError as err:
             raise FrameError(f"{source}: {err}") from None
 
 
 _FIELDS = ("width", "height", "fx", "fy", "ppx", "ppy", "depth_scale")
+
+#: Distortion models (pyrealsense2's names, plus OpenCV's rational polynomial) and how many
+#: coefficients each takes. brown_conrady: OpenCV's k1, k2, p1, p2, k3 (ROS plumb_bob);
+#: inverse_brown_conrady: the same polynomial mapping distorted to undistorted (RealSense);
+#: rational_polynomial: OpenCV's 8; kannala_brandt4: OpenCV's fisheye k1-k4 (ROS equidistant);
+#: modified_brown_conrady (RealSense) is recorded, but undistorting it is refused.
+DISTORTION_MODELS: dict[str, tuple[int, ...]] = {
+    "none": (0, 4, 5, 8), "brown_conrady": (4, 5), "inverse_brown_conrady": (5,),
+    "rational_polynomial": (8,), "kannala_brandt4": (4, 5), "modified_brown_conrady": (5,),
+}
+#: Kept in a frame's intrinsics (a RealSense camera may report them) but not undistorted here.
+_NOT_UNDISTORTED = {"modified_brown_conrady"}
+_ROS_MODELS = {"plumb_bob": "brown_conrady", "rational_polynomial": "rational_polynomial",
+               "equidistant": "kannala_brandt4", "none": "none", "": "none"}
+
+
+def _check_distortion(model: Any, coeffs: Any) -> tuple[str, tuple[float, ...]]:
+    if not isinstance(model, str) or model not in DISTORTION_MODELS:
+        raise FrameError(f"model (lens distortion) must be one of {', '.join(DISTORTION_MODELS)}, got {model!r}")
+    try:
+        values = tuple(float(c) for c in coeffs)
+    except (TypeError, ValueError):
+        raise FrameError(f"coeffs must be a list of numbers, got {coeffs!r}") from None
+    if not all(math.isfinite(c) for c in values):
+        raise FrameError(f"coeffs must be finite, got {list(values)}")
+    if model == "none" and any(values):
+        raise FrameError(f"coeffs {list(values)} given with model 'none': name the distortion model")
+    if values and len(values) not in DISTORTION_MODELS[model]:
+        raise FrameError(f"model {model!r} takes {' or '.join(map(str, DISTORTION_MODELS[model]))} coefficients, "
+                         f"got {len(values)}")
+    return model, values
+
+
+def undistort_frame(frame: Frame) -> Frame:
+    """The frame as an ideal pinhole camera with the same K would see it: colour and depth remapped
+    with OpenCV (bilinear for colour, nearest for depth so no depth is invented between an edge's two
+    sides), intrinsics without distortion. A frame without distortion is returned as it is."""
+    intr = frame.intrinsics
+    if not intr.distorted:
+        return frame
+    _check_undistortable(intr)
+    h, w = frame.depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    ideal = np.stack([u, v], axis=-1).reshape(-1, 2)
+    # Where each ideal pixel lies in the distorted image: project the ideal rays through the lens.
+    source = _distort_points(intr, ideal).reshape(h, w, 2).astype(np.float32)
+    color = cv2.remap(frame.color, source[..., 0], source[..., 1], cv2.INTER_LINEAR, borderValue=0)
+    depth = cv2.remap(frame.depth, source[..., 0], source[..., 1], cv2.INTER_NEAREST, borderValue=0)
+    plain = Intrinsics(**{**asdict(intr), "model": "none", "coeffs": ()})
+    return Frame(color=color, depth=depth, intrinsics=plain)
+
+
+def _check_undistortable(intr: Intrinsics) -> None:
+    if intr.model in _NOT_UNDISTORTED:
+        raise FrameError(f"undistorting the {intr.model!r} lens model is not supported; give the camera's "
+                         f"intrinsics in another model (e.g. from its calibration with OpenCV)")
+
+
+def _distort_points(intr: Intrinsics, points: np.ndarray) -> np.ndarray:
+    """Ideal pixel positions (n, 2) -> where the distorted camera images them."""
+    k, coeffs = intr.matrix, np.asarray(intr.coeffs, np.float64)
+    rays = cv2.undistortPoints(points.reshape(-1, 1, 2), k, None).reshape(-1, 2)
+    if intr.model == "kannala_brandt4":
+        return cv2.fisheye.distortPoints(rays.reshape(-1, 1, 2), k, coeffs[:4]).reshape(-1, 2)
+    if intr.model == "inverse_brown_conrady":  # the inverse of applying the polynomial: OpenCV's iteration
+        return cv2.undistortPoints(points.reshape(-1, 1, 2), k, coeffs, P=k).reshape(-1, 2)
+    homogeneous = np.concatenate([rays, np.ones((len(rays), 1))], axis=1)
+    out, _ = cv2.projectPoints(homogeneous, np.zeros(3), np.zeros(3), k, coeffs)
+    return out.reshape(-1, 2)
 
 
 @dataclass(frozen=True)
@@ -259,8 +456,25 @@ def _describe(array: Any) -> str:
     return f"{bits} with {channels} channel(s)"
 
 
+#: Largest width or height of a frame image (px), checked in the PNG header before decoding, so that a
+#: file claiming 60000x60000 px (or a small file that inflates to gigabytes) is refused at once.
+MAX_IMAGE_SIDE = 8192
+
+
+def png_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's header (its IHDR chunk), or None if there is none."""
+    if len(data) >= 24 and data.startswith(_PNG_SIGNATURE) and data[12:16] == b"IHDR":
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    return None
+
+
 def _read_png(path: Path) -> np.ndarray:
     data = _read_file(path)
+    size = png_size(data)
+    if size is not None and not all(1 <= side <= MAX_IMAGE_SIDE for side in size):
+        raise FrameError(f"{path}: its header says {size[0]}x{size[1]} px; a frame image may be at most "
+                         f"{MAX_IMAGE_SIDE} px wide and high (a RealSense gives up to 1920x1080): is it the "
+                         f"right file, or damaged?")
     problem = _png_damage(data)
     image = None if problem else cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
@@ -302,8 +516,19 @@ def _read_json(path: Path) -> Any:
                          f"{', '.join(_FIELDS)}") from None
 
 
+#: Largest frame file read (bytes): a 1920x1080 16-bit PNG without compression is about 4 MB.
+MAX_FILE_BYTES = 256 * 1024 * 1024
+
+
 def _read_file(path: Path) -> bytes:
     try:
+        st = path.stat()
+        if not stat.S_ISREG(st.st_mode):
+            raise FrameError(f"{path} is not a regular file (a folder, FIFO or device): a frame folder needs the "
+                             f"files {COLOR_FILE}, {DEPTH_FILE} and {INTRINSICS_FILE}")
+        if st.st_size > MAX_FILE_BYTES:
+            raise FrameError(f"{path} is {st.st_size / 2**20:.0f} MiB, more than a frame file can be "
+                             f"({MAX_FILE_BYTES // 2**20} MiB): is it the right file?")
         return path.read_bytes()
     except FileNotFoundError:
         raise FrameError(f"{path} is missing: a frame folder needs {COLOR_FILE}, {DEPTH_FILE} and "

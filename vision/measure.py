@@ -182,10 +182,16 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
 
     Raises:
         SoftgripError: keypoints that cannot be found (``vision.keypoints.KeypointError``) or no
-            depth on the fingers (``vision.frames.FrameError``); the message says what to adjust.
+            depth on the fingers (``vision.frames.FrameError``); implausible intrinsics, gripper
+            depth or finger sizes (``vision.plausibility``, naming the field to fix); the message
+            says what to adjust.
     """
+    from vision import plausibility
+
     settings = settings or MeasureSettings()
+    plausibility.check_intrinsics(frame.intrinsics)  # before any millimetre is computed from them
     provisional = PlaneCamera.from_frame(frame, segmentation.fingers)  # keypoints are found in pixels
+    plausibility.check_gripper_depth(provisional.depth_mm, frame.intrinsics)
     keypoints = gripper_keypoints(segmentation, provisional, settings.rounded_base, color=frame.color)
     plane = fit_gripper_plane(frame, [k.region for k in keypoints], [k.half_thickness_px for k in keypoints],
                               settings.finger_relief_mm, centrelines_px=[k.centreline_px for k in keypoints],
@@ -196,10 +202,10 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
         body = segmentation.fingers & ~np.logical_or.reduce([k.region for k in keypoints])
         body_offset = face_offset_mm(frame, body, plane.camera)
         body_front = None if body_offset is None else -body_offset
-    return GripperMeasurement(segmentation=segmentation, plane=plane,
-                              keypoints=tuple(k.with_camera(plane.camera, relief, body_front)
-                                              for k, relief in zip(keypoints, plane.relief_mm)),
-                              object_offset_mm=offset)
+    measured = tuple(k.with_camera(plane.camera, relief, body_front) for k, relief in zip(keypoints, plane.relief_mm))
+    plausibility.check_gripper_size([k.length_mm for k in measured],
+                                    float(np.hypot(*(measured[1].base_mm - measured[0].base_mm))), frame.intrinsics)
+    return GripperMeasurement(segmentation=segmentation, plane=plane, keypoints=measured, object_offset_mm=offset)
 
 
 def replace_settings(settings: MeasureSettings, **changes: Any) -> MeasureSettings:

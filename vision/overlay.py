@@ -83,14 +83,18 @@ def draw_overlay(
     return image
 
 
-def save_png(path: str | os.PathLike[str], rgb: np.ndarray) -> Path:
+def save_png(path: str | os.PathLike[str], rgb: np.ndarray, *, inputs=(), force: bool = False,
+             what: str = "output") -> Path:
     """Write an RGB (H, W, 3) or grey (H, W) uint8 image as a PNG, atomically; returns the path.
 
     The PNG is encoded in memory by OpenCV, written to a hidden temporary file next to ``path`` and
-    renamed over it, so ``path`` is never a partial file. An existing file is replaced.
+    renamed over it, so ``path`` is never a partial file. An existing regular file is replaced (its
+    mode kept); ``inputs``, ``force`` and ``what`` as in ``vision.atomic_write.check_output``.
 
     Raises:
         SoftgripError: a bad image, or the file cannot be written (the message names it).
+        OutputRefusedError: the output policy refuses ``path`` (one of ``inputs``, a folder, a
+            FIFO or device, a link without ``force``, ...).
 
     Example:
         >>> import tempfile, numpy as np
@@ -107,7 +111,7 @@ def save_png(path: str | os.PathLike[str], rgb: np.ndarray) -> Path:
     if not ok:
         raise SoftgripError(f"save_png {target}: OpenCV could not encode the image")
     try:
-        write_atomic(target, encoded.tobytes())
+        target = write_atomic(target, encoded.tobytes(), inputs=inputs, force=force, what=what)
     except OSError as err:
         raise SoftgripError(f"could not write {target}: {err.strerror}; check that its folder exists "
                             f"and is writable") from None

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import ctypes
 import os
+import re
+import sqlite3
 import shutil
 import threading
 import time
@@ -32,7 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from softgrip_jax._errors import SoftgripError
-from vision.frames import Frame, FrameError, Intrinsics, next_frame_dir, save_frame
+from vision.frames import DISTORTION_MODELS, Frame, FrameError, Intrinsics, next_frame_dir, save_frame
 
 RECORDING_SUFFIXES = (".db3", ".bag")
 _CAMERA_WAIT_MS = 5000
@@ -40,6 +42,56 @@ _CAMERA_WAIT_MS = 5000
 
 class CameraError(SoftgripError):
     """A camera or recording that cannot be used; the message names it and the fix."""
+
+
+class RecordingDamagedError(CameraError):
+    """A recording that delivered fewer depth frames than its container holds.
+
+    Raised after the frames that could be read are written (``written``); ``lost`` lists the depth
+    frame numbers the container records but playback did not deliver (empty when the container's
+    index itself cannot be read, see ``message``).
+    """
+
+    def __init__(self, message: str, written: list[Path], lost: list[int]) -> None:
+        super().__init__(message)
+        self.written, self.lost = written, lost
+
+
+_FRAME_NUMBER = re.compile(rb"Frame number=(\d+)")
+
+
+def recording_depth_frames(path: str | os.PathLike[str]) -> list[int] | None:
+    """The depth frame numbers a ``.db3`` recording's container holds, read from its SQLite index
+    (the metadata message stored with every depth image), in recording order. None for a legacy
+    ``.bag`` (no index read here).
+
+    Raises:
+        CameraError: the ``.db3`` container's index cannot be read (the file is damaged).
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".db3":
+        return None
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+        try:
+            topics = dict(db.execute("SELECT id, name FROM topics").fetchall())
+            meta = [i for i, name in topics.items() if re.search(r"/Depth_\d+/image/metadata$", name)]
+            data = [i for i, name in topics.items() if re.search(r"/Depth_\d+/image/data", name)]
+            numbers = []
+            for topic in meta[:1]:
+                for (blob,) in db.execute("SELECT data FROM messages WHERE topic_id = ? ORDER BY timestamp", (topic,)):
+                    match = _FRAME_NUMBER.search(bytes(blob))
+                    if match:
+                        numbers.append(int(match.group(1)))
+            count = sum(db.execute("SELECT COUNT(*) FROM messages WHERE topic_id = ?", (t,)).fetchone()[0]
+                        for t in data[:1])
+        finally:
+            db.close()
+    except sqlite3.Error as err:
+        raise CameraError(f"{path}: the recording's index cannot be read ({err}): the file is damaged") from None
+    if len(numbers) != count:  # metadata without frame numbers: count the images instead
+        numbers = list(range(count))
+    return numbers
 
 
 @dataclass(frozen=True)
@@ -78,6 +130,18 @@ def import_realsense() -> ModuleType:
             f"Debian's libusb-1.0-0 (apt-get install libusb-1.0-0)"
         ) from err
     return pyrealsense2
+
+
+def _distortion(intr) -> tuple[str, tuple[float, ...]]:
+    """The colour stream's lens distortion as ``Intrinsics`` keeps it: pyrealsense2's model name and
+    its five coefficients (``"none"`` when they are all zero)."""
+    coeffs = tuple(_f32(c) for c in getattr(intr, "coeffs", ()))
+    name = str(getattr(intr, "model", "none")).rsplit(".", 1)[-1]
+    if not any(coeffs) or name not in DISTORTION_MODELS:
+        if any(coeffs):
+            warnings.warn(f"the camera's lens distortion {name!r} is not one softgrip knows; recorded without it")
+        return "none", ()
+    return name, coeffs[:5] if name != "kannala_brandt4" else coeffs[:4]
 
 
 def list_devices() -> list[DeviceInfo]:
@@ -184,8 +248,15 @@ def capture_from_recording(
     *,
     count: int | None = None,
     stall_timeout: float = 10.0,
+    allow_partial: bool = False,
 ) -> list[Path]:
     """Write the frames of a recording (``.db3``, or legacy ``.bag``) as ``out_root/frame_NNNN``.
+
+    Nothing is lost silently: for a ``.db3`` the depth frames its container holds are counted (its
+    SQLite index, :func:`recording_depth_frames`), and when playback delivers fewer (a damaged
+    file), the frames that could be read are written and :class:`RecordingDamagedError` names the
+    lost frame numbers; with ``allow_partial`` a warning says the same instead. A legacy ``.bag`` is
+    not counted.
 
     Writes the first ``count`` frames of the recording in recording order (all by default). Each
     depth frame is paired with the colour frame nearest in time, if that is within half a frame
@@ -211,15 +282,34 @@ def capture_from_recording(
     except RuntimeError as err:
         raise CameraError(f"{path} is not a readable RealSense recording ({err}): record it "
                           f"again, or check that the copy is complete") from err
-    frames = _read_recording(rs, device, path, count, stall_timeout)
-    if not frames:
+    try:
+        claimed, index_problem = recording_depth_frames(path), None
+    except CameraError as err:
+        claimed, index_problem = None, str(err)
+    seen: list[int] = []
+    frames = _read_recording(rs, device, path, count, stall_timeout, seen)
+    lost = [] if claimed is None else sorted(set(claimed) - set(seen))
+    if count is not None and len(frames) >= count:
+        lost = []  # what was asked for was read; the rest of the recording was not needed
+    if not frames and not lost and index_problem is None:
         raise CameraError(f"{path} has no frame with depth readings and a colour frame in sync")
-    return _save_frames(frames, out_root)
+    written = _save_frames(frames, out_root) if frames else []
+    if lost or index_problem:
+        total = f"{len(claimed)} depth frames" if claimed is not None else "an unknown number of frames"
+        what = (f"{path}: the recording holds {total} but only {len(seen)} could be read; lost: "
+                f"{', '.join(map(str, lost[:20]))}{' ...' if len(lost) > 20 else ''}" if lost else index_problem)
+        message = (f"{what}. Wrote {len(written)} frame(s); the recording is damaged: record it again, or pass "
+                   f"--allow-partial (allow_partial=True) to accept the frames that could be read")
+        if not allow_partial:
+            raise RecordingDamagedError(message, written, lost)
+        warnings.warn(message, stacklevel=2)
+    return written
 
 
 def _read_recording(rs: ModuleType, device: Any, path: Path, count: int | None,
-                    stall_timeout: float) -> list[Frame]:
-    """Play ``device`` (a loaded recording) once, as fast as it decodes, and pair its frames."""
+                    stall_timeout: float, seen: list[int] | None = None) -> list[Frame]:
+    """Play ``device`` (a loaded recording) once, as fast as it decodes, and pair its frames;
+    the numbers of the depth frames playback delivered are appended to ``seen``."""
     sensors = device.query_sensors()
     chosen: dict[Any, tuple[int, Any]] = {}  # stream type -> (sensor index, profile)
     for index, sensor in enumerate(sensors):
@@ -258,6 +348,8 @@ def _read_recording(rs: ModuleType, device: Any, path: Path, count: int | None,
         finally:
             for sensor in opened:
                 sensor.stop()
+        if seen is not None:
+            seen.extend(collector.seen)
         return _pair(rs, collector, path, depth_scale,
                      _registration(rs, depth_profile, color_profile))
     finally:
@@ -278,6 +370,7 @@ class _Collector:
         self.depth: list[Any] = []
         self.color: list[Any] = []
         self.empty: list[int] = []  # depth frame numbers without readings
+        self.seen: list[int] = []  # every depth frame number delivered
         self.arrived = 0
         self.lock = threading.Lock()
 
@@ -286,6 +379,7 @@ class _Collector:
             self.arrived += 1
             full = self.count is not None and len(self.depth) >= self.count
             if frame.get_profile().stream_type() == self.rs.stream.depth:
+                self.seen.append(frame.get_frame_number())
                 if full:
                     return
                 if not np.asanyarray(frame.get_data()).any():
@@ -460,8 +554,11 @@ def _video_stream(rs: ModuleType, stream: Any, fmt: Any, bpp: int, uid: int,
     rs_intrinsics.width, rs_intrinsics.height = intrinsics.width, intrinsics.height
     rs_intrinsics.fx, rs_intrinsics.fy = intrinsics.fx, intrinsics.fy
     rs_intrinsics.ppx, rs_intrinsics.ppy = intrinsics.ppx, intrinsics.ppy
-    rs_intrinsics.model = rs.distortion.none
-    rs_intrinsics.coeffs = [0.0] * 5
+    # The lens distortion too, so that capture from the recording gives it back (a model pyrealsense2
+    # has no name for is written as none).
+    model = getattr(rs.distortion, intrinsics.model, None)
+    rs_intrinsics.model = model if model is not None else rs.distortion.none
+    rs_intrinsics.coeffs = (list(intrinsics.coeffs) + [0.0] * 5)[:5] if model is not None else [0.0] * 5
     video = rs.video_stream()
     video.type, video.index, video.uid = stream, 0, uid
     video.width, video.height, video.fps = intrinsics.width, intrinsics.height, fps
@@ -520,9 +617,10 @@ def _to_frame(rs: ModuleType, depth: Any, color: Any, depth_scale: float) -> Fra
     if depth.get_profile().format() != rs.format.z16:
         raise CameraError(f"depth stream format {depth.get_profile().format()} is not z16")
     intr = color.get_profile().as_video_stream_profile().get_intrinsics()
+    model, coeffs = _distortion(intr)
     intrinsics = Intrinsics(width=intr.width, height=intr.height, fx=_f32(intr.fx),
                             fy=_f32(intr.fy), ppx=_f32(intr.ppx), ppy=_f32(intr.ppy),
-                            depth_scale=_f32(depth_scale))
+                            depth_scale=_f32(depth_scale), model=model, coeffs=coeffs)
     return Frame(color=_rgb(rs, color), depth=np.array(depth.get_data(), dtype=np.uint16),
                  intrinsics=intrinsics)
 

@@ -20,8 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from calib.fit import (FRAME_BUCKET, FitError, Observation, SkippedFrameWarning, _robust, _solve, fit,
-                       free_closure_observation, load_observations, observations_from_frames)
+from calib.fit import (FRAME_BUCKET, MIN_CLUSTERED_FRAMES, FitError, Observation, PoorlyDeterminedWarning,
+                       SkippedFrameWarning, _robust, _solve, _warn_if_poorly_determined, fit, free_closure_observation,
+                       load_observations, observations_from_frames)
 from calib.one_frame import free_closure_joints, one_frame_from_frames, one_frame_profile
 from calib.profile import CalibrationProfile, FingerEntry, FitEntry, load_profile
 from softgrip_cli import cmd_calibrate
@@ -135,6 +136,51 @@ def test_standard_error_matches_the_spread_of_repeated_fits() -> None:
     # Both fingers' fits are independent draws: 24 errors against their reported standard errors.
     ratio = np.sqrt(np.mean(errors**2)) / np.sqrt(np.mean(reported**2))
     assert 1 / 1.5 < ratio < 1.5, ratio
+
+
+def test_standard_error_allows_for_errors_a_frame_shares() -> None:
+    """Every joint of a frame shifted by the same random offset (sigma 0.3 mm per coordinate, as a
+    wrong base point or plane does), plus 0.01 mm of independent noise. By hand, the fitted Theta is
+    the linear projection of the shifts: SE = sigma sqrt(sum_f |g_f|^2) / S with g_f the sum over
+    frame f's joints of dP/dTheta (a 2-vector) and S = sum over all joints of |dP/dTheta|^2. The
+    textbook estimate, which counts each joint as an independent measurement, is several times
+    smaller; the reported one must match the hand value."""
+    rng = np.random.default_rng(11)
+    sigma, frames = 0.3, MIN_CLUSTERED_FRAMES + 2
+    observations = [observation(rng, f"pair {i}", noise=0.01, observed_shift=rng.normal(0.0, sigma, 2))
+                    for i in range(frames)]
+    fitted = quiet_fit(observations, start_profile(0.5, 0.5))
+    step = 1e-4
+    for side, k in (("left", 0), ("right", 1)):
+        g2, s = 0.0, 0.0
+        for obs in observations:
+            up = free_closure_joints(entry(TRUE[side] + step), obs.bases[k], side)
+            down = free_closure_joints(entry(TRUE[side] - step), obs.bases[k], side)
+            d = (up - down) / (2 * step)  # (N+1, 2) mm / rad
+            g2 += np.sum(d.sum(axis=0) ** 2)
+            s += np.sum(d**2)
+        by_hand = sigma * math.sqrt(g2) / s
+        textbook = fitted.fit.residual_rms_mm / math.sqrt(2.0) / math.sqrt(s)
+        se = fitted.fit.standard_errors[f"{side}.theta_entire"]
+        assert textbook < by_hand / 2.5, (side, textbook, by_hand)
+        assert by_hand / 1.6 < se < 1.6 * by_hand, (side, se, by_hand, textbook)
+
+
+def test_a_stiffness_whose_effect_is_below_the_residuals_is_reported_poorly_determined() -> None:
+    """Jacobian columns (mm per unit) of two joints: the ratio 2.0 moves them by 0.03 mm per 10 %,
+    the residuals are 0.1 mm: warned, naming the parameter and both figures; at 0.2 mm per 10 %
+    it is not; Theta is never judged this way."""
+    residuals = np.full((3, 2, 2, 2), 0.1 / math.sqrt(2.0))  # (F, 2, J, 2), each joint 0.1 mm away
+    weak = np.array([[0.15, 0.0, 5.0], [0.0, 0.0, 5.0], [0.0, 0.1, 5.0], [0.0, 0.0, 5.0]])  # (M, P)
+    columns = [("left", "stiffness_ratio"), ("left", "stiffness_ratio"), ("left", "theta_entire")]
+    values = {("left", "stiffness_ratio"): [2.0], ("left", "theta_entire"): [0.5]}
+    with pytest.warns(PoorlyDeterminedWarning, match=r"left\.stiffness_ratio = 2\.000 is poorly determined.*10 % "
+                                                     r"moves no joint by more than 0\.030 mm, less than the residual "
+                                                     r"RMS 0\.100 mm"):
+        _warn_if_poorly_determined(weak[:, [0, 2]], [columns[0], columns[2]], values, residuals)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _warn_if_poorly_determined(weak[:, [0, 2]] * [[1.0 / 0.15, 1.0]], [columns[0], columns[2]], values, residuals)
 
 
 def test_one_grossly_wrong_frame_among_ten_moves_theta_little() -> None:

@@ -345,3 +345,29 @@ def test_a_non_finite_number_in_the_detection_record_is_named(tmp_path: Path) ->
     path.write_text(json.dumps(data))
     with pytest.raises(ProfileError, match=r"vision\.detected\.open\.plane\.depth_mm: expected a finite number"):
         load_profile(path)
+
+
+def test_the_profile_schema_file_is_the_models_and_an_independent_validator_agrees(tmp_path: Path) -> None:
+    """schemas/profile.schema.json is what calib.profile_schema says (regenerate it with
+    ``json_schema()`` after a change), and jsonschema, a validator independent of pydantic, accepts
+    the sample profile and refuses what load_profile refuses."""
+    jsonschema = pytest.importorskip("jsonschema")
+    from calib.profile_schema import json_schema
+
+    root = Path(__file__).resolve().parents[2]
+    on_disk = json.loads((root / "schemas" / "profile.schema.json").read_text())
+    assert on_disk == json_schema()
+    validator = jsonschema.Draft202012Validator(on_disk)
+    sample = json.loads((root / "data" / "sample_profile.json").read_text())
+    validator.validate(sample)
+    validator.validate(make_profile().to_dict())
+    for keys, value in [(("fingers", "left", "theta_entire"), 1.6), (("fingers", "left", "lenght"), 52.0),
+                        (("gripper", "base_separation"), 0), (("fit", "method"), "magic"),
+                        (("fingers", "left", "n_links"), 101), (("fit", "standard_errors", "left.base_offset", 1), "x")]:
+        data = make_profile().to_dict()
+        _set(data, keys, value)
+        assert not validator.is_valid(data), keys
+        path = tmp_path / "p.json"
+        path.write_text(json.dumps(data))
+        with pytest.raises(ProfileError):
+            load_profile(path)

@@ -28,3 +28,40 @@ def test_closed_output_pipe_exits_141_without_a_traceback(tmp_path, capsys, monk
     monkeypatch.setattr(cmd_capture, "run", reader_went_away)
     assert main(["capture", "--out", str(tmp_path / "out")]) == 141
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_version_prints_the_distributions_version(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"softgrip {version('softgrip-jax')}"
+
+
+@pytest.mark.parametrize("command", [["demo"], ["capture"], ["estimate", "F", "--profile", "P"],
+                                     ["score", "F", "--profile", "P"], ["calibrate", "C", "--open", "O"]])
+def test_every_command_that_writes_takes_o_and_output_and_q_v_after_it(command):
+    from softgrip_cli._main import build_parser
+
+    parser = build_parser()
+    for flag in ("-o", "--output"):
+        args = parser.parse_args([*command, flag, "target", "-q", "-v"])
+        assert str(getattr(args, "out", None) or args.output) == "target" and args.quiet and args.verbose
+
+
+def test_q_silences_warnings_and_v_prints_details(capsys):
+    from softgrip_cli import _pipeline
+
+    try:
+        _pipeline.QUIET, _pipeline.VERBOSE = True, True
+        _pipeline.warn("w"), _pipeline.note("n"), _pipeline.info("i")
+        assert capsys.readouterr().err == ""
+        _pipeline.QUIET = False
+        _pipeline.warn("w"), _pipeline.note("n"), _pipeline.info("i")
+        assert capsys.readouterr().err == "warning: w\nn\ni\n"
+        _pipeline.VERBOSE = False
+        _pipeline.info("i")
+        assert capsys.readouterr().err == ""
+    finally:
+        _pipeline.QUIET = _pipeline.VERBOSE = False

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from softgrip_cli import main
+from softgrip_cli._main import EXIT_USER_ERROR
 from softgrip_jax import CASE_NAMES, DEFAULT_METHOD, SoftgripError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -24,7 +25,8 @@ DATA = ROOT / "data"
 PROFILE = DATA / "sample_profile.json"
 SCENES = ("circle", "square", "star_a")
 FRAMES = [str(DATA / f"{name}_open") for name in SCENES]
-FINGER_KEYS = {"side", "case", "theta_entire", "joints_px", "joints_mm", "contacts_px", "contacts_mm"}
+FINGER_KEYS = {"side", "valid", "status", "case", "theta_entire", "joints_px", "joints_mm", "contacts_px",
+               "contacts_mm"}
 CANDIDATE_KEYS = {"pose", "score", "components", "valid", "status", "fingers"}
 TOP = 40
 
@@ -65,6 +67,15 @@ def check_finger(finger: dict, side: str, n_links: int) -> None:
     assert len(finger["contacts_px"]) == len(finger["contacts_mm"]) == expected_contacts
 
 
+def check_schema(document: dict, kind: str) -> None:
+    """``document`` is valid under the repository's JSON Schema ``schemas/KIND.schema.json``."""
+    import jsonschema
+
+    from vision.documents import schema
+
+    jsonschema.Draft202012Validator(schema(kind)).validate(document)
+
+
 def check_png(path: Path, width: int, height: int) -> None:
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -77,18 +88,53 @@ def check_png(path: Path, width: int, height: int) -> None:
 @pytest.fixture(scope="module")
 def estimated(tmp_path_factory):
     overlays = tmp_path_factory.mktemp("overlays")
+    document = tmp_path_factory.mktemp("documents") / "estimates.json"
     code, out, err = run_cli(["estimate", *FRAMES, "--profile", str(PROFILE), "--json",
-                              "--overlay-dir", str(overlays)])
+                              "--overlay-dir", str(overlays), "--output", str(document)])
     assert code == 0, err
-    return [json.loads(line) for line in out.splitlines()], overlays
+    assert json.loads(document.read_text()) == json.loads(out)  # -o writes what --json prints
+    return json.loads(out)["frames"], overlays, json.loads(out)
+
+
+def test_estimate_json_is_one_document_valid_under_its_schema(estimated):
+    *_, document = estimated
+    check_schema(document, "estimate")
+    assert document["format"] == "softgrip-estimate/1" and document["units"] == {"length": "mm", "angle": "rad",
+                                                                                 "image": "px"}
+    assert document["profile"]["path"] == str(PROFILE) and len(document["profile"]["sha256"]) == 64
+    assert document["profile"]["fingers"]["left"]["n_links"] == profile_data()["fingers"]["left"]["n_links"]
+    assert (document["n_frames"], document["n_estimated"], document["n_failed"]) == (len(FRAMES), len(FRAMES), 0)
+    for record in document["frames"]:
+        _, camera = frame_camera(record["frame"])
+        assert record["plane"]["depth_mm"] == pytest.approx(camera.depth_mm, abs=1e-3)
+        # The pose is the midpoint of the two bases (joint 0 of each finger).
+        bases = np.array([f["joints_mm"][0] for f in record["fingers"]])
+        assert [record["pose"]["x_mm"], record["pose"]["y_mm"]] == pytest.approx(bases.mean(axis=0), abs=1e-3)
+    # A document that breaks the schema is refused: the test can fail.
+    import jsonschema
+
+    broken = json.loads(json.dumps(document))
+    broken["frames"][0]["fingers"][0]["case"] = 2
+    with pytest.raises(jsonschema.ValidationError):
+        check_schema(broken, "estimate")
+
+
+def test_estimate_jsonl_keeps_one_object_per_line(estimated):
+    records, *_ = estimated
+    code, out, err = run_cli(["estimate", FRAMES[0], "--profile", str(PROFILE), "--jsonl"])
+    assert code == 0, err
+    lines = out.splitlines()
+    assert len(lines) == 1 and json.loads(lines[0]) == records[0]
 
 
 def test_estimate_prints_one_json_object_per_frame_in_order(estimated):
-    records, _ = estimated
+    records, *_ = estimated
     n_links = profile_data()["fingers"]["left"]["n_links"]
     assert [r["frame"] for r in records] == FRAMES
     for record in records:
-        assert set(record) == {"frame", "method", "n_links", "fingers"}
+        assert set(record) >= {"frame", "valid", "status", "method", "n_links", "fingers", "pose", "plane"}
+        assert record["valid"] is True and record["status"] == "ok"
+        assert all(f["valid"] is True and f["status"] == "ok" for f in record["fingers"])
         assert record["method"] == DEFAULT_METHOD  # the sample profile records no fitted estimate
         assert record["n_links"] == n_links
         assert [f["side"] for f in record["fingers"]] == ["left", "right"]
@@ -99,7 +145,7 @@ def test_estimate_prints_one_json_object_per_frame_in_order(estimated):
 
 
 def test_estimate_pixels_and_millimetres_agree_through_the_frames_camera(estimated):
-    records, _ = estimated
+    records, *_ = estimated
     truth = json.loads((DATA / "truth.json").read_text())
     profile = profile_data()
     for record in records:
@@ -119,7 +165,7 @@ def test_estimate_pixels_and_millimetres_agree_through_the_frames_camera(estimat
 
 
 def test_estimate_writes_one_overlay_per_frame(estimated):
-    _, overlays = estimated
+    _, overlays, _ = estimated
     for path in FRAMES:
         check_png(overlays / f"{Path(path).name}.png", 640, 480)
 
@@ -135,11 +181,11 @@ def test_estimate_method_mechanics_and_the_profiles_recorded_method(estimated, t
     through the mechanics estimate (fit.estimate_method) estimates with it; --method overrides it."""
     code, out, err = run_cli(["estimate", FRAMES[0], "--profile", str(PROFILE), "--json", "--method", "geometric"])
     assert code == 0, err
-    records = [json.loads(out)]
+    records = json.loads(out)["frames"]
     assert records[0]["method"] == "geometric"
     code, out, err = run_cli(["estimate", FRAMES[0], "--profile", str(PROFILE), "--json", "--method", "mechanics"])
     assert code == 0, err
-    mechanics = json.loads(out)
+    mechanics = json.loads(out)["frames"][0]
     assert mechanics["method"] == "mechanics"
     n_links = profile_data()["fingers"]["left"]["n_links"]
     for finger, geometric in zip(mechanics["fingers"], records[0]["fingers"]):
@@ -155,10 +201,11 @@ def test_estimate_method_mechanics_and_the_profiles_recorded_method(estimated, t
     recorded.write_text(json.dumps(data))
     code, out, err = run_cli(["estimate", FRAMES[0], "--profile", str(recorded), "--json"])
     assert code == 0, err
-    assert json.loads(out) == mechanics
+    assert json.loads(out)["frames"][0] == mechanics
+    assert json.loads(out)["profile"]["estimate_method"] == "mechanics"
     code, out, err = run_cli(["estimate", FRAMES[0], "--profile", str(recorded), "--json", "--method", "geometric"])
     assert code == 0, err
-    assert json.loads(out) == records[0]
+    assert json.loads(out)["frames"][0] == records[0]
 
 
 @pytest.mark.parametrize("command", [["estimate", FRAMES[0]], ["score", FRAMES[0]], ["demo"]])
@@ -176,10 +223,16 @@ def test_an_unknown_method_is_a_usage_error(command, capsys):
 
 @pytest.fixture(scope="module")
 def scored(tmp_path_factory):
-    heatmap = tmp_path_factory.mktemp("score") / "heat.png"
+    folder = tmp_path_factory.mktemp("score")
+    heatmap, output = folder / "heat.png", folder / "scored.json"
+    output.write_text("old")
+    output.chmod(0o600)
     code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--json", "--heatmap", str(heatmap),
-                              "--top", str(TOP)])
+                              "--top", str(TOP), "-o", str(output)])
     assert code == 0, err
+    # -o holds what --json prints, written atomically over the old file, whose mode it keeps.
+    assert json.loads(output.read_text()) == json.loads(out) and (output.stat().st_mode & 0o777) == 0o600
+    check_schema(json.loads(out), "score")
     return json.loads(out), heatmap
 
 
@@ -188,6 +241,8 @@ def test_score_json_is_ranked_best_first(scored):
     n_links = profile_data()["fingers"]["left"]["n_links"]
     candidates = out["candidates"]
     assert out["method"] == DEFAULT_METHOD
+    assert out["format"] == "softgrip-score/1" and out["conventions"]["plane"]["depth_mm"] > 0
+    assert out["profile"]["path"] == str(PROFILE)
     assert out["n_candidates"] >= len(candidates) == TOP and out["n_valid"] > 0
     for c in candidates:
         assert set(c) == CANDIDATE_KEYS
@@ -205,12 +260,25 @@ def test_score_json_is_ranked_best_first(scored):
     assert valid_flags == sorted(valid_flags, reverse=True)
 
 
-def test_score_heatmap_is_a_png_of_the_frames_size(scored):
+def test_score_heatmap_is_a_matplotlib_plot_with_a_colour_bar(scored):
     _, heatmap = scored
-    check_png(heatmap, 640, 480)
-    frame, _ = frame_camera(FRAMES[0])
+    assert heatmap.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     image = cv2.cvtColor(cv2.imread(str(heatmap)), cv2.COLOR_BGR2RGB)
-    assert np.mean(np.any(image != frame.color, axis=-1)) > 0.02  # something was drawn
+    h, w = image.shape[:2]
+    assert w > 640 and h > 480  # the frame plus axes, labels and a colour bar
+    # viridis's ends (the colour bar and the cells) are in the picture.
+    for colour in ((68, 1, 84), (253, 231, 37)):
+        assert np.any(np.abs(image.astype(int) - colour).sum(axis=-1) < 40), colour
+
+
+def test_heatmap_format_follows_the_extension(scored, tmp_path):
+    """--heatmap x.jpg writes a JPEG; an extension matplotlib cannot write is refused before any work."""
+    code, _, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--grid=-5:5:3,-50:-40:3,0:0:1",
+                            "--heatmap", str(tmp_path / "heat.jpg"), "-q"])
+    assert code == 0, err
+    assert (tmp_path / "heat.jpg").read_bytes()[:3] == b"\xff\xd8\xff"
+    code, _, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--heatmap", str(tmp_path / "heat.xyz")])
+    assert code == 2 and ".xyz" in err and ".png" in err and not (tmp_path / "heat.xyz").exists()
 
 
 def test_score_ranks_a_grasp_above_closing_on_nothing(tmp_path):
@@ -240,6 +308,25 @@ def test_bad_pose_files_name_the_file_and_line(tmp_path, name, text, where):
     assert code == 2 and out == ""
     assert str(path) in err and where in err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+def test_score_reads_poses_from_stdin_and_writes_the_document_to_stdout(scored, monkeypatch):
+    """--poses - reads CSV (or JSON) from standard input; -o - writes the document to stdout."""
+    best = scored[0]["candidates"][0]["pose"]
+    monkeypatch.setattr("sys.stdin", io.StringIO(f"{best['x_mm']},{best['y_mm']},{best['angle_rad']}\n-60,-45,0\n"))
+    code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--poses", "-", "-o", "-", "-q"])
+    assert code == 0, err
+    assert "scored" not in err and "warning" not in err  # -q: no summary, no warnings
+    document = json.loads(out)
+    check_schema(document, "score")
+    assert document["n_candidates"] == 2
+    assert document["candidates"][0]["score"] == pytest.approx(scored[0]["candidates"][0]["score"], abs=1e-4)
+    monkeypatch.setattr("sys.stdin", io.StringIO('[[0, -45, 0]]'))
+    code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--poses", "-", "--json", "-q"])
+    assert code == 0 and json.loads(out)["candidates"][0]["pose"] == {"x_mm": 0.0, "y_mm": -45.0, "angle_rad": 0.0}
+    monkeypatch.setattr("sys.stdin", io.StringIO("1,2,3,4\n"))
+    code, _, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--poses", "-"])
+    assert code == 2 and "<stdin>, line 1" in err
 
 
 def test_bad_grid_is_a_user_error():
@@ -282,8 +369,13 @@ def test_demo_writes_its_outputs(demo):
     for name in summary["files"]:
         assert (out_dir / name).is_file(), name
     for name in summary["files"]:
-        if name.endswith(".png"):
+        if name.endswith(".png") and not name.startswith("heatmap_"):
             check_png(out_dir / name, 640, 480)
+    heatmaps = [name for name in summary["files"] if name.startswith("heatmap_")]
+    assert heatmaps  # plotted with mm axes and a colour bar: larger than the frame, RGB
+    for name in heatmaps:
+        image = cv2.imread(str(out_dir / name), cv2.IMREAD_UNCHANGED)
+        assert image.ndim == 3 and image.shape[2] == 3 and image.shape[0] > 480 and image.shape[1] > 640
     assert json.loads((out_dir / "summary.json").read_text()) == summary
     from calib.profile import load_profile
 
@@ -352,9 +444,23 @@ def frame_without_gripper(tmp_path_factory):
 
 
 def test_unusable_frame_is_a_user_error_naming_the_frame(frame_without_gripper):
-    code, _, err = run_cli(["estimate", FRAMES[0], str(frame_without_gripper), "--profile", str(PROFILE)])
+    code, _, err = run_cli(["estimate", str(frame_without_gripper), "--profile", str(PROFILE)])
     one_line_error(code, err)
     assert str(frame_without_gripper) in err and "no gripper" in err
+
+
+def test_a_frame_list_goes_on_past_a_bad_frame_and_fails_at_the_end_naming_it(frame_without_gripper):
+    bad = str(frame_without_gripper)
+    code, out, err = run_cli(["estimate", bad, FRAMES[0], "--profile", str(PROFILE), "--json"])
+    assert code == EXIT_USER_ERROR and "Traceback" not in err
+    document = json.loads(out)
+    check_schema(document, "estimate")
+    assert (document["n_frames"], document["n_estimated"], document["n_failed"]) == (2, 1, 1)
+    records = document["frames"]
+    assert [r["frame"] for r in records] == [bad, FRAMES[0]]  # the good frame after the bad one is estimated
+    assert records[0]["valid"] is False and records[0]["status"] == "error" and "no gripper" in records[0]["error"]
+    assert records[1]["valid"] is True and len(records[1]["fingers"]) == 2
+    assert f"1 of 2 frames failed: {bad}" in err.splitlines()[-1]
 
 
 def test_debug_shows_the_exception(frame_without_gripper):

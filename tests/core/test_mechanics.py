@@ -131,7 +131,7 @@ def test_mechanics_config_rejects_bad_fields_by_name(field, value):
 
 
 def test_status_values_are_appended_not_renumbered():
-    assert [s.value for s in Status] == [0, 1, 2, 3, 4, 5]
+    assert [s.value for s in Status][:6] == [0, 1, 2, 3, 4, 5]
     assert Status.MECHANICS_NOT_CONVERGED == 5 and METHODS == ("geometric", "mechanics")
 
 

@@ -79,3 +79,23 @@ def test_sdf_constructors_reject_bad_input():
         PolygonSDF(jnp.zeros((2, 2)))
     with pytest.raises(SoftgripError, match="spacing"):
         SDFGrid(values=jnp.zeros((3, 3)), origin=jnp.zeros(2), spacing=jnp.array([1.0, 0.0]))
+
+
+def test_sdf_grid_from_numpy_with_a_scalar_spacing_matches_the_jax_grid():
+    """numpy arrays and a scalar spacing are accepted at construction and at lookup (planners hand
+    over numpy grids), and give the same distances as the JAX arrays they stand for."""
+    import numpy as np
+
+    rows, cols = np.mgrid[0:31, 0:41]
+    values = np.hypot(cols * 0.5 - 10.0, rows * 0.5 - 7.5) - 4.0  # float64 numpy
+    from_numpy = SDFGrid(values=values, origin=np.zeros(2), spacing=0.5)
+    from_jax = SDFGrid(values=jnp.asarray(values, jnp.result_type(float)), origin=jnp.zeros(2),
+                       spacing=jnp.array([0.5, 0.5]))
+    assert isinstance(from_numpy.values, jax.Array) and from_numpy.spacing.shape == (2,)
+    points = np.array([[10.0, 7.5], [14.0, 7.5], [3.3, 2.2], [100.0, 0.0]])
+    np.testing.assert_allclose(from_numpy.distance(points), from_jax.distance(jnp.asarray(points, from_jax.values.dtype)),
+                               rtol=1e-6)
+    assert float(from_numpy.distance(points)[0]) == pytest.approx(-4.0, abs=1e-5)
+    assert float(from_numpy.distance(points)[-1]) == from_numpy.far
+    with pytest.raises(SoftgripError, match="spacing must be > 0"):
+        SDFGrid(values=values, origin=np.zeros(2), spacing=0.0)

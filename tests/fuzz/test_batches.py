@@ -72,7 +72,7 @@ def test_estimate_batch_flags_poisoned_bases_and_isolates_the_others(drawn):
     out = estimate_batch(FINGER, GRID, bases, method="geometric")
     valid, status = np.asarray(out.valid), np.asarray(out.status)
     assert not valid[poisoned].any()
-    assert set(status[poisoned]) <= {Status.NON_FINITE_INPUT, Status.BASE_OUTSIDE_SDF}
+    assert set(status[poisoned]) <= {Status.NON_FINITE_INPUT, Status.BASE_OUTSIDE_SDF, Status.COORDINATE_OUT_OF_RANGE}
     assert np.isnan(np.asarray(out.joints)[poisoned]).all()
     for i in touching_first(~poisoned, out.case)[:3]:  # three per example keep it quick
         alone = estimate_batch(FINGER, GRID, np.repeat(bases[i:i + 1], B, axis=0), method="geometric")

@@ -270,3 +270,17 @@ def test_cli_help_has_examples(capsys: pytest.CaptureFixture[str]) -> None:
         capture_parser().parse_args(["capture", "--help"])
     text = capsys.readouterr().out
     assert "examples:" in text and "--bag scene.db3" in text and "frame_0000" in text
+
+
+def test_capture_keeps_the_lens_distortion(tmp_path: Path) -> None:
+    """The colour stream's distortion model and coefficients survive recording and capture."""
+    distorted = Intrinsics(width=W, height=H, fx=385.25, fy=384.5, ppx=31.75, ppy=23.5, depth_scale=0.00025,
+                           model="inverse_brown_conrady", coeffs=(0.125, -0.25, 0.0009765625, -0.001953125, 0.0625))
+    rng = np.random.default_rng(7)
+    frame = Frame(color=rng.integers(0, 256, (H, W, 3), dtype=np.uint8),
+                  depth=rng.integers(1, 65536, (H, W), dtype=np.uint16), intrinsics=distorted)
+    path = write_recording(tmp_path / "lens.db3", [frame])
+    [folder] = capture_from_recording(path, tmp_path / "out")
+    loaded = load_frame(folder)
+    assert loaded.intrinsics == distorted
+    assert json.loads((folder / "intrinsics.json").read_text())["model"] == "inverse_brown_conrady"

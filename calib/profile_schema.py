@@ -1,0 +1,203 @@
+"""The calibration profile's JSON layout as pydantic models: what every field must be, said once.
+
+:func:`validate` checks a parsed JSON object against :class:`ProfileDocument` and turns pydantic's
+first error into one line that names the field as a path and says what it expects, e.g.
+``fingers.left.theta_entire: expected a number in [0, pi/2), got "abc"``. Each leaf field carries
+that expectation in its ``description`` (:func:`number`, :func:`text`), which is also what
+:func:`json_schema` (``schemas/profile.schema.json``) tells other tools. What a field's type cannot
+say (the format version, one value per frame, the free-closure pair among the frames) is checked
+in :mod:`calib.profile` after this.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Annotated, Any, Literal
+
+from pydantic import (BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, ValidatorFunctionWrapHandler,
+                      WrapValidator)
+from pydantic_core import PydanticCustomError
+
+#: Largest magnitude of a number in a profile: the core computes in float32 (max 3.4e38).
+MAX_MAGNITUDE = 1e30
+#: Most links a finger may have: the paper uses N <= 20, and memory grows with N^2 per candidate
+#: in the mechanics estimate.
+MAX_N_LINKS = 100
+
+
+def _expecting(expected: str, magnitude: bool = False) -> WrapValidator:
+    """Any error of the wrapped value becomes one that says ``expected`` (and, for numbers beyond
+    :data:`MAX_MAGNITUDE`, that limit)."""
+    def wrap(value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+        try:
+            out = handler(value)
+        except ValidationError:
+            raise PydanticCustomError("expected", "{expected}", {"expected": expected}) from None
+        if magnitude and abs(out) > MAX_MAGNITUDE:
+            raise PydanticCustomError("expected", "{expected}",
+                                      {"expected": f"{expected}, at most {MAX_MAGNITUDE:g} in magnitude"})
+        return out
+    return WrapValidator(wrap)
+
+
+def number(expected: str, **bounds: float) -> Any:
+    """A finite JSON number (not a boolean) within ``bounds`` (pydantic's gt, ge, lt, le)."""
+    return Annotated[float, Field(strict=True, allow_inf_nan=False, description=expected, **bounds),
+                     _expecting(expected, magnitude=True)]
+
+
+def text(choices: tuple[str, ...] | None = None) -> Any:
+    """A non-empty string, or one of ``choices``."""
+    if choices is None:
+        return Annotated[str, Field(strict=True, min_length=1, description="a non-empty string"),
+                         _expecting("a non-empty string")]
+    expected = "one of " + ", ".join(f'"{c}"' for c in choices)
+    return Annotated[Literal[choices], Field(description=expected), _expecting(expected)]  # type: ignore[valid-type]
+
+
+_NON_NEGATIVE = number("a number >= 0", ge=0)
+#: A standard error: one number, or one per component of a vector parameter (base_offset).
+_StandardError = Annotated[
+    Annotated[_NON_NEGATIVE, Tag("number")] | Annotated[list[_NON_NEGATIVE], Tag("list")],
+    Discriminator(lambda v: "list" if isinstance(v, list) else "number"),
+]
+_UNION_TAGS = ("number", "list")
+
+
+class _Object(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+class Gripper(_Object):
+    base_separation: number("a distance in mm > 0", gt=0)
+
+
+class Finger(_Object):
+    length: number("a length in mm > 0", gt=0)
+    theta_entire: number("a number in [0, pi/2)", ge=0, lt=math.pi / 2)
+    half_thickness: number("a half-thickness in mm >= 0", ge=0)
+    n_links: Annotated[int, Field(strict=True, ge=1, le=MAX_N_LINKS),
+                       _expecting(f"an integer >= 1 and <= {MAX_N_LINKS}")]
+    base_offset: Annotated[list[number("a finite number of mm")],
+                           Field(min_length=2, max_length=2, description="[dx, dy] in mm (two numbers)")] = [0.0, 0.0]
+    stiffness_ratio: number("a base-to-tip stiffness ratio > 0 (1: uniform)", gt=0) = 1.0
+    base_compliance: number("a base compliance >= 0 (0: clamped base)", ge=0) = 0.0
+
+
+class Fingers(_Object):
+    left: Finger
+    right: Finger
+
+
+class Camera(_Object):
+    name: text()
+    # Checked field by field by vision.frames.Intrinsics.from_dict.
+    intrinsics: dict[str, Any] | None = Field(description="the camera's intrinsics (a JSON object) or null")
+
+
+class Skipped(_Object):
+    frame: text()
+    reason: text()
+
+
+class Fit(_Object):
+    method: text(("one-frame", "least-squares"))
+    estimate_method: text(("geometric", "mechanics")) | None = None
+    frames: list[text()]
+    residual_rms_mm: _NON_NEGATIVE | None = None
+    frame_residual_rms_mm: list[_NON_NEGATIVE] = []
+    frame_start_residual_rms_mm: list[_NON_NEGATIVE] = []
+    frame_mid_error_mm: list[_NON_NEGATIVE] = []
+    frame_tip_error_mm: list[_NON_NEGATIVE] = []
+    standard_errors: dict[str, _StandardError] = Field(
+        {}, description="a JSON object (parameter name -> standard error)")
+    skipped: list[Skipped] = []
+    free_closure: text() | None = None
+
+
+class Vision(BaseModel):
+    """How the fingers are measured (vision.measure.MeasureSettings checks those fields) and what
+    calibration detected."""
+
+    model_config = ConfigDict(extra="allow", strict=True, frozen=True)
+    detected: dict[str, Any] = Field({}, description="a JSON object (what calibration detected)")
+
+
+class ProfileDocument(_Object):
+    """A calibration profile file (README: "File formats")."""
+
+    version: Annotated[int, Field(strict=True, description="the format version"), _expecting("1")]
+    gripper: Gripper
+    fingers: Fingers
+    # Checked field by field by vision.segmentation.SegmentationSettings.from_dict.
+    segmentation: dict[str, Any] = Field(
+        description="a JSON object of segmentation settings ({} for the defaults)")
+    camera: Camera
+    vision: Vision = Vision()
+    fit: Fit
+
+
+def validate(data: Any) -> tuple[ProfileDocument | None, str | None]:
+    """(the document, None), or (None, ``"path: problem"``) for the first problem pydantic finds."""
+    try:
+        return ProfileDocument.model_validate(data), None
+    except ValidationError as err:
+        return None, _describe(err.errors(include_url=False)[0])
+
+
+def json_schema() -> dict[str, Any]:
+    """The profile's JSON Schema (``schemas/profile.schema.json`` is this, written out)."""
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", **ProfileDocument.model_json_schema(),
+            "title": "softgrip-jax calibration profile"}
+
+
+def _describe(error: dict[str, Any]) -> str:
+    """One pydantic error as ``path: problem``."""
+    loc = list(error["loc"])
+    if loc[:2] == ["fit", "standard_errors"] and len(loc) > 3 and loc[3] in _UNION_TAGS:
+        del loc[3]  # which member of the number-or-list union pydantic tried: not part of the path
+    path = "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in loc).lstrip(".")
+    kind, value = error["type"], error.get("input")
+    if kind == "missing":
+        return f"{path}: expected a value (the field is missing)"
+    if kind == "extra_forbidden":
+        return f"{path}: unknown field (valid: {', '.join(_field_names(loc[:-1]))})"
+    if kind == "expected":
+        expected = error["ctx"]["expected"]
+    elif kind == "list_type":
+        expected = "a JSON array"
+    else:  # a JSON object expected, or a list of the wrong length: the field's own description
+        expected = _description(loc) or "a JSON object"
+    return f"{path}: expected {expected}, got {_show(value)}"
+
+
+def _model_at(loc) -> type[BaseModel] | None:
+    """The model class whose fields the object at ``loc`` holds, or None."""
+    model: Any = ProfileDocument
+    for part in loc:
+        if not (isinstance(model, type) and issubclass(model, BaseModel)) or part not in model.model_fields:
+            return None
+        model = model.model_fields[part].annotation
+    return model if isinstance(model, type) and issubclass(model, BaseModel) else None
+
+
+def _field_names(loc) -> list[str]:
+    model = _model_at(loc)
+    return list(model.model_fields) if model is not None else []
+
+
+def _description(loc) -> str | None:
+    model = _model_at(loc[:-1])
+    if model is None or loc[-1] not in model.model_fields:
+        return None
+    return model.model_fields[loc[-1]].description
+
+
+def _show(value: Any) -> str:
+    """A value as JSON text (strings quoted), shortened."""
+    try:
+        shown = json.dumps(value)
+    except (TypeError, ValueError):
+        shown = repr(value)
+    return shown if len(shown) <= 60 else shown[:57] + "..."

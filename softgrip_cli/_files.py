@@ -1,0 +1,61 @@
+"""Results -> files: output names, the output policy's checks before any work, output folders and
+the ``--force`` option."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from softgrip_jax import SoftgripError
+
+
+def unique_png_names(scenes_paths: list[str]) -> list[str]:
+    """``<frame-name>.png`` for each frame path, made unique with ``_2``, ``_3``, ... on repeats."""
+    seen: dict[str, int] = {}
+    names = []
+    for path in scenes_paths:
+        stem = Path(path).name or "frame"
+        seen[stem] = seen.get(stem, 0) + 1
+        names.append(f"{stem}.png" if seen[stem] == 1 else f"{stem}_{seen[stem]}.png")
+    return names
+
+
+def check_output_file(path: str | os.PathLike[str], what: str, inputs=(), force: bool = False) -> Path:
+    """Refuse, before any work, an output file ``path`` that cannot or must not be written (the
+    output policy of ``vision.atomic_write``: one of the command's ``inputs``, a folder, a FIFO or
+    device, a link or read-only file without ``force``), or one whose folder does not exist (the
+    message names ``what``, e.g. ``"-o"``, and the path)."""
+    from vision.atomic_write import check_output
+
+    target = check_output(path, inputs=inputs, force=force, what=what)
+    if not target.parent.is_dir():
+        raise SoftgripError(f"{what} {path}: the folder {target.parent} does not exist (or is not a folder); "
+                            f"create it first")
+    return Path(path)
+
+
+def frame_inputs(*folders) -> list[Path]:
+    """The input files of frame ``folders`` (for the output policy)."""
+    from vision.atomic_write import frame_inputs as _files
+
+    return [path for folder in folders if folder is not None for path in _files(folder)]
+
+
+def add_force_argument(parser) -> None:
+    """``--force``: the output policy's permission to replace through links and read-only files."""
+    parser.add_argument("--force", action="store_true",
+                        help="replace an output file even when it is read-only, or a symbolic link (then the "
+                             "file it points to is replaced and the link kept); inputs, folders, FIFOs and "
+                             "devices are never replaced")
+
+
+def ensure_dir(path: str | os.PathLike[str], what: str) -> Path:
+    """Create folder ``path`` (and parents) or raise a ``SoftgripError`` naming it."""
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise SoftgripError(f"cannot create the {what} {folder}: {err.strerror}") from None
+    if not folder.is_dir():
+        raise SoftgripError(f"the {what} {folder} is not a folder")
+    return folder

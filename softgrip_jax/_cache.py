@@ -1,0 +1,112 @@
+"""JAX's persistent compilation cache for softgrip-jax: compile once per machine, not once per process.
+
+Every compiled entry point (``score``, ``estimate_batch``, ``refine``, the calibration fit without a
+progress bar, ...) takes seconds to tens of seconds to compile. With the cache on, a new Python
+process that calls them with shapes it has seen before loads the compiled programs from disk.
+
+JAX refuses to store a program that calls back into Python (``jax.debug.callback``,
+``jax.pure_callback``). The core's geometric paths contain none. Two things can add one:
+
+* equinox's runtime errors (``equinox.error_if``), which lineax's linear solves use inside
+  optimistix's implicit differentiation: a gradient through the mechanics estimate has them.
+  ``EQX_ON_ERROR=nan`` in the environment *before equinox is first imported* turns these checks into
+  NaNs without a callback (the equinox maintainers' advice for caching); a failed solve then shows as
+  a non-finite result, which the estimates and scores already report per candidate
+  (``valid=False``, a :class:`~softgrip_jax.Status`). The ``softgrip`` command sets it; a library
+  user sets it in the shell or at the top of the program (:func:`equinox_errors_cacheable` tells).
+* a progress bar (``calib.fit.fit(progress=True)``).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+#: Environment variable that turns :func:`enable_compilation_cache` off (``0``).
+DISABLE_VARIABLE = "SOFTGRIP_JAX_CACHE"
+#: Programs that compile faster than this (s) are not written (JAX's own default is 1 s).
+MIN_COMPILE_SECONDS = 1.0
+
+
+def default_cache_dir() -> Path:
+    """The per-user cache folder: ``$JAX_COMPILATION_CACHE_DIR`` when set, else the platform's user
+    cache directory (``platformdirs``: ``$XDG_CACHE_HOME/softgrip-jax/jax``, by default
+    ``~/.cache/softgrip-jax/jax`` on Linux; ``~/Library/Caches/softgrip-jax/jax`` on macOS)."""
+    explicit = os.environ.get("JAX_COMPILATION_CACHE_DIR")
+    if explicit:
+        return Path(explicit)
+    import platformdirs
+
+    return platformdirs.user_cache_path("softgrip-jax", appauthor=False) / "jax"
+
+
+def equinox_errors_cacheable() -> bool:
+    """Whether equinox's runtime checks compile without host callbacks in this process
+    (``EQX_ON_ERROR`` was ``nan`` or ``off`` when equinox was imported)."""
+    from equinox._config import EQX_ON_ERROR  # read once, at equinox's import
+
+    return EQX_ON_ERROR in ("nan", "off")
+
+
+def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path | None:
+    """Keep compiled programs on disk, so that a new process starts in seconds instead of compiling.
+
+    Call it once, before the first compiled call (calling it again is harmless). It sets JAX's
+    ``jax_compilation_cache_dir``; programs that take under :data:`MIN_COMPILE_SECONDS` to compile
+    are not written. ``SOFTGRIP_JAX_CACHE=0`` in the environment turns it off, and a cache directory
+    already configured (``jax.config`` or ``JAX_COMPILATION_CACHE_DIR``) is kept.
+
+    Args:
+        path: the cache folder; by default :func:`default_cache_dir` (a per-user cache directory).
+
+    Returns:
+        The folder in use, or None when the cache is off (``SOFTGRIP_JAX_CACHE=0``, or a folder that
+        cannot be created: the program then runs, compiling as without the cache).
+
+    Gradients through the mechanics estimate (``refine(method="mechanics")``, the mechanics fit) are
+    only cached when ``EQX_ON_ERROR=nan`` was set before equinox was imported; without it this
+    function warns once (see the module docstring).
+
+    Example:
+        >>> import tempfile, softgrip_jax
+        >>> folder = softgrip_jax.enable_compilation_cache(tempfile.mkdtemp())  # doctest: +SKIP
+    """
+    import jax
+
+    if os.environ.get(DISABLE_VARIABLE, "1") == "0":
+        return None
+    configured = jax.config.jax_compilation_cache_dir
+    if configured and path is None:
+        return Path(configured)
+    folder = Path(path) if path is not None else default_cache_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        warnings.warn(f"softgrip_jax: compilation cache off, cannot create {folder}: {err}", stacklevel=2)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _reset_cache_backend(jax)
+    if not equinox_errors_cacheable():
+        warnings.warn(
+            "softgrip_jax: EQX_ON_ERROR is not 'nan', so gradients through the mechanics estimate "
+            "(refine with method='mechanics', the mechanics fit) compile with host callbacks and are not "
+            "cached; set EQX_ON_ERROR=nan before importing softgrip_jax (or equinox) to cache them",
+            CacheWarning, stacklevel=2)
+    return folder
+
+
+class CacheWarning(UserWarning):
+    """A compiled program that the persistent cache will not hold (see :func:`enable_compilation_cache`)."""
+
+
+def _reset_cache_backend(jax) -> None:
+    """JAX decides once, at the first compilation, whether (and where) it caches: a folder set after
+    that needs its cache state reset (``jax.experimental.compilation_cache``)."""
+    try:
+        from jax.experimental.compilation_cache import compilation_cache
+    except ImportError:  # a JAX without it: the folder applies from the next process on
+        return
+    compilation_cache.reset_cache()

@@ -1,0 +1,217 @@
+"""Results -> JSON documents: what ``softgrip estimate --json`` and ``softgrip score --json`` write.
+
+Each command writes ONE JSON document (schemas in ``schemas/estimate.schema.json`` and
+``schemas/score.schema.json``, :func:`schema`) that says what its numbers mean: ``units``,
+``conventions`` (origin, axes, units and the plane's depth: :func:`vision.scene.conventions`), the
+``profile`` it was made with (:func:`profile_identity`), then a list per frame (estimate) or per
+candidate pose (score). Every enum is written by name (cases ``"none"``, ``"tip"``, ...; statuses
+``"ok"``, ``"base_outside_sdf"``, ...). One finger is written as::
+
+    {"side": "left"|"right", "valid": bool, "status": "ok"|"non_finite_input"|... (Status names),
+     "case": "none"|"tip"|"tip_and_other"|"other", "theta_entire": rad,
+     "joints_px": [[u, v], ...], "joints_mm": [[x, y], ...],    # N+1 joints, base (0) to tip (N)
+     "contacts_px": [[u, v], ...], "contacts_mm": [[x, y], ...]}  # P_o1, and P_o2 for tip_and_other
+
+Coordinates that are not finite (an invalid candidate outside the image) are written as null.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from softgrip_jax import CASE_NAMES, ContactCase, Status
+
+SIDES: tuple[str, str] = ("left", "right")
+#: Version of the documents' layout (``"format"`` field); additions keep it, changes bump it.
+DOCUMENT_VERSION = 1
+#: Where the JSON Schemas live (in the repository, next to the packages).
+SCHEMA_DIR = Path(__file__).resolve().parents[1] / "schemas"
+
+
+def schema(kind: str) -> dict:
+    """The JSON Schema of the ``"estimate"`` or ``"score"`` document."""
+    return json.loads((SCHEMA_DIR / f"{kind}.schema.json").read_text(encoding="utf-8"))
+
+
+def points_json(points: np.ndarray, decimals: int) -> list:
+    """(K, 2) points as [[a, b], ...], rounded, with null for non-finite coordinates."""
+    out = []
+    for row in np.asarray(points, np.float64).reshape(-1, 2):
+        out.append([round(float(v), decimals) if math.isfinite(v) else None for v in row])
+    return out
+
+
+def number_json(value, decimals: int = 6):
+    """A float rounded, or null when not finite."""
+    value = float(value)
+    return round(value, decimals) if math.isfinite(value) else None
+
+
+def status_name(status: int, penetrating: bool = False) -> str:
+    """A candidate's status as JSON text: ``softgrip_jax.Status`` names in lower case, or
+    ``"penetrating"`` for an estimate that is usable but flagged by the score."""
+    status = int(status)
+    if status == 0 and penetrating:
+        return "penetrating"
+    try:
+        return Status(status).name.lower()
+    except ValueError:
+        return f"status_{status}"
+
+
+def finger_contacts_mm(estimate) -> np.ndarray:
+    """(P, 2) contact points on the object, mm: none for case (a), P_o1, and P_o2 for case (c)."""
+    case = int(estimate.case)
+    if case == ContactCase.NONE:
+        return np.zeros((0, 2))
+    points = [np.asarray(estimate.contact.p_o1, np.float64)]
+    if case == ContactCase.TIP_AND_OTHER:
+        points.append(np.asarray(estimate.contact.p_o2, np.float64))
+    return np.stack(points)
+
+
+def finger_json(side: str, estimate, finger, camera) -> dict:
+    """One finger's fields (see the module docstring) from a numpy ``Estimate``."""
+    joints_mm = np.asarray(estimate.joints, np.float64)
+    contacts_mm = finger_contacts_mm(estimate)
+    return {
+        "side": side,
+        "valid": bool(estimate.valid),
+        "status": status_name(estimate.status),
+        "case": CASE_NAMES[int(estimate.case)],
+        "theta_entire": round(float(finger.theta_entire), 6),
+        "joints_px": points_json(camera.mm_to_px(joints_mm), 3),
+        "joints_mm": points_json(joints_mm, 4),
+        "contacts_px": points_json(camera.mm_to_px(contacts_mm), 3),
+        "contacts_mm": points_json(contacts_mm, 4),
+    }
+
+
+def fingers_json(grasp, gripper, camera) -> list[dict]:
+    """[left, right] finger fields of a numpy ``GraspEstimate``."""
+    return [finger_json(side, getattr(grasp, side), getattr(gripper, side), camera) for side in SIDES]
+
+
+def pose_json(pose: np.ndarray) -> dict:
+    """``{"x_mm", "y_mm", "angle_rad"}`` of a (3,) pose."""
+    return {"x_mm": round(float(pose[0]), 4), "y_mm": round(float(pose[1]), 4),
+            "angle_rad": round(float(pose[2]), 6)}
+
+
+def frame_json(scene, grasp, method: str) -> dict:
+    """``{"frame", "valid", "status", "method", "n_links", "fingers", "pose", "plane"}``: one frame of
+    ``softgrip estimate --json`` (``method``: the deformation estimate used). The frame is valid when
+    both fingers are; its status is the first invalid finger's (``"ok"`` when both are valid)."""
+    fingers = fingers_json(grasp, scene.gripper, scene.camera)
+    bad = [f for f in fingers if not f["valid"]]
+    return {"frame": scene.path, "valid": not bad, "status": bad[0]["status"] if bad else "ok", "method": method,
+            "n_links": scene.n_links, "fingers": fingers, "pose": pose_json(scene.pose),
+            "plane": scene.conventions["plane"]}
+
+
+def failed_frame_json(path: str, method: str, error: str) -> dict:
+    """The entry of a frame that could not be estimated at all."""
+    return {"frame": path, "valid": False, "status": "error", "error": error, "method": method, "n_links": None,
+            "fingers": []}
+
+
+def components_json(components) -> dict:
+    """Score components (a numpy ``ScoreComponents``) as {name: number or [left, right]}."""
+    out = {}
+    for field in dataclasses.fields(components):
+        value = np.asarray(getattr(components, field.name), np.float64)
+        out[field.name] = number_json(value) if value.ndim == 0 else [number_json(v) for v in value.ravel()]
+    return out
+
+
+def candidate_json(pose: np.ndarray, scored, gripper, camera) -> dict:
+    """One scored candidate (a numpy ``Score`` of one pose) as ``softgrip score`` writes it."""
+    valid = bool(scored.valid)
+    return {
+        "pose": pose_json(pose),
+        "score": number_json(scored.score) if valid else None,
+        "components": components_json(scored.components),
+        "valid": valid,
+        "status": status_name(scored.status, bool(scored.penetrating)),
+        "fingers": fingers_json(scored.grasp, gripper, camera),
+    }
+
+
+def profile_identity(profile, path: str | os.PathLike[str] | None = None) -> dict:
+    """Which profile the results come from: its file (``path`` as given and the SHA-256 of its
+    bytes, when it was read from one), the camera it was made with, how it was fitted, and the
+    gripper's geometry (``base_separation`` mm, per finger ``length`` mm, ``theta_entire`` rad,
+    ``n_links``)."""
+    digest = None
+    if path is not None:
+        try:
+            digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        except OSError:
+            digest = None
+    fingers = {side: {"length": number_json(f.length, 4), "theta_entire": number_json(f.theta_entire, 6),
+                      "n_links": int(f.n_links)} for side, f in profile.fingers.items()}
+    return {
+        "path": None if path is None else str(path),
+        "sha256": digest,
+        "camera": (profile.camera or {}).get("name"),
+        "fit_method": profile.fit.method,
+        "estimate_method": profile.fit.estimate_method,
+        "base_separation": number_json(profile.base_separation, 4),
+        "fingers": fingers,
+    }
+
+
+def document_header(kind: str, profile_id: dict, conventions: dict) -> dict:
+    """The fields every document starts with: ``format``, ``kind``, ``units``, ``conventions`` and
+    ``profile``."""
+    return {"format": f"softgrip-{kind}/{DOCUMENT_VERSION}", "kind": kind, "units": conventions["units"],
+            "conventions": conventions, "profile": profile_id}
+
+
+class DocumentWriter:
+    """Writes one JSON object whose last field is a list, an element at a time (memory stays that of
+    one element): ``header`` first, then each :meth:`add`, then :meth:`close` ends the list and the
+    object and adds a newline.
+
+    Example:
+        >>> import io
+        >>> out = io.StringIO()
+        >>> writer = DocumentWriter(out.write, {"kind": "estimate"}, "frames")
+        >>> out.getvalue()  # nothing until the first element
+        ''
+        >>> writer.add({"frame": "a"}); writer.add({"frame": "b"}); writer.close()
+        >>> json.loads(out.getvalue())
+        {'kind': 'estimate', 'frames': [{'frame': 'a'}, {'frame': 'b'}]}
+    """
+
+    def __init__(self, write, header: dict, list_key: str):
+        self._write = write
+        self._count = 0
+        text = json.dumps(header, allow_nan=False)
+        # Written with the first element (or at close): a run that fails before any writes nothing.
+        self._head: str | None = (text[:-1] + ", " if len(header) else "{") + json.dumps(list_key) + ": ["
+
+    def _start(self) -> str:
+        head, self._head = self._head or "", None
+        return head
+
+    def add(self, item: dict) -> None:
+        self.add_text(json.dumps(item, allow_nan=False))
+
+    def add_text(self, text: str) -> None:
+        """Add an element already encoded as JSON text."""
+        self._write(self._start() + (", " if self._count else "") + text)
+        self._count += 1
+
+    def close(self, trailer: dict | None = None) -> None:
+        """End the list; ``trailer``'s fields (if any) follow it in the object."""
+        tail = "".join(f", {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in (trailer or {}).items())
+        self._write(self._start() + "]" + tail + "}\n")

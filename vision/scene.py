@@ -1,0 +1,413 @@
+"""Frame -> scene -> results: the public API a planner calls with an RGB-D frame and a profile.
+
+One frame of the open gripper (and usually an object) becomes a :class:`Scene`
+(:func:`frame_scene`):
+
+1. the frame folder is loaded (:func:`vision.frames.load_frame`; or a :class:`~vision.frames.Frame`
+   built in memory from numpy arrays) and segmented with the profile's segmentation settings;
+2. the gripper is measured (:func:`vision.measure.measure_gripper`, with the profile's ``vision``
+   settings): the gripper plane fitted to the fingers' depth (tilt and front-surface relief), each
+   finger's keypoints, and the depth of the object's front face;
+3. each finger's base (plus the profile's base offset) gives the gripper's pose: the point midway
+   between the two bases and the angle of the base line (0: the bases level, fingers hanging toward
+   +y), in the gripper plane's millimetres (:meth:`~vision.geometry.PlaneCamera.px_to_mm`);
+4. the object mask, at the depth of its front face, becomes the core's
+   :class:`~softgrip_jax.SDFGrid` (no object reads "far");
+5. the gripper is the profile's (:meth:`calib.profile.CalibrationProfile.gripper`), optionally with
+   each finger's length L measured in this frame (eq. 5).
+
+A scene then answers for any poses (numpy or JAX, (3,) or (B, 3): x mm, y mm, angle rad):
+:meth:`Scene.estimate` (both fingers' estimates) and :meth:`Scene.score` (ranked-ready scores), as
+numpy. :attr:`Scene.conventions` says in which frame all of it is (origin, axes, units, the plane's
+depth); :mod:`vision.documents` writes the same results as the JSON documents of ``softgrip
+estimate --json`` and ``softgrip score --json``.
+
+The profile is anything with the methods of :class:`ProfileLike` (a
+:class:`calib.profile.CalibrationProfile` has them): ``vision`` does not import ``calib``.
+
+Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps the two identical):
+    >>> from pathlib import Path
+    >>> import numpy as np
+    >>> import vision
+    >>> from calib.profile import load_profile
+    >>> from vision.scene import frame_scene, rank
+    >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+    >>> scene = frame_scene(data / "circle_open", load_profile(data / "sample_profile.json"))
+    >>> print(scene.summary())
+    circle_open: gripper at x 0.0 mm, y -45.0 mm, angle -0.001 rad; object 29.3 x 29.3 mm; plane 120.0 mm deep
+    >>> print(scene.conventions["axes"], "| plane depth (mm):", scene.conventions["plane"]["depth_mm"])
+    x to the right and y down, as the image's u and v, in the gripper plane | plane depth (mm): 119.9786
+    >>> print({side: np.round(f["base_mm"], 1).tolist() for side, f in scene.finger_frames.items()})
+    {'left': [-32.0, -45.1], 'right': [32.0, -45.0]}
+    >>> # Both fingers at the frame's own pose; the first estimate compiles (seconds), later ones do not.
+    >>> grasp = scene.estimate(method="geometric")
+    >>> for side in ("left", "right"):
+    ...     f = getattr(grasp, side)
+    ...     print(side, scene.case_name(grasp, side), "tip (mm):", [round(float(v), 1) for v in f.joints[-1]])
+    left other tip (mm): [-6.8, -2.2]
+    right other tip (mm): [7.1, -2.0]
+    >>> # Candidate poses as numpy (B, 3): x mm, y mm, angle rad; here the frame's pose, 4 mm left, 80 mm up.
+    >>> poses = scene.pose + np.array([[0.0, 0.0, 0.0], [-4.0, 0.0, 0.0], [0.0, -80.0, 0.0]])
+    >>> result = scene.score(poses, method="geometric")  # numpy out; -inf where not valid
+    >>> print(rank(result).tolist(), [round(float(v), 3) for v in result.score], result.valid.tolist())
+    [0, 1, 2] [0.874, 0.859, -inf] [True, True, False]
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from softgrip_jax import CASE_NAMES, DEFAULT_METHOD, Gripper, SoftgripError
+from vision.frames import Frame
+
+SIDES: tuple[str, str] = ("left", "right")
+#: Warn when the frame's bases are this much closer or farther apart than the profile says (mm).
+SEPARATION_WARN_MM = 3.0
+#: Warn when an "open" finger is bent by more than this (rad, eq. 4 on the frame itself).
+OPEN_BEND_WARN = 0.15
+#: Smallest padded batch of :meth:`Scene.score`: every batch of up to this many poses shares one
+#: compilation (with the persistent cache, across runs too).
+MIN_BATCH = 2048
+
+
+class FrameSceneError(SoftgripError):
+    """A frame the pipeline cannot use; the message names the frame and what to do."""
+
+
+class SceneWarning(UserWarning):
+    """Something about a frame that may make its estimate wrong (a bent "open" finger, bases
+    farther apart than the profile says, a different camera resolution, a tilted plane, ...)."""
+
+
+class ProfileLike(Protocol):
+    """What :func:`frame_scene` needs of a calibration profile
+    (:class:`calib.profile.CalibrationProfile`)."""
+
+    base_separation: float
+    camera: dict[str, Any]
+
+    def segmentation_settings(self) -> Any: ...
+    def measure_settings(self) -> Any: ...
+    def corrected_bases(self, bases_mm: Any) -> np.ndarray: ...
+    def gripper(self) -> Gripper: ...
+
+
+def pose_from_bases(left_mm: Any, right_mm: Any) -> np.ndarray:
+    """(3,) pose (x mm, y mm, angle rad) of a gripper whose finger bases are at ``left_mm`` and
+    ``right_mm``: their midpoint, and the rotation that takes the +x axis onto left -> right
+    (the inverse of :func:`softgrip_jax.finger_frames`).
+
+    Example:
+        >>> pose_from_bases([-32.0, 5.0], [32.0, 5.0]).tolist()
+        [0.0, 5.0, -0.0]
+    """
+    left, right = np.asarray(left_mm, np.float64), np.asarray(right_mm, np.float64)
+    centre = 0.5 * (left + right)
+    d = right - left
+    return np.array([centre[0], centre[1], math.atan2(-d[1], d[0])])
+
+
+def with_lengths(gripper: Gripper, lengths_mm: tuple[float, float] | None) -> Gripper:
+    """``gripper`` with each finger's length replaced by ``lengths_mm`` (left, right), when given."""
+    if lengths_mm is None:
+        return gripper
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    bad = [side for side, length in zip(SIDES, lengths_mm) if not (math.isfinite(length) and length > 0)]
+    if bad:
+        raise SoftgripError(f"the {bad[0]} finger's length measured in the frame is not a length > 0 mm")
+    dtype = gripper.left.length.dtype
+    return eqx.tree_at(lambda g: (g.left.length, g.right.length), gripper,
+                       tuple(jnp.asarray(length, dtype) for length in lengths_mm))
+
+
+# ---------------------------------------------------------------------------------------------
+# Compiled core calls, shared by every scene in one process
+
+_ESTIMATE = None
+
+
+def _estimate_grasp_jit():
+    """``softgrip_jax.estimate_grasp`` compiled once (per frame size and N) for the whole process."""
+    global _ESTIMATE
+    if _ESTIMATE is None:
+        import equinox as eqx
+
+        from softgrip_jax import estimate_grasp
+
+        _ESTIMATE = eqx.filter_jit(estimate_grasp)
+    return _ESTIMATE
+
+
+def _pad(poses: np.ndarray, minimum: int = MIN_BATCH) -> np.ndarray:
+    """Poses padded (with copies of the first) to a power of two >= ``minimum``, so that batches of
+    similar sizes share one compilation."""
+    size = max(minimum, 1 << (len(poses) - 1).bit_length())
+    return np.concatenate([poses, np.repeat(poses[:1], size - len(poses), axis=0)])
+
+
+def _poses(poses: Any, what: str) -> np.ndarray:
+    """(B, 3) float64 poses from (3,) or (B, 3) numbers; a SoftgripError naming ``what`` otherwise."""
+    array = np.asarray(poses, np.float64)
+    if array.ndim == 1:
+        array = array[None]
+    if array.ndim != 2 or array.shape[1] != 3 or array.shape[0] < 1:
+        raise SoftgripError(f"{what}: expected poses of shape (3,) or (B, 3) (x mm, y mm, angle rad), got "
+                            f"shape {np.shape(poses)}")
+    return array
+
+
+def to_numpy(tree):
+    """Every array leaf of a PyTree as numpy (one device transfer)."""
+    import jax
+
+    return jax.device_get(tree)
+
+
+def take(tree, index: int):
+    """Element ``index`` of every leaf of a batched PyTree (numpy leaves)."""
+    import jax
+
+    return jax.tree_util.tree_map(lambda x: x[index], tree)
+
+
+# ---------------------------------------------------------------------------------------------
+# The scene
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """Everything the core needs about one frame, and the vision results behind it.
+
+    Attributes:
+        path: the frame folder as given (``"<memory>"`` for a frame built in memory).
+        frame: the :class:`vision.frames.Frame` (colour, depth, intrinsics).
+        segmentation: its :class:`vision.segmentation.Segmentation` (gripper, fingers, object masks).
+        camera: the gripper plane's :class:`vision.geometry.PlaneCamera` (px <-> mm).
+        keypoints: (left, right) :class:`vision.keypoints.FingerKeypoints`.
+        bases_mm: (2, 2) [left, right] finger bases, mm, with the profile's base offsets.
+        pose: (3,) float64 (x mm, y mm, angle rad) of the gripper in the frame.
+        sdf: the object's :class:`softgrip_jax.SDFGrid` (mm).
+        gripper: the :class:`softgrip_jax.Gripper` to estimate with.
+    """
+
+    path: str
+    frame: Any
+    segmentation: Any
+    camera: Any
+    keypoints: tuple[Any, Any]
+    bases_mm: np.ndarray
+    pose: np.ndarray
+    sdf: Any
+    gripper: Any
+
+    @property
+    def name(self) -> str:
+        """The frame folder's name (for output files)."""
+        return Path(self.path).name or "frame"
+
+    @property
+    def has_object(self) -> bool:
+        return bool(self.segmentation.object.any())
+
+    @property
+    def n_links(self) -> int:
+        return int(self.gripper.left.n_links)
+
+    @property
+    def finger_frames(self) -> dict[str, dict[str, Any]]:
+        """Each finger's frame at the scene's pose, in mm: ``{"left": {"base_mm": [x, y],
+        "angle_rad": a, "handedness": 1.0}, "right": {..., "handedness": -1.0}}`` (the right finger
+        curls toward -x: it is the left computation mirrored, :func:`softgrip_jax.finger_frames`)."""
+        return self.finger_frames_at(self.pose)
+
+    def finger_frames_at(self, pose: Any) -> dict[str, dict[str, Any]]:
+        """:attr:`finger_frames` at another ``pose`` (x mm, y mm, angle rad)."""
+        from softgrip_jax import finger_frames
+
+        frames = to_numpy(finger_frames(self.gripper, np.asarray(pose, np.float64)))
+        return {side: {"base_mm": [float(v) for v in f.origin], "angle_rad": float(f.angle),
+                       "handedness": float(f.handedness)} for side, f in zip(SIDES, frames)}
+
+    @property
+    def conventions(self) -> dict[str, Any]:
+        """The frame every millimetre of this scene (and of its results) is in, as a JSON-ready dict:
+        ``units``, ``origin``, ``axes``, ``angle``, ``pose`` and ``plane`` (its depth on the optical
+        axis, its normal and tilt in camera coordinates)."""
+        return conventions(self.camera)
+
+    def summary(self) -> str:
+        """One line: the frame's name, the gripper's pose, the object's size and the plane's depth."""
+        x, y, angle = (round(float(v), d) + 0.0 for v, d in zip(self.pose, (1, 1, 3)))  # + 0.0: never "-0.0"
+        text = f"{self.name}: gripper at x {x:.1f} mm, y {y:.1f} mm, angle {angle:.3f} rad; "
+        if self.has_object:
+            rows, cols = np.nonzero(self.segmentation.object)
+            (x0, y0), (x1, y1) = self.camera.px_to_mm([[cols.min() - 0.5, rows.min() - 0.5],
+                                                       [cols.max() + 0.5, rows.max() + 0.5]])
+            text += f"object {x1 - x0:.1f} x {y1 - y0:.1f} mm; "
+        else:
+            text += "no object; "
+        return text + f"plane {self.camera.depth_mm:.1f} mm deep"
+
+    def estimate(self, poses: Any = None, *, method: str = DEFAULT_METHOD):
+        """Both fingers' estimates, as numpy (a :class:`softgrip_jax.GraspEstimate`).
+
+        Args:
+            poses: None (the frame's own pose), one pose (3,) or B poses (B, 3), numpy or JAX:
+                x mm, y mm, angle rad.
+            method: the deformation estimate, ``"geometric"`` or ``"mechanics"``.
+
+        Returns:
+            For None or one pose, one ``GraspEstimate`` (joints (N+1, 2) mm per finger); for (B, 3),
+            leaves with a leading axis B.
+        """
+        import jax.numpy as jnp
+
+        dtype = self.gripper.base_separation.dtype
+        if poses is None or np.ndim(poses) == 1:
+            pose = _poses(self.pose if poses is None else poses, "Scene.estimate")[0]
+            return to_numpy(_estimate_grasp_jit()(self.gripper, self.sdf, jnp.asarray(pose, dtype), method=method))
+        from softgrip_jax import estimate_grasp_batch
+
+        batch = _poses(poses, "Scene.estimate")
+        result = estimate_grasp_batch(self.gripper, self.sdf, jnp.asarray(_pad(batch, 64), dtype), method=method)
+        return take_rows(to_numpy(result), len(batch))
+
+    def score(self, poses: Any, *, method: str = DEFAULT_METHOD, weights=None):
+        """Score poses (numpy or JAX, (3,) or (B, 3): x mm, y mm, angle rad) in one compiled call.
+
+        Batches are padded to a power of two (at least :data:`MIN_BATCH`) so that batches of similar
+        sizes share one compilation. Returns a :class:`softgrip_jax.Score` with numpy leaves of
+        leading axis B (``score`` is -inf where not valid); rank with :func:`rank`.
+        """
+        import jax
+        import jax.numpy as jnp
+
+        from softgrip_jax import ScoreWeights, score
+
+        batch = _poses(poses, "Scene.score")
+        padded = jnp.asarray(_pad(batch), self.gripper.base_separation.dtype)
+        result = jax.block_until_ready(score(self.gripper, self.sdf, padded, ScoreWeights() if weights is None
+                                            else weights, method=method))
+        return take_rows(to_numpy(result), len(batch))
+
+    @staticmethod
+    def case_name(grasp, side: str) -> str:
+        """The contact case of finger ``side`` of a single (unbatched) estimate, by name."""
+        return CASE_NAMES[int(getattr(grasp, side).case)]
+
+
+#: The old name of :class:`Scene`.
+FrameScene = Scene
+
+
+def take_rows(tree, count: int):
+    """The first ``count`` rows of every leaf of a batched PyTree (numpy leaves)."""
+    import jax
+
+    return jax.tree_util.tree_map(lambda x: x[:count], tree)
+
+
+def rank(result) -> np.ndarray:
+    """Candidate indices of a :class:`softgrip_jax.Score`, best first; invalid candidates last, each
+    group in input order."""
+    key = np.where(np.asarray(result.valid) & np.isfinite(result.score), result.score, -np.inf)
+    return np.argsort(-key, kind="stable")
+
+
+def conventions(camera=None) -> dict[str, Any]:
+    """The coordinate conventions of results measured with ``camera`` (a
+    :class:`~vision.geometry.PlaneCamera`), as written into every JSON document. Without a camera
+    (a document of several frames), ``plane`` says that each frame gives its own."""
+    plane: Any = "each frame's own: its depth_mm, normal and tilt_deg under frames[].plane"
+    if camera is not None:
+        plane = {"depth_mm": round(float(camera.depth_mm), 4),
+                 "normal": [round(float(c), 6) for c in camera.normal],
+                 "tilt_deg": round(float(camera.tilt_deg), 3)}
+    return {
+        "units": {"length": "mm", "angle": "rad", "image": "px"},
+        "origin": "where the camera's optical axis meets the gripper plane (the plane through the fingers' "
+                  "centrelines); pixel coordinates: the centre of the top-left pixel is (0, 0)",
+        "axes": "x to the right and y down, as the image's u and v, in the gripper plane",
+        "angle": "radians from the downward vertical (+y), positive toward +x",
+        "pose": "gripper pose (x_mm, y_mm, angle_rad): the point midway between the two finger bases and the "
+                "gripper's in-plane rotation (0: fingers hanging toward +y)",
+        "plane": plane,
+    }
+
+
+def _default_warn(message: str) -> None:
+    warnings.warn(message, SceneWarning, stacklevel=3)
+
+
+def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, length_from_frame: bool = False,
+                settings=None, warn: Callable[[str], None] | None = None) -> Scene:
+    """Load, segment and measure one frame of the open gripper (see the module docstring).
+
+    Args:
+        frame: a frame folder, or a :class:`vision.frames.Frame` (numpy colour, depth and intrinsics).
+        profile: the calibration profile (:class:`calib.profile.CalibrationProfile`).
+        length_from_frame: use each finger's length measured in this frame (eq. 5) instead of the
+            profile's.
+        settings: segmentation settings (the profile's when None).
+        warn: called with each warning's text (default: :func:`warnings.warn` with a
+            :class:`SceneWarning`).
+
+    Raises:
+        FrameSceneError: the frame cannot be read, segmented or measured; the message starts with
+            the frame's path.
+    """
+    from vision.frames import load_frame
+    from vision.measure import measure_gripper
+    from vision.segmentation import segment
+
+    warn = warn or _default_warn
+    label = "<memory>" if isinstance(frame, Frame) else str(frame)
+    settings = profile.segmentation_settings() if settings is None else settings
+    try:
+        loaded = frame if isinstance(frame, Frame) else load_frame(frame)
+        seg = segment(loaded, settings)
+        measured = measure_gripper(loaded, seg, profile.measure_settings())
+        camera, keypoints = measured.camera, measured.keypoints
+        sdf = measured.object_sdf(loaded)
+    except SoftgripError as err:
+        message = str(err)
+        raise FrameSceneError(message if label in message else f"{label}: {message}") from None
+    for note in measured.warnings():
+        warn(f"{label}: {note}")
+    bases = profile.corrected_bases(np.stack([k.base_mm for k in keypoints]))
+    pose = pose_from_bases(bases[0], bases[1])
+    lengths = tuple(k.length_mm for k in keypoints) if length_from_frame else None
+    try:
+        gripper = with_lengths(profile.gripper(), lengths)
+    except SoftgripError as err:
+        raise FrameSceneError(f"{label}: {err}") from None
+    intrinsics = loaded.intrinsics
+    recorded = (profile.camera or {}).get("intrinsics")
+    if recorded and (recorded.get("width"), recorded.get("height")) != (intrinsics.width, intrinsics.height):
+        warn(f"{label}: the frame is {intrinsics.width}x{intrinsics.height} px but the profile was "
+             f"made with {recorded.get('width')}x{recorded.get('height')} px frames: is it the same camera setup?")
+    separation = float(np.hypot(*(bases[1] - bases[0])))
+    if abs(separation - profile.base_separation) > SEPARATION_WARN_MM:
+        warn(f"{label}: the finger bases are {separation:.1f} mm apart but the profile says "
+             f"{profile.base_separation:.1f} mm: is the profile for this gripper and camera distance?")
+    try:
+        bends = [k.theta for k in keypoints]
+    except SoftgripError:  # a tip not below its base: eq. 4 is undefined
+        warn(f"{label}: a finger's tip is not below its base; the estimate expects a frame of the open "
+             f"gripper, fingers hanging down the image")
+    else:
+        if max(abs(b) for b in bends) > OPEN_BEND_WARN:
+            warn(f"{label}: the fingers look bent ({bends[0]:.2f} and {bends[1]:.2f} rad by eq. 4); the "
+                 f"estimate expects a frame of the open gripper before it closes")
+    return Scene(path=label, frame=loaded, segmentation=seg, camera=camera, keypoints=keypoints,
+                 bases_mm=bases, pose=pose, sdf=sdf, gripper=gripper)
