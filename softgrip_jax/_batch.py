@@ -43,6 +43,12 @@ DEFAULT_CHUNK = 4096
 #: A chunk's touching candidates are solved in groups of ceil(chunk / _SOLVE_GROUPS).
 _SOLVE_GROUPS = 8
 
+#: A chunk's touching candidates are solved for their equilibrium in groups of this many: under
+#: vmap a group iterates until its slowest element is done (the longest closing path, the most
+#: Gauss-Newton steps), so small groups keep few lanes waiting (eight groups per chunk, as for the
+#: contact, are far slower: benchmarks/RESULTS.md, issue 20).
+_MECHANICS_GROUP = 64
+
 #: Chunks smaller than this refine every finger (see :func:`finger_chunk`).
 _SMALL_CHUNK = 16
 
@@ -66,7 +72,8 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
     """``jax.vmap(fn)(inputs)`` evaluated only where ``need`` holds (elsewhere: zeros).
 
     The needed elements are gathered to the front and mapped a group at a time; groups with
-    nothing to do are skipped (``lax.cond``), so the cost follows the number of needed elements.
+    nothing to do are skipped (``lax.cond``), so the cost follows the number of needed elements
+    (a group's spare lanes repeat one of its needed elements, so they never outlast it).
     Differentiable (gathers, ``lax.map`` and ``lax.cond``).
     """
     b = need.shape[0]
@@ -85,6 +92,10 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
     def group(g):
         idx = jax.lax.dynamic_slice_in_dim(padded, g * size, size)
         work = jax.lax.dynamic_slice_in_dim(wanted, g * size, size)
+        # The group's spare lanes repeat its first (needed) element: an element that needs nothing
+        # can be one whose loops would run to their budget (a collision, a base far off), and
+        # under vmap the whole group would wait on it; its answer is discarded anyway.
+        idx = jnp.where(work, idx, idx[0])
         return jax.lax.cond(
             jnp.any(work),
             lambda: jax.vmap(fn)(take(idx)),
@@ -129,7 +140,8 @@ def finger_chunk(finger, sdf, frames, config, mechanics, method):
     if method == "geometric":
         return jax.vmap(lambda st: finish(finger, st))(stages)
     need = jax.vmap(needs_mechanics)(stages)
-    eq = where_needed(lambda st: mechanics_of(finger, sdf, st, mechanics, config), need, stages)
+    eq = where_needed(lambda st: mechanics_of(finger, sdf, st, mechanics, config), need, stages,
+                      -(-need.shape[0] // _MECHANICS_GROUP))
     return jax.vmap(lambda st, e: finish(finger, st, e))(stages, eq)
 
 

@@ -91,9 +91,24 @@ def assert_same(ref, out, i, j):
         np.testing.assert_allclose(b, a, atol=1e-5, rtol=0)
 
 
-@settings(max_examples=12, deadline=None)
-@given(picks=st.lists(st.integers(0, POOL_SIZE + len(SPECIAL) - 1), min_size=BATCH, max_size=BATCH))
+COMPOSITION = st.lists(st.integers(0, POOL_SIZE + len(SPECIAL) - 1), min_size=BATCH, max_size=BATCH)
+
+
+@settings(max_examples=3, deadline=None)
+@given(picks=COMPOSITION)
 def test_every_element_is_independent_of_the_rest_of_its_batch(picks):
+    check_composition(picks)
+
+
+@pytest.mark.slow
+@settings(max_examples=12, deadline=None)
+@given(picks=COMPOSITION)
+def test_every_element_is_independent_of_the_rest_of_its_batch_many_compositions(picks):
+    check_composition(picks)
+
+
+def check_composition(picks):
+    """Every element of a batch made of the pool's ``picks`` (repeats allowed) is the pool's own."""
     bases, ref = pool()
     out = estimate_batch(FINGER, DISC, jnp.asarray(bases[picks]), method="mechanics", chunk_size=CHUNK)
     out = jax.tree_util.tree_map(np.asarray, out)

@@ -163,6 +163,23 @@ def test_where_needed_maps_only_the_needed_elements_and_puts_them_back():
     np.testing.assert_array_equal(out[1], np.where(need, xs + 1.0, 0.0))
 
 
+def test_where_needed_never_maps_an_element_that_is_not_needed():
+    # A group's spare lanes repeat a needed element: an element that needs nothing (one whose loop
+    # would run to a large budget, say) must not hold its group's vmapped loop: fn never sees it.
+    need = jnp.array([False, True, True, False, True, False, False, True, True, False, False])
+    xs = jnp.where(need, jnp.arange(11.0), 1000.0)
+    seen = []
+
+    def fn(v):
+        jax.debug.callback(lambda a: seen.append(np.asarray(a).ravel()), v)
+        return v
+
+    out = jax.jit(lambda n, x: where_needed(fn, n, x, groups=3))(need, xs)
+    jax.block_until_ready(out)
+    np.testing.assert_array_equal(out, np.where(need, xs, 0.0))
+    assert seen and np.concatenate(seen).max() < 1000.0
+
+
 # ---------------------------------------------------------------------------------------------
 # (1) Without an object the equilibrium is the PCC shape of eqs. 1-3
 
