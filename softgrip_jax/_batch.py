@@ -30,7 +30,7 @@ from softgrip_jax._deformation import (
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, finger_frames
-from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
+from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method, closing_start, path_increments
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 
@@ -68,12 +68,15 @@ def as_candidates(x, width: int, dtype, what: str, single: bool = False) -> jax.
     return array.astype(dtype)
 
 
-def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_GROUPS):
+def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_GROUPS, kinds=None,
+                 n_kinds: int = 1):
     """``jax.vmap(fn)(inputs)`` evaluated only where ``need`` holds (elsewhere: zeros).
 
     The needed elements are gathered to the front and mapped a group at a time; groups with
     nothing to do are skipped (``lax.cond``), so the cost follows the number of needed elements
     (a group's spare lanes repeat one of its needed elements, so they never outlast it).
+    ``kinds`` (optional, (b,) integers in [0, ``n_kinds``)): the needed elements are ordered by
+    kind first, so that elements of like cost (say, as many loop iterations) share their groups.
     Differentiable (gathers, ``lax.map`` and ``lax.cond``).
     """
     b = need.shape[0]
@@ -82,7 +85,14 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
     # Needed first, each part in its original order: every element's place from two running
     # counts (an argsort does the same about 6x slower on XLA:CPU, and was run twice).
     count = jnp.sum(need)
-    place = jnp.where(need, jnp.cumsum(need) - 1, count + jnp.cumsum(~need) - 1)
+    if kinds is None or n_kinds <= 1:
+        rank = jnp.cumsum(need) - 1
+    else:  # by kind, then in order: a running count per kind after the counts of the kinds before
+        of_kind = need[:, None] & (jnp.clip(kinds, 0, n_kinds - 1)[:, None] == jnp.arange(n_kinds)[None, :])
+        running = jnp.cumsum(of_kind, axis=0)
+        before = jnp.cumsum(running[-1]) - running[-1]
+        rank = jnp.sum(jnp.where(of_kind, running - 1 + before[None, :], 0), axis=1)
+    place = jnp.where(need, rank, count + jnp.cumsum(~need) - 1)
     order = jnp.zeros(b, place.dtype).at[place].set(jnp.arange(b, dtype=place.dtype), unique_indices=True)
     padded = jnp.concatenate([order, jnp.zeros(groups * size - b, order.dtype)])
     wanted = jnp.arange(groups * size) < count
@@ -140,8 +150,11 @@ def finger_chunk(finger, sdf, frames, config, mechanics, method):
     if method == "geometric":
         return jax.vmap(lambda st: finish(finger, st))(stages)
     need = jax.vmap(needs_mechanics)(stages)
+    # Ordered by the closing path's increments, so that short paths do not wait on long ones.
+    increments = jax.vmap(lambda st: path_increments(finger, closing_start(finger, st.contact, config)[0],
+                                                     mechanics))(stages)
     eq = where_needed(lambda st: mechanics_of(finger, sdf, st, mechanics, config), need, stages,
-                      -(-need.shape[0] // _MECHANICS_GROUP))
+                      -(-need.shape[0] // _MECHANICS_GROUP), increments, mechanics.path_steps + 1)
     return jax.vmap(lambda st, e: finish(finger, st, e))(stages, eq)
 
 

@@ -422,6 +422,12 @@ def closing_start(
     return s, jnp.zeros_like(s), pcc_turning(s, finger.n_links)
 
 
+def path_increments(finger: FingerModel, s_start: Float[Array, ""], mechanics: MechanicsConfig) -> Int[Array, ""]:
+    """How many increments the closing path takes from actuation ``s_start`` (rad) to Theta."""
+    remain = jnp.maximum(finger.theta_entire - s_start, 0.0)
+    return jnp.clip(jnp.ceil(remain / mechanics.path_step), 1, mechanics.path_steps).astype(jnp.int32)
+
+
 class _PathState(eqx.Module):
     step: Int[Array, ""]
     y: Float[Array, " n1"]
@@ -460,7 +466,7 @@ def follow_closing_path(
     mech = problem.config
     theta = problem.finger.theta_entire
     remain = jnp.maximum(theta - s_start, 0.0)
-    count = jnp.clip(jnp.ceil(remain / mech.path_step), 1, mech.path_steps).astype(jnp.int32)
+    count = path_increments(problem.finger, s_start, mech)
     tip_zone = _tip_zone(problem, config)
 
     def increment(state: _PathState) -> _PathState:
