@@ -8,7 +8,7 @@ and paste the printed markdown into benchmarks/RESULTS.md.
 
 A two-finger gripper (L = 52 mm, r = 4 mm, bases 64 mm apart, Theta 0.55 rad left and 0.45 rad
 right) closes on circles, squares and clovers placed around the gripper centre. The "observed"
-closure of every finger is the elastic-rod model (``vision.synthetic.rod.close_rod``: clamped,
+closure of every finger is the elastic-rod model (``synthetic.rod.close_rod``: clamped,
 uniform stiffness, frictionless contact), independent of the estimator. Every scene is rendered
 twice (open with the object, closed on it) and goes through the whole vision pipeline
 (segmentation, keypoints, object SDF grid), so the fit sees what it would see from a camera.
@@ -46,10 +46,13 @@ from calib.one_frame import one_frame_from_frames
 from calib.profile import CalibrationProfile
 from softgrip_jax import CASE_NAMES, FingerFrame, PolygonSDF, estimate_in_frame, joint_errors
 from vision.keypoints import resample_polyline
-from vision.synthetic.render import Scene, d405_intrinsics, render
-from vision.synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
-from vision.synthetic.scenes import gripper_centrelines
-from vision.synthetic.shapes import shape
+_ROOT = str(Path(__file__).resolve().parents[1])
+if _ROOT not in sys.path:  # the test support `synthetic` sits at the root of the checkout
+    sys.path.insert(0, _ROOT)
+from synthetic.render import Scene, d405_intrinsics, render  # noqa: E402
+from synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints  # noqa: E402
+from synthetic.scenes import gripper_centrelines  # noqa: E402
+from synthetic.shapes import shape  # noqa: E402
 
 LENGTH, HALF_THICKNESS, SEPARATION, N_LINKS = 52.0, 4.0, 64.0, 10
 THETA = {"left": 0.55, "right": 0.45}

@@ -15,7 +15,7 @@ Two tables, printed as markdown:
    the methods and keep the best of several repeats, so that load from other processes biases
    neither. At 10k the mechanics rows vary the iteration budget ``MechanicsConfig.max_steps``
    (a candidate that misses its tolerances within it is ``MECHANICS_NOT_CONVERGED``).
-2. Accuracy against the observed-closure rod (``vision.synthetic.rod``: 96 segments, its own
+2. Accuracy against the observed-closure rod (``synthetic.rod``: 96 segments, its own
    stiffness profile) on circles and squares touched at the tip and at another area, stiffness
    ratio 1 and 2: joint errors (mm) of the mechanics estimate for each iteration budget, and of
    the geometric estimate, on the same scenes.
@@ -103,7 +103,7 @@ SCENES = {  # kind, arc fraction, size (radius or half side, mm), overlap (mm), 
 
 def placed(kind, arc_fraction, size, overlap, along):
     """A 64-vertex object on the inner side of the free closed finger (see test_mechanics.py)."""
-    from vision.synthetic.rod import free_arc_points
+    from synthetic.rod import free_arc_points
 
     s = arc_fraction * LENGTH
     with jax.enable_x64(True):
@@ -121,7 +121,7 @@ def placed(kind, arc_fraction, size, overlap, along):
 
 def accuracy(budgets: list[int], ratios: list[float]) -> list[dict]:
     from softgrip_jax import estimate
-    from vision.synthetic.rod import RodMechanics, close_rod, observed_joints
+    from synthetic.rod import RodMechanics, close_rod, observed_joints
 
     estimates = {}
     for s in budgets:
@@ -150,14 +150,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="batch 1k, budgets 1 and 4 on the rod, stiffness ratio 1")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--speed-only", type=int, metavar="BATCH",
+                        help="only the throughput table, at this batch and the default budget")
     args = parser.parse_args()
     from _machine import describe
 
     default = MechanicsConfig().max_steps
     # (batch, iteration budgets): the default budget at 1k, the budget's cost at 10k.
     plan = [(1_000, [default])] if args.quick else [(1_000, [default]), (10_000, [2, 4, 8, default, 16])]
+    if args.speed_only:
+        plan = [(args.speed_only, [default])]
     budgets = [1, 4] if args.quick else [1, 2, 4, 8, 16]
-    command = "python benchmarks/bench_mechanics.py" + (" --quick" if args.quick else "")
+    command = ("python benchmarks/bench_mechanics.py" + (" --quick" if args.quick else "")
+               + (f" --speed-only {args.speed_only}" if args.speed_only else ""))
     print(f"`{command}` on {describe()}\n")
     print(f"### Throughput of estimate_batch, N = {N_LINKS} (same run, alternating; default max_steps = {default})\n")
     print("| batch | method | max_steps | candidate-fingers/s | vs geometric | compile (s) | valid | not converged |"
@@ -171,6 +176,8 @@ def main() -> None:
             print(f"| {batch:,} | {r['method']} | {budget} | {r['per_second']:,.0f} | "
                   f"{r['per_second'] / geometric:.2f} | {r['compile_s']:.1f} | {r['valid']} | "
                   f"{r['not_converged'] if r['max_steps'] else '-'} | {'/'.join(map(str, r['cases']))} |", flush=True)
+    if args.speed_only:
+        return
 
     ratios = [1.0] if args.quick else [1.0, 2.0]
     print(f"\n### Joint error against the rod (mm: mean over the {N_LINKS + 1} joints / at the tip), by iteration "

@@ -10,7 +10,7 @@ and paste the printed markdown into benchmarks/RESULTS.md.
 
 The scenes are those of ``bench_calibration.py`` (circles, squares and clovers around the gripper
 centre, rendered open and closed and run through the whole vision pipeline), at N = 20, for two
-grippers whose observed closure is the elastic rod (``vision.synthetic.rod``: 96 segments, its own
+grippers whose observed closure is the elastic rod (``synthetic.rod``: 96 segments, its own
 solver): a uniform one, and one whose bending stiffness doubles from the tip to the base
 (``stiffness_ratio`` 2). For each gripper:
 
@@ -48,7 +48,7 @@ from calib.fit import fit  # noqa: E402
 from calib.profile import CalibrationProfile  # noqa: E402
 from reproduce_paper import rod_case  # noqa: E402
 from softgrip_jax import CASE_NAMES, FingerFrame, estimate_in_frame, joint_errors  # noqa: E402
-from vision.synthetic.rod import RodMechanics  # noqa: E402
+from synthetic.rod import RodMechanics  # noqa: E402
 
 _estimate = eqx.filter_jit(estimate_in_frame)
 

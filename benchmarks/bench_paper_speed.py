@@ -12,7 +12,7 @@ figure) into ``--out`` (default ``out/paper_speed``, which git ignores). ``--pix
 its joints agree with the JAX estimate's to within 1 mm (at 0.31 mm/px, the D405's scale at
 120 mm, a few per cent of the fingers differ by more).
 
-1. Faithfulness. Random scenes (every kind of object in ``vision.synthetic.shapes`` in turn, 12-40 mm,
+1. Faithfulness. Random scenes (every kind of object in ``synthetic.shapes`` in turn, 12-40 mm,
    randomly rotated, next to a finger of L 50-54 mm, r = 4 mm, Theta 0.4-0.6 rad: a fifth placed
    anywhere around the finger, the rest across the closed finger's path or just beside its lower
    part, so that all four cases occur; scenes where the open finger comes within r + 0.3 mm of the
@@ -88,9 +88,9 @@ def polygon_distance(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
 
 
 def faithfulness_scenes(count: int, seed: int = 0) -> list[Scene]:
-    """``count`` random scenes, objects of every kind in ``vision.synthetic.shapes``, none touching
+    """``count`` random scenes, objects of every kind in ``synthetic.shapes``, none touching
     the open finger."""
-    from vision.synthetic.shapes import SHAPES, shape
+    from synthetic.shapes import SHAPES, shape
 
     rng = np.random.default_rng(seed)
     names = list(SHAPES)
@@ -215,7 +215,7 @@ def faithfulness(scenes, links, sweeps, pixel_mm, angle_step, log) -> list[dict]
 
 def speed_scene():
     """The timed scene: a 30 mm circle at the origin, a 480 x 640 grid at 0.31 mm/px around it."""
-    from vision.synthetic.shapes import shape
+    from synthetic.shapes import shape
 
     spacing = 120.0 / 385.0
     origin = (-320 * spacing, -240 * spacing)
@@ -372,7 +372,7 @@ def tables(config: dict, faith: list[dict], speed_rows: list[dict], timed: list[
 
     lines = [f"`{config['command']}` on {describe()}; reference at {config['pixel_mm']} mm/px, angle step "
              f"{config['angle_step_text']}; {config['wall_s']:.0f} s wall time", ""]
-    lines += [f"Faithfulness: {config['scenes']} random scenes (objects of every kind in vision.synthetic.shapes, "
+    lines += [f"Faithfulness: {config['scenes']} random scenes (objects of every kind in synthetic.shapes, "
               "12-40 mm, L 50-54 mm, r = 4 mm, Theta 0.4-0.6 rad); the JAX estimate on the exact PolygonSDF; "
               "joint differences over the fingers whose cases agree (mean and max over joints 1..N, and the "
               "share of fingers whose every joint is within 1 mm).", "",

@@ -13,7 +13,7 @@ The protocol follows the paper's section V-A on rendered frames:
 
 * the gripper: L = 52 mm (the paper's), r = 4 mm, bases 64 mm apart, Theta 0.55 rad (left) and
   0.45 rad (right); the camera 120 mm away (a D405's intrinsics, colour and depth noise);
-* the "observed" closed finger is the elastic-rod model (``vision.synthetic.rod``: 96 segments,
+* the "observed" closed finger is the elastic-rod model (``synthetic.rod``: 96 segments,
   clamped, uniform stiffness unless ``--stiffness-ratio``/``--base-compliance`` say otherwise, its
   own solver), divided into N equal arc lengths as the paper divides the observed contour;
 * calibration per trial: eq. 4 on a rendered frame of the gripper closed on nothing, eq. 5 on a
@@ -54,10 +54,13 @@ from calib.one_frame import frame_measurement, one_frame_from_frames
 from softgrip_jax import CASE_NAMES, ContactConfig, FingerFrame, FingerModel, PolygonSDF, estimate_in_frame
 from vision.keypoints import resample_polyline
 from vision.overlay import draw_overlay, save_png
-from vision.synthetic.render import Scene, d405_intrinsics, mm_to_px, render
-from vision.synthetic.rod import RodMechanics, close_rod, observed_joints
-from vision.synthetic.scenes import gripper_centrelines
-from vision.synthetic.shapes import ACCURACY_SET, SHAPES, shape
+_ROOT = str(Path(__file__).resolve().parents[1])
+if _ROOT not in sys.path:  # the test support `synthetic` sits at the root of the checkout
+    sys.path.insert(0, _ROOT)
+from synthetic.render import Scene, d405_intrinsics, mm_to_px, render  # noqa: E402
+from synthetic.rod import RodMechanics, close_rod, observed_joints  # noqa: E402
+from synthetic.scenes import gripper_centrelines  # noqa: E402
+from synthetic.shapes import ACCURACY_SET, SHAPES, shape  # noqa: E402
 
 LENGTH, HALF_THICKNESS, SEPARATION = 52.0, 4.0, 64.0
 THETA = {"left": 0.55, "right": 0.45}

@@ -38,8 +38,8 @@ import numpy as np  # noqa: E402
 import bench_calibration as bc  # noqa: E402
 from calib.fit import PoorlyDeterminedWarning, fit  # noqa: E402
 from softgrip_jax import FingerFrame, FingerModel, PolygonSDF, estimate_in_frame  # noqa: E402
-from vision.synthetic.render import Scene  # noqa: E402
-from vision.synthetic.rod import RodMechanics  # noqa: E402
+from synthetic.render import Scene  # noqa: E402
+from synthetic.rod import RodMechanics  # noqa: E402
 
 CHANGE = 1.05  # the goal's 5 %
 

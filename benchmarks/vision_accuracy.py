@@ -44,10 +44,13 @@ from vision.geometry import PlaneCamera
 from vision.keypoints import gripper_keypoints, resample_polyline
 from vision.object_sdf import object_sdf
 from vision.segmentation import segment, segment_batch
-from vision.synthetic.render import LABEL_FIRST_FINGER, Scene, d405_intrinsics, mm_to_px, project, render, render_labels
-from vision.synthetic.rod import free_arc_points
-from vision.synthetic.scenes import gripper_centrelines
-from vision.synthetic.shapes import SHAPES, shape
+_ROOT = str(Path(__file__).resolve().parents[1])
+if _ROOT not in sys.path:  # the test support `synthetic` sits at the root of the checkout
+    sys.path.insert(0, _ROOT)
+from synthetic.render import LABEL_FIRST_FINGER, Scene, d405_intrinsics, mm_to_px, project, render, render_labels  # noqa: E402
+from synthetic.rod import free_arc_points  # noqa: E402
+from synthetic.scenes import gripper_centrelines  # noqa: E402
+from synthetic.shapes import SHAPES, shape  # noqa: E402
 
 LENGTH_MM = 52.0
 HALF_THICKNESS_MM = 4.0
@@ -271,7 +274,7 @@ def _sdf_errors(grid: SDFGrid, camera: PlaneCamera, outline_px: np.ndarray) -> t
 # Renderer variants: what real set-ups have that the default synthetic frame does not
 
 
-#: Each variant's changes to the rendered scene (``vision.synthetic.render.Scene`` fields), plus
+#: Each variant's changes to the rendered scene (``synthetic.render.Scene`` fields), plus
 #: ``"touching"``: the closed frame's fingertips overlap by that many mm (the bases moved together).
 VARIANTS: dict[str, dict] = {
     "default": {},

@@ -108,8 +108,8 @@ MIN_CLUSTERED_FRAMES = 8
 #: change of this fraction moves no joint of the used frames by as much as the residual RMS.
 RESOLUTION_CHANGE = 0.1
 
-# A calibration runs one fit per process: XLA's backend optimisations would double its compile time
-# (some 15 s more) to make later fits about three times faster.
+# A calibration runs one fit per process: XLA's backend optimisations would lengthen its compile
+# time (about doubling it) to speed up later fits, which one process does not run.
 _COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
@@ -460,7 +460,7 @@ def free_closure_observation(
         ...                          closed_name="circle_closed")
         Traceback (most recent call last):
         ...
-        softgrip_jax...SoftgripError: circle_closed shows an object (... px): ...
+        softgrip_base.errors.SoftgripError: circle_closed shows an object (... px): ...
     """
     observation, closed = _measured_pair(open_frame, closed_frame, settings, n_links, label, measure, True)
     if closed.segmentation.object.any():

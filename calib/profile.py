@@ -61,10 +61,10 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from softgrip_jax import FingerModel, Gripper, SoftgripError
-from vision import user_json
+from softgrip_base import user_json
 from calib import profile_schema
-from calib.profile_schema import MAX_MAGNITUDE, MAX_N_LINKS, _show  # noqa: F401 - the limits are this module's API too
-from vision.atomic_write import write_atomic
+from calib.profile_schema import MAX_MAGNITUDE, MAX_N_LINKS, show_value  # noqa: F401 - the limits are this module's API too
+from softgrip_base.atomic_write import write_atomic
 from vision.frames import FrameError, Intrinsics
 from vision.measure import MeasureSettings, MeasureSettingsError
 from vision.segmentation import SegmentationError, SegmentationSettings
@@ -271,7 +271,7 @@ def _non_finite_number(value: Any, path: str) -> str | None:
 def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str], *, inputs=(),
                  force: bool = False) -> Path:
     """Validate ``profile`` and write it to ``path`` atomically (replacing an existing regular file,
-    keeping its mode; ``inputs`` and ``force`` as in ``vision.atomic_write.check_output``).
+    keeping its mode; ``inputs`` and ``force`` as in ``softgrip_base.atomic_write.check_output``).
 
     Raises:
         ProfileError: a field is out of range (named, as when loading), or the file cannot be written.
@@ -314,12 +314,8 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
         ('one-frame', 52.2)
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ProfileError(f"{path}: no such calibration profile; make one with `softgrip calibrate`") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ProfileError(f"{path}: cannot read the profile ({err})") from None
+    text = user_json.read_text(path, ProfileError, "no such calibration profile; make one with `softgrip calibrate`",
+                               "the profile")
     try:
         data = user_json.loads(text)
     except json.JSONDecodeError as err:
@@ -333,7 +329,7 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
 
 def _parse(data: Any, source: str) -> CalibrationProfile:
     if not isinstance(data, dict):
-        raise ProfileError(f"{source}: expected a JSON object, got {_show(data)}")
+        raise ProfileError(f"{source}: expected a JSON object, got {show_value(data)}")
     document, problem = profile_schema.validate(data)
     if problem is not None:
         raise ProfileError(f"{source}: {problem}")
@@ -362,10 +358,10 @@ def _parse(data: Any, source: str) -> CalibrationProfile:
         values = getattr(fit, name)
         if values and len(values) != len(fit.frames):
             raise ProfileError(f"{source}: fit.{name}: expected one value per frame in fit.frames "
-                               f"({len(fit.frames)}), got {_show(values)}")
+                               f"({len(fit.frames)}), got {show_value(values)}")
     if fit.free_closure is not None and fit.free_closure not in fit.frames:
         raise ProfileError(f"{source}: fit.free_closure: expected the label of one of fit.frames, got "
-                           f"{_show(fit.free_closure)}")
+                           f"{show_value(fit.free_closure)}")
     fingers = {side: FingerEntry(**{**getattr(document.fingers, side).model_dump(),
                                     "base_offset": tuple(getattr(document.fingers, side).base_offset)})
                for side in SIDES}

@@ -169,7 +169,7 @@ def _describe(error: dict[str, Any]) -> str:
         expected = "a JSON array"
     else:  # a JSON object expected, or a list of the wrong length: the field's own description
         expected = _description(loc) or "a JSON object"
-    return f"{path}: expected {expected}, got {_show(value)}"
+    return f"{path}: expected {expected}, got {show_value(value)}"
 
 
 def _model_at(loc) -> type[BaseModel] | None:
@@ -194,7 +194,7 @@ def _description(loc) -> str | None:
     return model.model_fields[loc[-1]].description
 
 
-def _show(value: Any) -> str:
+def show_value(value: Any) -> str:
     """A value as JSON text (strings quoted), shortened."""
     try:
         shown = json.dumps(value)

@@ -3,9 +3,9 @@
     .venv/bin/python data/make_samples.py            # rewrites the frames, truth.json, sample_profile.json
     .venv/bin/python data/make_samples.py --out DIR  # somewhere else
 
-Every frame is rendered by the project's own renderer (``vision.synthetic.render``) as a RealSense
+Every frame is rendered by the project's own renderer (``synthetic.render``) as a RealSense
 D405 sees a gripper 120 mm away; every closed finger is the independent elastic-rod closure model
-(``vision.synthetic.rod.close_rod``), never the estimator's own model. What each frame shows and why
+(``synthetic.rod.close_rod``), never the estimator's own model. What each frame shows and why
 is in ``data/README.md``.
 """
 
@@ -27,10 +27,10 @@ if str(ROOT) not in sys.path:  # runnable from anywhere in a source checkout
 
 from softgrip_jax import PolygonSDF  # noqa: E402
 from vision.frames import load_frame, save_frame  # noqa: E402
-from vision.synthetic.render import Scene, d405_intrinsics, render  # noqa: E402
-from vision.synthetic.rod import close_rod, observed_joints  # noqa: E402
-from vision.synthetic.scenes import gripper_centrelines  # noqa: E402
-from vision.synthetic.shapes import shape  # noqa: E402
+from synthetic.render import Scene, d405_intrinsics, render  # noqa: E402
+from synthetic.rod import close_rod, observed_joints  # noqa: E402
+from synthetic.scenes import gripper_centrelines  # noqa: E402
+from synthetic.shapes import shape  # noqa: E402
 
 # The gripper (mm, rad). The bases are 64 mm apart, not 56: with Theta = 0.55 the free closed tips
 # sit 25.8 mm inward of their bases, so at 56 mm the closed fingers of the calibration frame would
@@ -54,7 +54,7 @@ OBJECT_RGB = (235, 170, 30)
 
 @dataclass(frozen=True)
 class SampleScene:
-    """One object between the open fingers: a key of ``vision.synthetic.shapes.SHAPES``, its
+    """One object between the open fingers: a key of ``synthetic.shapes.SHAPES``, its
     bounding-circle diameter (mm), rotation (rad), centroid (mm) and the seeds of its two frames."""
 
     name: str

@@ -2,8 +2,6 @@
 
 import argparse
 
-import softgrip_jax
-
 
 def positive_int(text: str) -> int:
     """An argparse type: a whole number >= 1."""
@@ -16,12 +14,16 @@ def positive_int(text: str) -> int:
     return value
 
 
-#: The estimate the commands use when neither ``--method`` nor the profile (``fit.estimate_method``,
-#: the estimate it was fitted through) says which: the core's default, set in one place.
-DEFAULT_METHOD = softgrip_jax.DEFAULT_METHOD
+def __getattr__(name: str):
+    """``DEFAULT_METHOD``: the estimate the commands use when neither ``--method`` nor the profile
+    (``fit.estimate_method``, the estimate it was fitted through) says which, the core's default set
+    in one place; ``METHOD_CHOICES``: the choices of ``--method``. Read from the core on first use,
+    so that a command without ``--method`` (capture) does not import JAX."""
+    if name in ("DEFAULT_METHOD", "METHOD_CHOICES"):
+        import softgrip_jax
 
-#: The choices of ``--method``.
-METHOD_CHOICES = softgrip_jax.METHODS
+        return softgrip_jax.DEFAULT_METHOD if name == "DEFAULT_METHOD" else softgrip_jax.METHODS
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def add_method_argument(parser: argparse.ArgumentParser, from_profile: bool = True,
@@ -29,6 +31,8 @@ def add_method_argument(parser: argparse.ArgumentParser, from_profile: bool = Tr
     """Add ``--method geometric|mechanics`` (default None: decided by :func:`resolve_method`).
     ``from_profile``: the command reads a profile (``profile_text`` in the help) whose recorded
     estimate is the default."""
+    from softgrip_jax import DEFAULT_METHOD, METHODS as METHOD_CHOICES
+
     default = (f"the estimate {profile_text} was fitted with (its fit.estimate_method), else {DEFAULT_METHOD}"
                if from_profile else DEFAULT_METHOD)
     parser.add_argument("--method", choices=METHOD_CHOICES, default=None,
@@ -40,5 +44,7 @@ def resolve_method(method: str | None, profile=None) -> str:
     """``--method`` if given, else the estimate ``profile`` was fitted through, else DEFAULT_METHOD."""
     if method is not None:
         return method
+    from softgrip_jax import DEFAULT_METHOD
+
     recorded = getattr(getattr(profile, "fit", None), "estimate_method", None)
     return recorded or DEFAULT_METHOD

@@ -22,10 +22,10 @@ def unique_png_names(scenes_paths: list[str]) -> list[str]:
 
 def check_output_file(path: str | os.PathLike[str], what: str, inputs=(), force: bool = False) -> Path:
     """Refuse, before any work, an output file ``path`` that cannot or must not be written (the
-    output policy of ``vision.atomic_write``: one of the command's ``inputs``, a folder, a FIFO or
+    output policy of ``softgrip_base.atomic_write``: one of the command's ``inputs``, a folder, a FIFO or
     device, a link or read-only file without ``force``), or one whose folder does not exist (the
     message names ``what``, e.g. ``"-o"``, and the path)."""
-    from vision.atomic_write import check_output
+    from softgrip_base.atomic_write import check_output
 
     target = check_output(path, inputs=inputs, force=force, what=what)
     if not target.parent.is_dir():
@@ -36,7 +36,7 @@ def check_output_file(path: str | os.PathLike[str], what: str, inputs=(), force:
 
 def frame_inputs(*folders) -> list[Path]:
     """The input files of frame ``folders`` (for the output policy)."""
-    from vision.atomic_write import frame_inputs as _files
+    from softgrip_base.atomic_write import frame_inputs as _files
 
     return [path for folder in folders if folder is not None for path in _files(folder)]
 

@@ -14,9 +14,17 @@ EXIT_BROKEN_PIPE = 141
 EXIT_INTERRUPTED = 130
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from softgrip_cli import cmd_calibrate, cmd_capture, cmd_demo, cmd_estimate, cmd_score
+#: The commands in the order of ``softgrip --help``, each the name of its module ``softgrip_cli.cmd_<name>``.
+COMMANDS = ("demo", "calibrate", "estimate", "score", "capture")
 
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``softgrip`` parser with every command, or with the command ``only`` alone: the other
+    commands' modules are then not imported (so ``softgrip capture`` does not import JAX)."""
+    import importlib
+
+    names = COMMANDS if only is None else (only,)
+    modules = [importlib.import_module(f"softgrip_cli.cmd_{name}") for name in names]
     parser = argparse.ArgumentParser(
         prog="softgrip",
         description="Pre-touch deformation estimation of a soft gripper from one RGB-D frame.",
@@ -28,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="print details on stderr too (each frame's measured pose, object and plane)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in (cmd_demo, cmd_calibrate, cmd_estimate, cmd_score, cmd_capture):
+    for module in modules:
         module.add_parser(sub)
     for command in sub.choices.values():  # -q and -v after the command too (softgrip estimate ... -q)
         command.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
@@ -54,6 +62,13 @@ def one_line(text: str) -> str:
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
+def _command_named(argv: Sequence[str]) -> str | None:
+    """The command ``argv`` names (its first word that is not an option), if it is one of
+    :data:`COMMANDS`; None otherwise (``softgrip --help``, a misspelt command: the full parser)."""
+    words = [word for word in argv if not word.startswith("-")]
+    return words[0] if words and words[0] in COMMANDS else None
+
+
 def _interrupted_while_starting(signum, frame) -> None:
     """Ctrl-C while JAX and OpenCV are imported: nothing is written yet, so leave at once. (A
     KeyboardInterrupt raised in the middle of an extension module's import can leave it half set
@@ -77,21 +92,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError:  # not the main thread: signals are not ours to handle
         previous = None
     try:
-        from softgrip_jax import SoftgripError
-        from vision.atomic_write import OutputRefusedError
+        from softgrip_base import OutputRefusedError, SoftgripError
 
-        parser = build_parser()
-        args = parser.parse_args(argv)
+        words = sys.argv[1:] if argv is None else list(argv)
+        parser = build_parser(only=_command_named(words))
+        args = parser.parse_args(words)
+        uses_jax = getattr(args, "uses_jax", True)  # every command but capture
+        if uses_jax:  # imported here, under the handler above, as the command modules are
+            from softgrip_cli import _pipeline
     finally:
         if previous is not None:  # from here Ctrl-C is a KeyboardInterrupt: writes clean up after it
             signal.signal(signal.SIGINT, previous)
-    from softgrip_cli import _pipeline
-
-    _pipeline.QUIET, _pipeline.VERBOSE = bool(args.quiet), bool(args.verbose)
     try:
-        from softgrip_cli._pipeline import enable_compilation_cache
-
-        enable_compilation_cache()  # every command: compiled programs persist across runs
+        if uses_jax:
+            _pipeline.QUIET, _pipeline.VERBOSE = bool(args.quiet), bool(args.verbose)
+            _pipeline.enable_compilation_cache()  # compiled programs persist across runs
         return int(args.func(args) or 0)
     except (SoftgripError, OutputRefusedError) as err:
         if args.debug:

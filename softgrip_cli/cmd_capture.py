@@ -55,7 +55,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                              "about the lost ones and exit 0 (default: exit 2 naming the lost frames)")
     parser.add_argument("--json", action="store_true",
                         help='print {"frames": [folder, ...]} on stdout')
-    parser.set_defaults(func=run)
+    # Neither the core nor the compilation cache: capture does not import JAX (softgrip_cli._main).
+    parser.set_defaults(func=run, uses_jax=False)
     return parser
 
 
@@ -70,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("always")
-                warnings.showwarning = _print_warning
+                warnings.showwarning = _ignore_warning if getattr(args, "quiet", False) else _print_warning
                 paths = capture_from_recording(args.bag, args.out, count=args.count,
                                                allow_partial=args.allow_partial)
         except RecordingDamagedError as err:
@@ -92,10 +93,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    from softgrip_cli import _pipeline
+    print(f"softgrip capture: warning: {message}", file=sys.stderr)
 
-    if not _pipeline.QUIET:
-        print(f"softgrip capture: warning: {message}", file=sys.stderr)
+
+def _ignore_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """-q: warnings are not printed."""
 
 
 def _print_paths(paths, as_json: bool, lost=None) -> None:

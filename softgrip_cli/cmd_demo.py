@@ -19,8 +19,8 @@ import numpy as np
 
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_method
-from softgrip_jax import SoftgripError
-from vision.atomic_write import write_atomic
+from softgrip_jax import SoftgripError, joint_errors
+from softgrip_base.atomic_write import write_atomic
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 CALIB_OPEN, CALIB_CLOSED = "calib_open", "calib_closed"
@@ -180,7 +180,7 @@ def _estimate_scene(data: Path, name: str, profile, out: Path, method: str):
         n = scene.n_links
         errors = {}
         for side, points in zip(pipe.SIDES, observed):
-            dist = np.hypot(*(np.asarray(getattr(grasp, side).joints, np.float64) - points).T)  # eq. 10
+            dist = np.asarray(joint_errors(getattr(grasp, side).joints, points), np.float64)  # eq. 10
             errors[side] = {"mid_mm": pipe.number_json(dist[n // 2], 3), "tip_mm": pipe.number_json(dist[n], 3),
                             "mean_mm": pipe.number_json(dist.mean(), 3)}
         result["observed_frame"] = str(closed_path)

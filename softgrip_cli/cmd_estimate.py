@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from vision import documents
-    from vision.atomic_write import atomic_open
+    from softgrip_base.atomic_write import atomic_open
     from vision.overlay import save_png
     from vision.scene import conventions
 

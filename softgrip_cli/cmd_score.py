@@ -18,10 +18,10 @@ import numpy as np
 
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_method
-from softgrip_jax import DEFAULT_METHOD, SoftgripError
+from softgrip_jax import DEFAULT_METHOD, SoftgripError, finger_frames
 from vision import documents
 from vision import scene as scene_api
-from vision import user_json
+from softgrip_base import user_json
 
 EPILOG = """examples:
   softgrip score data/circle_open --profile data/sample_profile.json --heatmap heat.png
@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
               "frame": scene.path, "method": method, "n_links": scene.n_links, "n_candidates": len(poses),
               "n_valid": n_valid, "frame_pose": documents.pose_json(scene.pose)}
     if output:
-        from vision.atomic_write import atomic_open
+        from softgrip_base.atomic_write import atomic_open
 
         try:
             with atomic_open(output, inputs=inputs, force=args.force, what="-o") as handle:
@@ -236,12 +236,7 @@ def read_poses(path: str) -> np.ndarray:
     if path == "-":
         return _stdin_poses()
     file = Path(path)
-    try:
-        text = file.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise PoseInputError(f"{file}: no such pose file") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise PoseInputError(f"{file}: cannot read the pose file ({err})") from None
+    text = user_json.read_text(file, PoseInputError, "no such pose file", "the pose file")
     suffix = file.suffix.lower()
     if suffix == ".json":
         poses = _json_poses(text, file)
@@ -521,10 +516,9 @@ def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best:
     valid = bool(chosen.valid)
     image = pipe.grasp_overlay(blended, chosen.grasp, scene.camera) if valid else blended
     if valid:
-        # The finger bases sit W/2 either side of the centre along (cos a, -sin a) (softgrip_jax.finger_frames).
         x, y, angle = poses[best]
-        half = 0.5 * float(scene.gripper.base_separation) * np.array([math.cos(angle), -math.sin(angle)])
-        ends = scene.camera.mm_to_px(np.array([[x, y] - half, [x, y] + half]))
+        bases = [np.asarray(frame.origin, np.float64) for frame in finger_frames(scene.gripper, poses[best])]
+        ends = scene.camera.mm_to_px(np.array(bases))
         centre = scene.camera.mm_to_px([x, y])
         for colour, width in (((255, 255, 255), 4), ((0, 0, 0), 1)):
             cv2.line(image, tuple(np.rint(ends[0]).astype(int)), tuple(np.rint(ends[1]).astype(int)), colour, width,

@@ -14,14 +14,15 @@ The spring chain at equilibrium (the paper's ref. [16]) is beyond the paper: an 
 ``method="mechanics"`` in every estimate, score and refine function.
 
 The object is a signed-distance function (:mod:`softgrip_jax._sdf`); fingers at other places,
-rotated or mirrored, see it through a frame (:mod:`softgrip_jax._frames`).
+rotated or mirrored, see it through a frame (:mod:`softgrip_jax._frames`). The layers, conventions,
+frames and units and the estimators' assumptions are described in the source tree's ``docs/design.md``.
 """
 
 from softgrip_jax._cache import enable_compilation_cache
 from softgrip_jax._batch import estimate_batch, estimate_grasp_batch
 from softgrip_jax._contact import CASE_NAMES, Contact, ContactCase, ContactConfig, predict_contact, predict_contact_local, sweep_shape
 from softgrip_jax._deformation import Estimate, Status, case_shapes, estimate, estimate_in_frame
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, link_angles, pcc_joints, pcc_turning

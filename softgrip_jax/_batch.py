@@ -33,6 +33,7 @@ from softgrip_jax._grasp import GraspEstimate, finger_frames
 from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method, closing_start, path_increments
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
+from softgrip_jax._sharding import device_mesh, run_sharded
 
 #: Candidates evaluated together inside one chunk; peak memory scales with this, not the batch.
 #: (4096 against 2048: 1.00x, 1.10x and 1.12x in three processes of ``python
@@ -83,7 +84,7 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
     groups = max(1, min(groups, b))  # a small batch (one candidate) is one group, not eight
     size = -(-b // groups)
     # Needed first, each part in its original order: every element's place from two running
-    # counts (an argsort does the same about 6x slower on XLA:CPU, and was run twice).
+    # counts (cheaper than an argsort on XLA:CPU).
     count = jnp.sum(need)
     if kinds is None or n_kinds <= 1:
         rank = jnp.cumsum(need) - 1
@@ -183,11 +184,19 @@ def map_chunks(fn, xs, chunk_size):
     return jax.lax.fori_loop(0, n_chunks, write, out)
 
 
-@partial(tuned_jit, static_argnames=("chunk_size", "method"))
-def _estimate_batch(finger, sdf, bases, config, mechanics, chunk_size, method):
+def _estimate_share(finger, sdf, bases, config, mechanics, chunk_size, method):
     frames = jax.vmap(FingerFrame.hanging_from)
     return map_chunks(lambda chunk: finger_chunk(finger, sdf, frames(chunk), config, mechanics, method), bases,
                       chunk_size)
+
+
+_estimate_batch = partial(tuned_jit, static_argnames=("chunk_size", "method"))(_estimate_share)
+
+
+@partial(tuned_jit, static_argnames=("chunk_size", "method"))
+def _estimate_sharded(finger, sdf, bases, config, mechanics, chunk_size, method):
+    # bases: (devices, per_device, 2); the device axis is vmapped (and sharded across the devices).
+    return jax.vmap(lambda share: _estimate_share(finger, sdf, share, config, mechanics, chunk_size, method))(bases)
 
 
 def grasp_chunk(gripper, sdf, poses, config, mechanics, method):
@@ -197,9 +206,17 @@ def grasp_chunk(gripper, sdf, poses, config, mechanics, method):
     return jax.vmap(lambda a, b: GraspEstimate(left=a, right=b, valid=a.valid & b.valid))(left, right)
 
 
-@partial(tuned_jit, static_argnames=("chunk_size", "method"))
-def _estimate_grasp_batch(gripper, sdf, poses, config, mechanics, chunk_size, method):
+def _estimate_grasp_share(gripper, sdf, poses, config, mechanics, chunk_size, method):
     return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, mechanics, method), poses, chunk_size)
+
+
+_estimate_grasp_batch = partial(tuned_jit, static_argnames=("chunk_size", "method"))(_estimate_grasp_share)
+
+
+@partial(tuned_jit, static_argnames=("chunk_size", "method"))
+def _estimate_grasp_sharded(gripper, sdf, poses, config, mechanics, chunk_size, method):
+    return jax.vmap(lambda share: _estimate_grasp_share(gripper, sdf, share, config, mechanics, chunk_size,
+                                                        method))(poses)
 
 
 def estimate_batch(
@@ -218,13 +235,15 @@ def estimate_batch(
     Returns an :class:`Estimate` whose every leaf has a leading axis of length B. A bad base
     (NaN, outside the SDF grid) comes back ``valid=False`` and does not affect the others.
     ``method`` and ``mechanics`` (static) are as for :func:`estimate`; with ``"mechanics"`` the
-    equilibrium is solved only for the candidates that touch the object.
+    equilibrium is solved only for the candidates that touch the object. With several JAX devices
+    (GPUs, or processes joined by ``jax.distributed``) the batch is split evenly across them, as
+    :func:`~softgrip_jax.score` does (:mod:`softgrip_jax._sharding`); results are one device's.
 
     Args:
         bases: (B, 2) finger bases in mm (each finger hangs toward +y and curls toward +x).
         chunk_size: bases evaluated together (static); memory grows with it, not with B.
-        workers: concurrent parts the batch is split into (None: one per CPU core on a CPU
-            backend, one elsewhere; see :mod:`softgrip_jax._concurrent`). Results do not depend on it.
+        workers: on one device, concurrent parts the batch is split into (None: one per CPU core on
+            a CPU backend, one elsewhere; see :mod:`softgrip_jax._concurrent`). Results do not depend on it.
 
     Example:
         >>> import jax.numpy as jnp
@@ -237,6 +256,10 @@ def estimate_batch(
     """
     check_method(method)
     bases = as_candidates(bases, 2, finger.length.dtype, "estimate_batch: bases")
+    mesh = device_mesh()
+    if mesh is not None:  # several devices (or processes joined by jax.distributed): an even share each
+        return run_sharded(_estimate_sharded, mesh, (finger, sdf), bases, (config, mechanics), chunk_size,
+                           method=method)
     return run_in_parts(_estimate_batch, (finger, sdf), bases, (config, mechanics), workers, chunk_size, method=method)
 
 
@@ -275,5 +298,9 @@ def estimate_grasp_batch(
     """
     check_method(method)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "estimate_grasp_batch: poses")
+    mesh = device_mesh()
+    if mesh is not None:
+        return run_sharded(_estimate_grasp_sharded, mesh, (gripper, sdf), poses, (config, mechanics), chunk_size,
+                           method=method)
     return run_in_parts(_estimate_grasp_batch, (gripper, sdf), poses, (config, mechanics), workers, chunk_size,
                         method=method)

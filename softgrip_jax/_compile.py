@@ -1,8 +1,7 @@
 """How the batch functions are compiled: ``jax.jit`` with XLA:CPU options where they apply.
 
-Two XLA:CPU compile options make the estimate 1.17x (every finger touching) to 1.27x (a planner's
-mixed sample) faster on the benchmark machine (benchmarks/RESULTS.md, issue 2), with results equal
-to within float rounding (joints within 3e-4 mm, the same cases):
+Two XLA:CPU compile options make the estimate faster (the figures are in benchmarks/RESULTS.md,
+issue 2), with results equal to within float rounding (joints within 3e-4 mm, the same cases):
 
 * ``xla_cpu_prefer_vector_width=512``: LLVM may use 512-bit vectors where the CPU has them (a
   preference: on a CPU without AVX-512 the code is the same as without it);

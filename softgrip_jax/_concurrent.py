@@ -2,8 +2,8 @@
 
 XLA:CPU runs the kernels of one computation one after another and spreads only the larger ones
 over the cores: the estimate's many small kernels (gathers, the root finder's loop) leave the other
-cores mostly idle (on the 2-core benchmark machine, one computation got 1.36x from its second
-core; benchmarks/RESULTS.md, issue 2). Separate computations launched from separate threads do run side by side, so on a CPU the
+cores mostly idle (benchmarks/RESULTS.md, issue 2, measures what one computation gains from a
+second core). Separate computations launched from separate threads do run side by side, so on a CPU the
 batch functions split their candidates into one equal part per core, run the same compiled
 function on each part from a thread, and concatenate the results on the device. Elsewhere (a GPU
 fills itself with one computation), under tracing (``jit``, ``grad``, ``vmap`` of the batch
@@ -21,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 import jax
 import jax.numpy as jnp
 
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 
 #: Fewest candidates per part: below this a part's fixed costs outweigh the parallelism.
 MIN_PART = 256
@@ -72,13 +72,17 @@ def is_traced(tree) -> bool:
 
 
 def pad_rows(xs: jax.Array, rows: int) -> jax.Array:
-    """``xs`` padded to ``rows`` rows with copies of its first row (results for them are dropped)."""
+    """``xs`` padded to ``rows`` rows with copies of its first row (zeros if it has none; results for
+    them are dropped)."""
     pad = rows - xs.shape[0]
-    return jnp.concatenate([xs, jnp.broadcast_to(xs[:1], (pad,) + xs.shape[1:])]) if pad > 0 else xs
+    if pad <= 0:
+        return xs
+    first = xs[:1] if xs.shape[0] else jnp.zeros((1,) + xs.shape[1:], xs.dtype)
+    return jnp.concatenate([xs, jnp.broadcast_to(first, (pad,) + xs.shape[1:])])
 
 
 #: A chunk of several is a multiple of this many rows: 8 solve groups of 16 float32 lanes (a chunk
-#: of 2000 rows ran 1.05-1.14x slower than one of 2048).
+#: of a size just short of such a multiple runs slower than the multiple).
 CHUNK_ALIGN = 128
 
 

@@ -38,11 +38,11 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 from softgrip_jax._kinematics import chain_stations, forward_kinematics, pcc_turning
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import direction_angle, safe_divide, unit_direction
-from softgrip_jax._sdf import AbstractSDF, unit_gradient
+from softgrip_jax._sdf import AbstractSDF, surface_point
 
 
 class ContactCase(enum.IntEnum):
@@ -264,7 +264,7 @@ def _second_contact(dist, centre, radius, n_circle):
     angle = phi + frac * step
     angle = jnp.where(angle >= jnp.pi, angle - 2.0 * jnp.pi, angle)
     # Nearest the downward vertical: the largest cos(angle), i.e. the smallest |angle| in [-pi, pi)
-    # (compared without the 64 cosines, which XLA:CPU computes at several ns each).
+    # (compared without computing the 64 cosines).
     ranking = jnp.where(crossing, -jnp.abs(angle), -jnp.inf)
     best = jnp.argmax(ranking)
     has = jnp.any(crossing)
@@ -501,12 +501,12 @@ def refine_contact(
     # estimated centreline r deep into the object. P_o1 and P_o2 are reported on the true surface.
     theta_o1 = direction_angle(p_g1 - base)
     theta_remain = theta - theta_o1  # eq. 8
-    p_o1 = p_g1 - dist(p_g1) * unit_gradient(dist, p_g1)
+    p_o1 = surface_point(dist, p_g1)
 
     # Second contact (Fig. 8).
     dilated = lambda q: dist(q) - r
     has_second, p_g2, theta_o1o2 = _second_contact(dilated, p_g1, length - l_g1, config.n_circle)
-    p_o2 = p_g2 - dist(p_g2) * unit_gradient(dist, p_g2)
+    p_o2 = surface_point(dist, p_g2)
 
     at_tip = n_g1 >= n - config.tip_tolerance
     case = jnp.where(

@@ -1,9 +1,6 @@
-"""The exception every user-caused failure derives from.
+"""``SoftgripError`` lives in :mod:`softgrip_base.errors`, below the JAX core; this import path
+keeps working and names the same class."""
 
-The command line prints the message of a :class:`SoftgripError` without a traceback; anything else is
-a bug and keeps its traceback. Messages name the input at fault and say what to do about it.
-"""
+from softgrip_base.errors import SoftgripError
 
-
-class SoftgripError(ValueError):
-    """A failure caused by the user's input (a file, a setting, a parameter), not by a bug."""
+__all__ = ["SoftgripError"]

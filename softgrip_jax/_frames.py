@@ -15,6 +15,14 @@ from jaxtyping import Array, Float
 from softgrip_jax._safe import unit_direction
 
 
+def across_direction(angle: Float[Array, "*batch"]) -> Float[Array, "*batch 2"]:
+    """The unit vector across a gripper at ``angle`` (rad from the downward vertical): "down",
+    ``(sin a, cos a)``, turned by +90 degrees, ``(cos a, -sin a)``. A left finger closes along it, and
+    the finger bases sit either side of the gripper's centre along it."""
+    down = unit_direction(angle)
+    return jnp.stack([down[..., 1], -down[..., 0]], axis=-1)
+
+
 class FingerFrame(eqx.Module):
     """A finger's frame in the image plane.
 
@@ -36,9 +44,7 @@ class FingerFrame(eqx.Module):
         return cls(origin=base, angle=jnp.zeros((), base.dtype), handedness=jnp.ones((), base.dtype))
 
     def _axes(self):
-        down = unit_direction(self.angle)
-        across = jnp.stack([down[1], -down[0]])  # "down" turned by +90 deg: the closing direction
-        return self.handedness * across, down
+        return self.handedness * across_direction(self.angle), unit_direction(self.angle)
 
     def to_world(self, q: Float[Array, "*batch 2"]) -> Float[Array, "*batch 2"]:
         """Finger-frame points (mm) to image-plane points (mm)."""
@@ -47,8 +53,8 @@ class FingerFrame(eqx.Module):
         y = ex[1] * q[..., 0] + ey[1] * q[..., 1] + self.origin[1]
         # The barrier makes XLA compute the points once. Without it XLA:CPU fuses this sum into
         # each of the SDF lookup's four gathers and recomputes it (and whatever produced ``q``)
-        # there, about 3x slower; written as a matrix product instead, it becomes a batched dot of
-        # 2x3 matrices, which XLA:CPU runs about 1.5x slower than this over the whole estimate.
+        # there; written as a matrix product instead, it becomes a batched dot of 2x3 matrices,
+        # which XLA:CPU runs slower than this over the whole estimate (benchmarks/RESULTS.md).
         return jax.lax.optimization_barrier(jnp.stack([x, y], axis=-1))
 
     def to_local(self, p: Float[Array, "*batch 2"]) -> Float[Array, "*batch 2"]:

@@ -15,10 +15,9 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._deformation import Estimate, estimate_in_frame
-from softgrip_jax._frames import FingerFrame
+from softgrip_jax._frames import FingerFrame, across_direction
 from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
 from softgrip_jax._model import Gripper
-from softgrip_jax._safe import unit_direction
 from softgrip_jax._sdf import AbstractSDF
 
 
@@ -45,9 +44,7 @@ def finger_frames(gripper: Gripper, pose: Float[ArrayLike, "3"]) -> tuple[Finger
     dtype = gripper.base_separation.dtype
     pose = jnp.asarray(pose, dtype)
     center, angle = pose[:2], pose[2]
-    down = unit_direction(angle)
-    across = jnp.stack([down[1], -down[0]])
-    half = 0.5 * gripper.base_separation * across
+    half = 0.5 * gripper.base_separation * across_direction(angle)
     one = jnp.ones((), dtype)
     return (
         FingerFrame(origin=center - half, angle=angle, handedness=one),

@@ -15,8 +15,9 @@ s_k = (k + 1/2) h, is linear along the finger, ``stiffness_ratio`` rho times sti
 than at the tip, with mean 1. The base spring has compliance ``base_compliance`` c in units of the
 whole finger's bending compliance L / mean(k) (c = 1: the base turns as much under a moment as the
 whole finger bends); c = 0 clamps the base (psi = 0). These are the parametrisations of the
-observed-closure rod (``vision.synthetic.rod``), so a calibration against it can recover rho and c;
-both are ``FingerModel`` fields and the estimate is differentiable in them.
+observed-closure rod (``synthetic.rod``, a test-support package of the source tree), so a
+calibration against it can recover rho and c; both are ``FingerModel`` fields and the estimate is
+differentiable in them.
 
 Contact is frictionless and quasi-static: a penalty mu / 2 (max(0, r - d) / L)^2 on each of
 ``stations_per_link`` centreline stations per link and the tip, with d the object's signed distance
@@ -81,7 +82,7 @@ from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import pcc_turning
 from softgrip_jax._model import FingerModel
-from softgrip_jax._sdf import AbstractSDF, unit_gradient
+from softgrip_jax._sdf import AbstractSDF, surface_point
 
 #: The deformation estimates, by name (the ``method`` argument of the estimate functions).
 METHODS: tuple[str, ...] = ("geometric", "mechanics")
@@ -564,7 +565,7 @@ def solve_equilibrium(
     case = jnp.where(tip, jnp.where(other, ContactCase.TIP_AND_OTHER, ContactCase.TIP),
                      jnp.where(other, ContactCase.OTHER, ContactCase.NONE)).astype(jnp.int32)
     tip_point = joints[-1]
-    tip_foot = tip_point - problem.distance(tip_point) * unit_gradient(problem.distance, tip_point)
+    tip_foot = surface_point(problem.distance, tip_point)
     penetration = jnp.maximum(jnp.max(r - d), 0.0)
     return Equilibrium(
         psi=psi, turning=turning, case=case, converged=solution.result == optx.RESULTS.successful,

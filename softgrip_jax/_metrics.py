@@ -18,7 +18,7 @@ def joint_errors(
     """
     estimated, observed = jnp.asarray(estimated), jnp.asarray(observed)
     if estimated.shape != observed.shape:
-        from softgrip_jax._errors import SoftgripError
+        from softgrip_base.errors import SoftgripError
 
         raise SoftgripError(
             f"joint_errors: estimated joints {estimated.shape} and observed joints {observed.shape} "

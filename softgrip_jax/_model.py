@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, ArrayLike
 
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 
 #: Largest accepted entire bending angle (rad). At pi/2 the PCC arc is a semicircle whose
 #: base-tip chord is horizontal and eq. 4 (an arctangent) can no longer measure it.

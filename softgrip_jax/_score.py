@@ -29,13 +29,12 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks
 from softgrip_jax._compile import tuned_jit
-from softgrip_jax._concurrent import balanced_chunk, pad_rows, run_in_parts
+from softgrip_jax._concurrent import run_in_parts
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._deformation import Estimate, Status
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
@@ -44,6 +43,7 @@ from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_metho
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
+from softgrip_jax._sharding import device_mesh, run_sharded
 
 
 class ScoreWeights(eqx.Module):
@@ -151,11 +151,6 @@ def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weigh
     )
 
 
-def _device_mesh():
-    devices = jax.devices()
-    return jax.sharding.Mesh(np.array(devices), ("candidates",)) if len(devices) > 1 else None
-
-
 def _score_share(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
     """The :class:`Score` of poses (P, 3) on one device, ``chunk_size`` at a time: in each chunk both
     fingers' estimates (the contact refined and the equilibrium solved only where a finger touches,
@@ -237,17 +232,12 @@ def score(
     """
     check_method(method)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
-    b = poses.shape[0]
-    mesh = _device_mesh()
+    mesh = device_mesh()
     if mesh is None:  # one device: on a CPU, concurrent parts over its cores (softgrip_jax._concurrent)
         return run_in_parts(_score_one_device, (gripper, sdf), poses, (weights, config, mechanics), workers,
                             chunk_size, method=method)
-    n_dev = mesh.devices.size
-    per_device = -(-b // n_dev)
-    padded = pad_rows(poses, n_dev * per_device).reshape(n_dev, per_device, 3)
-    padded = jax.device_put(padded, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("candidates")))
-    out = _score_sharded(gripper, sdf, padded, weights, config, mechanics, balanced_chunk(per_device, chunk_size), method)
-    return jax.tree_util.tree_map(lambda x: x.reshape((n_dev * per_device,) + x.shape[2:])[:b], out)
+    return run_sharded(_score_sharded, mesh, (gripper, sdf), poses, (weights, config, mechanics), chunk_size,
+                       method=method)
 
 
 class RefineStatus(enum.IntEnum):

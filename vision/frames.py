@@ -29,8 +29,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from softgrip_jax._errors import SoftgripError
-from vision import user_json
+from softgrip_base.errors import SoftgripError
+from softgrip_base import user_json
 
 COLOR_FILE = "color.png"
 DEPTH_FILE = "depth.png"
@@ -207,25 +207,16 @@ class Intrinsics:
     def from_dict(cls, d: Any, source: str = "intrinsics") -> Intrinsics:
         """Build from a JSON object; errors name ``source`` (usually the file) and the key.
 
-        Keys other than the seven fields are ignored. Integers are accepted for the float fields.
+        Keys other than the seven fields (and ``model``, ``coeffs``) are ignored. Integers are accepted
+        for the float fields. The layout is the pydantic model :class:`vision.intrinsics_schema.IntrinsicsDocument`
+        (its JSON Schema: ``schemas/intrinsics.schema.json``).
         """
-        if not isinstance(d, dict):
-            raise FrameError(
-                f"{source}: expected a JSON object with keys {', '.join(_FIELDS)}, "
-                f"got {type(d).__name__}"
-            )
-        missing = [key for key in _FIELDS if key not in d]
-        if missing:
-            raise FrameError(
-                f"{source}: missing key(s) {', '.join(missing)}; "
-                f"intrinsics need {', '.join(_FIELDS)} (pyrealsense2 names)"
-            )
-        for key in ("width", "height"):
-            if not _is_int(d[key]):
-                raise FrameError(f"{source}: {key} must be an integer, got {d[key]!r}")
-        for key in ("fx", "fy", "ppx", "ppy", "depth_scale"):
-            if not _is_number(d[key]):
-                raise FrameError(f"{source}: {key} must be a number, got {d[key]!r}")
+        from vision.intrinsics_schema import validate  # pydantic: imported only where intrinsics are read
+
+        document, problem = validate(d)
+        if problem is not None:
+            raise FrameError(f"{source}: {problem}")
+        d = document.model_dump()
         try:
             return cls(**{key: d[key] for key in _FIELDS}, model=d.get("model", "none"), coeffs=d.get("coeffs", ()))
         except FrameError as err:
@@ -311,6 +302,23 @@ class Frame:
     ``color``: (H, W, 3) uint8, **RGB** channel order. ``depth``: (H, W) uint16 in units of
     ``intrinsics.depth_scale`` metres, 0 where the camera has no reading; at least one reading
     is required. ``intrinsics.width`` = W and ``intrinsics.height`` = H.
+
+    A floating-point ``depth`` is taken as metres (Open3D's and ROS's 32FC1 convention) and stored
+    as uint16 in units of ``depth_scale``, rounded to the nearest unit (RealSense D4xx: 1 mm; choose
+    a smaller ``depth_scale`` for finer steps); NaN, infinite, zero and negative values mean no
+    reading. Depth beyond 65535 units, or that looks like millimetres, is refused with the fix.
+
+    Segmentation reads only saturation and value, which do not depend on the channel order: a BGR
+    image gives the same measurements, with swapped colours in the plots. To catch one anyway,
+    :func:`vision.plausibility.check_channel_order` compares a region with its known colour.
+
+    Example:
+        >>> from synthetic.render import d405_intrinsics
+        >>> metres = np.full((480, 640), 0.12, np.float32)  # 120 mm
+        >>> metres[0, 0] = np.nan
+        >>> frame = Frame(np.zeros((480, 640, 3), np.uint8), metres, d405_intrinsics())
+        >>> frame.depth.dtype.name, int(frame.depth[1, 1]), int(frame.depth[0, 0]), float(frame.depth_mm[1, 1])
+        ('uint16', 1200, 0, 120.0)
     """
 
     color: np.ndarray
@@ -318,6 +326,9 @@ class Frame:
     intrinsics: Intrinsics
 
     def __post_init__(self) -> None:
+        if isinstance(self.depth, np.ndarray) and np.issubdtype(self.depth.dtype, np.floating) \
+                and isinstance(self.intrinsics, Intrinsics):
+            object.__setattr__(self, "depth", depth_from_metres(self.depth, self.intrinsics.depth_scale))
         _check_frame(self.color, self.depth, self.intrinsics, "color", "depth", "intrinsics")
 
     @property
@@ -326,6 +337,35 @@ class Frame:
         depth = self.depth.astype(np.float32) * np.float32(self.intrinsics.depth_scale * 1000.0)
         depth[self.depth == 0] = np.nan
         return depth
+
+
+#: Float depth whose median reading is beyond this (metres) is taken for millimetres and refused.
+MAX_METRES = 20.0
+
+
+def depth_from_metres(depth: np.ndarray, depth_scale: float, name: str = "depth") -> np.ndarray:
+    """Float depth in metres (H, W) as uint16 units of ``depth_scale`` metres (0: no reading, where
+    the input is NaN, infinite, zero or negative), rounded to the nearest unit.
+
+    Raises:
+        FrameError: the depth looks like millimetres, or exceeds 65535 units of ``depth_scale``.
+    """
+    metres = np.asarray(depth, dtype=np.float64)
+    read = np.isfinite(metres) & (metres > 0)
+    if read.any():
+        median = float(np.median(metres[read]))
+        if median > MAX_METRES:
+            raise FrameError(f"{name} is floating-point, which is read as metres, but its median reading is "
+                             f"{median:g} m: is it in millimetres? Divide it by 1000 (or pass uint16 depth "
+                             f"units with their depth_scale)")
+        deepest = float(metres[read].max())
+        if deepest / depth_scale > np.iinfo(np.uint16).max + 0.5:
+            raise FrameError(f"{name} reaches {deepest:g} m, more than 65535 units of depth_scale = "
+                             f"{depth_scale:g} m: use a depth_scale of at least {deepest / 65535:.3g} m per unit "
+                             f"in the intrinsics")
+    units = np.zeros(metres.shape, np.uint16)
+    units[read] = np.rint(metres[read] / depth_scale).astype(np.uint16)
+    return units
 
 
 def load_frame(path: str | os.PathLike[str]) -> Frame:
@@ -373,7 +413,7 @@ def save_frame(frame: Frame, path: str | os.PathLike[str]) -> Path:
         >>> import tempfile
         >>> from pathlib import Path
         >>> import numpy as np
-        >>> from vision.synthetic.render import d405_intrinsics
+        >>> from synthetic.render import d405_intrinsics
         >>> frame = Frame(np.zeros((480, 640, 3), np.uint8), np.full((480, 640), 1200, np.uint16), d405_intrinsics())
         >>> with tempfile.TemporaryDirectory() as root:
         ...     path = save_frame(frame, next_frame_dir(root))

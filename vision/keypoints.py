@@ -480,12 +480,18 @@ def _direction(line: np.ndarray, arc: np.ndarray, s0: float, s1: float) -> np.nd
     return d / max(float(np.hypot(*d)), 1e-12)
 
 
+_REMAP_ROWS = 32_000  # below OpenCV remap's SHRT_MAX limit on a map's rows
+
+
 def _bilinear(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(...,) bilinear samples of a float image at points (..., 2) (u, v); 0 outside."""
     p = np.asarray(points, np.float32).reshape(-1, 1, 2)
-    out = cv2.remap(image.astype(np.float32), p[..., 0], p[..., 1], cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    return out.reshape(np.asarray(points).shape[:-1])
+    image = image.astype(np.float32)
+    # OpenCV's remap takes maps of fewer than 2**15 rows: sample in blocks of that many points.
+    out = [cv2.remap(image, block[..., 0], block[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=0.0).reshape(-1)
+           for block in np.array_split(p, max(1, -(-len(p) // _REMAP_ROWS)))]
+    return np.concatenate(out).reshape(np.asarray(points).shape[:-1])
 
 
 class _Sampler:

@@ -41,7 +41,7 @@ good as the visible part of the object.
 
 Example:
     >>> import numpy as np
-    >>> from vision.synthetic.render import d405_intrinsics
+    >>> from synthetic.render import d405_intrinsics
     >>> from vision.geometry import PlaneCamera
     >>> mask = np.zeros((480, 640), bool); mask[200:260, 300:360] = True
     >>> grid = object_sdf(mask, PlaneCamera(d405_intrinsics(), 120.0))
@@ -92,7 +92,7 @@ def object_sdf(mask: np.ndarray, camera: PlaneCamera, coverage: np.ndarray | Non
 
     Example (a 60 x 60 px square; at 120 mm one pixel is 120 / 385 mm):
         >>> import numpy as np
-        >>> from vision.synthetic.render import d405_intrinsics
+        >>> from synthetic.render import d405_intrinsics
         >>> camera = PlaneCamera(d405_intrinsics(), 120.0)
         >>> mask = np.zeros((480, 640), bool); mask[200:260, 300:360] = True
         >>> grid = object_sdf(mask, camera)
@@ -284,7 +284,7 @@ def object_polygon(mask: np.ndarray, camera: PlaneCamera, tolerance_px: float = 
 
     Example:
         >>> import numpy as np
-        >>> from vision.synthetic.render import d405_intrinsics
+        >>> from synthetic.render import d405_intrinsics
         >>> mask = np.zeros((480, 640), bool); mask[200:260, 300:360] = True
         >>> object_polygon(mask, PlaneCamera(d405_intrinsics(), 120.0)).vertices.shape
         (4, 2)

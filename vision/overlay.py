@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from softgrip_jax import SoftgripError
-from vision.atomic_write import write_atomic
+from softgrip_base.atomic_write import write_atomic
 
 JOINT_RGB = (0, 0, 255)
 OBSERVED_RGB = (0, 255, 0)
@@ -89,7 +89,7 @@ def save_png(path: str | os.PathLike[str], rgb: np.ndarray, *, inputs=(), force:
 
     The PNG is encoded in memory by OpenCV, written to a hidden temporary file next to ``path`` and
     renamed over it, so ``path`` is never a partial file. An existing regular file is replaced (its
-    mode kept); ``inputs``, ``force`` and ``what`` as in ``vision.atomic_write.check_output``.
+    mode kept); ``inputs``, ``force`` and ``what`` as in ``softgrip_base.atomic_write.check_output``.
 
     Raises:
         SoftgripError: a bad image, or the file cannot be written (the message names it).

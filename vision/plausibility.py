@@ -106,6 +106,44 @@ def check_gripper_size(lengths_mm, separation_mm: float, intrinsics: Intrinsics,
                          f"{hi / 1000:g} m): the frame's scale is wrong; check depth_scale and fx, fy")
 
 
+#: A region's mean colour counts as swapped when reversing its channels brings it this much closer
+#: (ratio of distances) to the expected colour, and its red and blue differ by at least
+#: SWAP_MIN_CONTRAST (0-255): a grey region says nothing about the channel order.
+SWAP_RATIO = 0.5
+SWAP_MIN_CONTRAST = 30.0
+
+
+def check_channel_order(color, mask, expected_rgb, source: str = "color") -> None:
+    """Refuse a colour image whose channels look swapped (BGR where RGB is expected): the mean colour
+    of the pixels in ``mask`` (H, W) is compared with ``expected_rgb`` (0-255), as it is and with its
+    channels reversed. Use it where a region's colour is known (a coloured calibration object, a
+    marker); segmentation itself does not depend on the channel order.
+
+    Raises:
+        FrameError: names the fix (``cv2.cvtColor(color, cv2.COLOR_BGR2RGB)``, or load_frame).
+
+    Example:
+        >>> import numpy as np
+        >>> red = np.zeros((4, 4, 3), np.uint8); red[..., 0] = 200
+        >>> check_channel_order(red, np.ones((4, 4), bool), (220, 20, 20))
+        >>> check_channel_order(red[..., ::-1], np.ones((4, 4), bool), (220, 20, 20))
+        Traceback (most recent call last):
+        ...
+        vision.frames.FrameError: color: the channels look swapped (BGR): ...
+    """
+    pixels = np.asarray(color)[np.asarray(mask, bool)]
+    if pixels.size == 0:
+        return
+    mean = pixels.reshape(-1, 3).astype(np.float64).mean(axis=0)
+    expected = np.asarray(expected_rgb, np.float64)
+    as_is, swapped = np.linalg.norm(mean - expected), np.linalg.norm(mean[::-1] - expected)
+    if abs(mean[0] - mean[2]) >= SWAP_MIN_CONTRAST and swapped < SWAP_RATIO * as_is:
+        raise FrameError(f"{source}: the channels look swapped (BGR): the region's mean colour is "
+                         f"{np.round(mean).astype(int).tolist()} where {np.round(expected).astype(int).tolist()} "
+                         f"(RGB) is expected, and reversed it matches; pass cv2.cvtColor(color, "
+                         f"cv2.COLOR_BGR2RGB) (cv2.imread gives BGR), or read frames with vision.frames.load_frame")
+
+
 def straightness(keypoints) -> float:
     """Mean over the fingers of chord / arc (base-to-tip distance over centreline length): about 1
     for straight (open) fingers, smaller the more they curl (closed)."""

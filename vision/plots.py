@@ -56,8 +56,8 @@ def figure_format(path: str | os.PathLike[str], what: str = "output") -> str:
 def save_figure(figure, path: str | os.PathLike[str], *, inputs=(), force: bool = False, what: str = "output",
                 dpi: int = 120) -> None:
     """Write ``figure`` to ``path`` in the format its extension names, atomically (the output
-    policy of :mod:`vision.atomic_write`)."""
-    from vision.atomic_write import write_atomic
+    policy of :mod:`softgrip_base.atomic_write`)."""
+    from softgrip_base.atomic_write import write_atomic
 
     fmt = figure_format(path, what)
     buffer = io.BytesIO()

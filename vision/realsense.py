@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 from vision.frames import DISTORTION_MODELS, Frame, FrameError, Intrinsics, next_frame_dir, save_frame
 
 RECORDING_SUFFIXES = (".db3", ".bag")

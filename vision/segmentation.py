@@ -31,8 +31,8 @@ colour in float32 (``cv2.cvtColor``, hue in degrees, unused) and the kornia back
 ``kornia.color.rgb_to_hsv`` (hue in radians, unused), so the same thresholds mean the same thing.
 
 Example:
-    >>> from vision.synthetic.render import Scene, render, d405_intrinsics
-    >>> from vision.synthetic.scenes import gripper_centrelines
+    >>> from synthetic.render import Scene, render, d405_intrinsics
+    >>> from synthetic.scenes import gripper_centrelines
     >>> frame = render(Scene(gripper_centrelines((0.0, -40.0), 50.0, 52.0)), d405_intrinsics())
     >>> seg = segment(frame)
     >>> bool(seg.left_finger.any() and seg.right_finger.any()), bool(seg.object.any())

@@ -1,43 +1,6 @@
-"""Reading JSON written by people: every way the text can fail is a ``json.JSONDecodeError``.
+"""Reading JSON written by people lives in :mod:`softgrip_base.user_json`; this import path keeps
+working and names the same function."""
 
-``json.loads`` fails on some valid-looking user files with other exceptions: an integer of more
-than 4300 digits raises ``ValueError`` (Python's integer-string limit), a document nested a few
-thousand levels deep raises ``RecursionError``, and an integer of a few hundred digits loads but
-then raises ``OverflowError`` wherever it meets a float (``math.isfinite``). The frame, profile
-and pose-file readers use :func:`loads` instead, so each of them turns one exception type into
-its own error naming the file.
+from softgrip_base.user_json import loads
 
-Example:
-    >>> loads('{"fx": 1' + '0' * 400 + '}')
-    {'fx': inf}
-    >>> loads('[' * 100000)
-    Traceback (most recent call last):
-    ...
-    json.decoder.JSONDecodeError: nested too deeply to read: line 1 column 1 (char 0)
-"""
-
-from __future__ import annotations
-
-import json
-from typing import Any
-
-#: Integers with more digits than this are read as floats (+-inf beyond 1.8e308): no JSON field
-#: of a frame, profile or pose file needs an integer that large.
-_MAX_INT_DIGITS = 300
-
-
-def _parse_int(text: str) -> int | float:
-    return int(text) if len(text) <= _MAX_INT_DIGITS else float(text)
-
-
-def loads(text: str) -> Any:
-    """``json.loads(text)`` that raises only ``json.JSONDecodeError`` for text it cannot read.
-
-    Integers too long for a float come back as ``inf`` or ``-inf`` (and fail the readers' "finite
-    number" checks); nesting deeper than the interpreter's recursion limit is a decode error at
-    line 1, column 1.
-    """
-    try:
-        return json.loads(text, parse_int=_parse_int)
-    except RecursionError:
-        raise json.JSONDecodeError("nested too deeply to read", text, 0) from None
+__all__ = ["loads"]

@@ -29,10 +29,10 @@ from softgrip_cli import cmd_calibrate
 from softgrip_jax import DEFAULT_METHOD, FAR_MM, SDFGrid, SoftgripError
 from vision.frames import save_frame
 from vision.geometry import PlaneCamera
-from vision.synthetic.render import Scene, d405_intrinsics, render
-from vision.synthetic.rod import free_arc_points
-from vision.synthetic.scenes import gripper_centrelines
-from vision.synthetic.shapes import shape
+from synthetic.render import Scene, d405_intrinsics, render
+from synthetic.rod import free_arc_points
+from synthetic.scenes import gripper_centrelines
+from synthetic.shapes import shape
 
 N = 10
 LENGTH, HALF_THICKNESS, SEPARATION = 52.0, 4.0, 64.0

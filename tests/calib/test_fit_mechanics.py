@@ -1,6 +1,6 @@
 """Least-squares calibration through the mechanics estimate: the stiffness parameters.
 
-The observations are closures of the independent elastic rod (vision.synthetic.rod, 96 segments,
+The observations are closures of the independent elastic rod (synthetic.rod, 96 segments,
 its own solver) against polygon objects, without rendering: the fit has to find a gripper whose
 bending stiffness doubles from tip to base. All mechanics fits here use 64-vertex PolygonSDFs,
 N = 10 and at most 16 frame pairs, so they share one compilation of the fit (most of the time).
@@ -14,7 +14,7 @@ import pytest
 from calib.fit import COMPLIANCE_START, PARAMETERS, FitError, Observation, fit
 from calib.profile import CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import PolygonSDF
-from vision.synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
+from synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
 
 N = 10
 LENGTH, HALF_THICKNESS, SEPARATION = 52.0, 4.0, 64.0

@@ -9,7 +9,7 @@ import pytest
 from benchmarks.vision_accuracy import INTRINSICS, N_LINKS, accuracy_scenes, variant_scenes
 from calib.one_frame import one_frame_from_frames
 from softgrip_jax import SoftgripError
-from vision.synthetic.render import render
+from synthetic.render import render
 
 
 def test_a_body_thinner_than_the_fingers_is_refused_not_measured():

@@ -15,7 +15,7 @@ from calib.profile import (PROFILE_VERSION, CalibrationProfile, FingerEntry, Fit
                            save_profile, to_gripper)
 from softgrip_jax import Gripper, SoftgripError
 from vision.segmentation import SegmentationSettings
-from vision.synthetic.render import d405_intrinsics
+from synthetic.render import d405_intrinsics
 
 
 def make_profile() -> CalibrationProfile:

@@ -436,7 +436,7 @@ def test_missing_profile_is_a_user_error(tmp_path):
 @pytest.fixture(scope="module")
 def frame_without_gripper(tmp_path_factory):
     from vision.frames import save_frame
-    from vision.synthetic.render import Scene, d405_intrinsics, render
+    from synthetic.render import Scene, d405_intrinsics, render
 
     path = tmp_path_factory.mktemp("frames") / "empty_frame"
     save_frame(render(Scene([], seed=3), d405_intrinsics()), path)

@@ -1,7 +1,7 @@
 """The mechanics estimate (spring-joint chain at equilibrium, softgrip_jax._mechanics).
 
 Checked against eqs. 1-3 without an object, against the independent observed-closure rod
-(vision.synthetic.rod) on circles and squares touched at the tip and at another area, for
+(synthetic.rod) on circles and squares touched at the tip and at another area, for
 non-penetration, for the contact case (areas that carry force, not grazes), for implicit gradients against finite differences (float64), and through the
 batch, grasp, score and refine functions.
 
@@ -25,7 +25,7 @@ from softgrip_jax._batch import where_needed
 from softgrip_jax._deformation import finish, geometric_stage, mechanics_of
 from softgrip_jax._mechanics import _Problem, solve_equilibrium
 from softgrip_jax._sdf import AbstractSDF
-from vision.synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
+from synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
 
 LENGTH, THETA, HALF_THICKNESS, N = 52.0, 0.55, 4.0, 20
 CONTACT_TOL = MechanicsConfig().contact_tol

@@ -99,7 +99,9 @@ def test_frames_from_arrays_with_nan_inf_and_wrong_dtypes_are_refused(height, wi
     except FrameError:
         pass
     else:
-        assert color.dtype == np.uint8 and depth.dtype == np.uint16  # only these get through
+        # only these get through; float depth is metres, stored as uint16 units of depth_scale
+        assert color.dtype == np.uint8 and (depth.dtype == np.uint16 or np.issubdtype(depth.dtype, np.floating))
+        assert frame.depth.dtype == np.uint16 and frame.depth.shape == depth.shape
         check_loaded(frame)
 
 

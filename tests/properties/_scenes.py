@@ -1,6 +1,6 @@
 """Random scenes for the property tests: rendered frames turned into the core's SDF, and the checks.
 
-Every scene is rendered at one image size (320 x 240, ``vision.synthetic.render``) and goes
+Every scene is rendered at one image size (320 x 240, ``synthetic.render``) and goes
 through the frame -> SDF pipeline a user's frame goes through (``segment``, ``PlaneCamera``,
 ``object_sdf``), so every SDF grid has the same shape and the jitted estimate compiles once per
 (method, N) for the whole run. The finger bases, Theta, L and r are drawn per scene as arrays
@@ -23,9 +23,9 @@ from softgrip_jax import (ContactConfig, FingerModel, MechanicsConfig, SDFGrid, 
 from vision.geometry import PlaneCamera
 from vision.object_sdf import object_sdf
 from vision.segmentation import segment
-from vision.synthetic.render import Scene, d405_intrinsics, render
-from vision.synthetic.scenes import gripper_centrelines
-from vision.synthetic.shapes import shape
+from synthetic.render import Scene, d405_intrinsics, render
+from synthetic.scenes import gripper_centrelines
+from synthetic.shapes import shape
 
 # 320 x 240 (about 0.62 mm per pixel at the 120 mm gripper plane, 200 x 150 mm in view): a quarter of
 # the pixels of the D405's 640 x 480, so that rendering and segmenting a scene stays well under a second.

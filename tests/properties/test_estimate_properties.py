@@ -21,7 +21,7 @@ BATCH bases around the object, and estimates every base with ``method="geometric
 
 Not a property here: "the sweep touched => the mechanics case is not none". A frictionless tip that
 meets the object first can slide off it and close freely; the independent elastic-rod closure
-(``vision.synthetic.rod.close_rod``) does the same on such scenes (checked on star_a, N = 5:
+(``synthetic.rod.close_rod``) does the same on such scenes (checked on star_a, N = 5:
 the rod ends clear of the object, its tip within 0.14 mm of the mechanics estimate's).
 """
 

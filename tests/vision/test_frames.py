@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import vision.frames as frames_module
-from softgrip_jax._errors import SoftgripError
+from softgrip_base.errors import SoftgripError
 from vision.frames import (
     COLOR_FILE,
     DEPTH_FILE,

@@ -11,7 +11,7 @@ import pytest
 
 from vision.frames import Frame, FrameError
 from vision.geometry import PlaneCamera, face_offset_mm, fit_gripper_plane
-from vision.synthetic.render import d405_intrinsics
+from synthetic.render import d405_intrinsics
 
 INTR = d405_intrinsics()
 

@@ -27,9 +27,9 @@ from vision.keypoints import (
 )
 from vision.overlay import CONTACT_RGB, JOINT_RGB, OBSERVED_RGB, draw_overlay, save_png
 from vision.segmentation import SegmentationSettings, segment
-from vision.synthetic.render import LABEL_FIRST_FINGER, Scene, d405_intrinsics, mm_to_px, render, render_labels
-from vision.synthetic.rod import free_arc_points
-from vision.synthetic.scenes import gripper_centrelines
+from synthetic.render import LABEL_FIRST_FINGER, Scene, d405_intrinsics, mm_to_px, render, render_labels
+from synthetic.rod import free_arc_points
+from synthetic.scenes import gripper_centrelines
 
 INTR = d405_intrinsics()
 PLANE_MM = 120.0
@@ -274,3 +274,21 @@ def test_overlay_rejects_bad_input(tmp_path: Path) -> None:
         draw_overlay(np.zeros((10, 10, 3), np.uint8), joints=[np.zeros(4)])
     with pytest.raises(Exception, match="could not write.*missing"):
         save_png(tmp_path / "missing" / "x.png", np.zeros((4, 4, 3), np.uint8))
+
+
+def test_bilinear_sampling_of_more_points_than_opencv_remap_takes_at_once() -> None:
+    """A painted-over frame once asked for more than 2**15 samples, beyond cv2.remap's limit on a
+    map's rows: sampling goes in blocks, and agrees with scipy's map_coordinates (an independent
+    bilinear interpolation) inside the image."""
+    from scipy.ndimage import map_coordinates
+
+    from vision.keypoints import _bilinear
+
+    image = np.random.default_rng(0).random((50, 60)).astype(np.float32)
+    points = np.random.default_rng(1).uniform(-2.0, 62.0, (100_000, 2))  # (u, v) px
+    values = _bilinear(image, points)
+    reference = map_coordinates(image.astype(np.float64), [points[:, 1], points[:, 0]], order=1, mode="constant")
+    inside = (points[:, 0] > 0.5) & (points[:, 0] < 58.5) & (points[:, 1] > 0.5) & (points[:, 1] < 48.5)
+    assert values.shape == (100_000,)
+    np.testing.assert_allclose(values[inside], reference[inside], atol=1e-4)
+    assert _bilinear(image, points.reshape(1000, 100, 2)).shape == (1000, 100)

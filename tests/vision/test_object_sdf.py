@@ -26,9 +26,9 @@ from vision.frames import Intrinsics
 from vision.geometry import PlaneCamera
 from vision.object_sdf import ObjectMaskError, object_polygon, object_sdf
 from vision.segmentation import segment
-from vision.synthetic.render import LABEL_OBJECT, Scene, d405_intrinsics, mm_to_px, render, render_labels
-from vision.synthetic.scenes import gripper_centrelines
-from vision.synthetic.shapes import shape
+from synthetic.render import LABEL_OBJECT, Scene, d405_intrinsics, mm_to_px, render, render_labels
+from synthetic.scenes import gripper_centrelines
+from synthetic.shapes import shape
 
 INTR = d405_intrinsics()
 PLANE_MM = 120.0

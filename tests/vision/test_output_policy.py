@@ -1,4 +1,4 @@
-"""The output policy (vision.atomic_write): never onto inputs, devices, FIFOs or folders; links and
+"""The output policy (softgrip_base.atomic_write): never onto inputs, devices, FIFOs or folders; links and
 read-only files only with force; an existing file's mode kept; a failed write leaves nothing."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from vision.atomic_write import OutputRefusedError, atomic_open, check_output, frame_inputs, write_atomic
+from softgrip_base.atomic_write import OutputRefusedError, atomic_open, check_output, frame_inputs, write_atomic
 
 
 def test_refuses_each_input_however_it_is_spelled(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from vision.frames import load_frame, save_frame
-from vision.synthetic.render import (
+from synthetic.render import (
     LABEL_BACKGROUND,
     LABEL_FIRST_FINGER,
     LABEL_OBJECT,
@@ -28,8 +28,8 @@ from vision.synthetic.render import (
     render,
     render_labels,
 )
-from vision.synthetic.scenes import gripper_centrelines
-from vision.synthetic.shapes import ACCURACY_SET, SHAPES, shape
+from synthetic.scenes import gripper_centrelines
+from synthetic.shapes import ACCURACY_SET, SHAPES, shape
 
 INTR = d405_intrinsics()
 PLANE_MM = 120.0

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vision.synthetic.render import (
+from synthetic.render import (
     LABEL_FIRST_FINGER,
     LABEL_OBJECT,
     Scene,
@@ -25,8 +25,8 @@ from vision.synthetic.render import (
     render,
     render_labels,
 )
-from vision.synthetic.scenes import gripper_centrelines
-from vision.synthetic.shapes import shape
+from synthetic.scenes import gripper_centrelines
+from synthetic.shapes import shape
 
 INTR = d405_intrinsics()
 R_MM = 4.0

@@ -1,4 +1,4 @@
-"""The observed-closure rod (vision.synthetic.rod): energy, free arc, contact, stiffness, base spring.
+"""The observed-closure rod (synthetic.rod): energy, free arc, contact, stiffness, base spring.
 
 One object scene is shared: a left finger (L = 90 mm, Theta = 0.8 rad, r = 5 mm, base at (7, 0))
 and a 12 mm circle whose surface comes within 1.75 mm of the free closed arc at mid-length, so the
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from softgrip_jax import PolygonSDF, SoftgripError
-from vision.synthetic.rod import (
+from synthetic.rod import (
     RodMechanics,
     close_rod,
     free_arc_points,

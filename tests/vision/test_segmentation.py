@@ -13,7 +13,7 @@ from benchmarks.vision_accuracy import accuracy_scenes, measure
 from softgrip_jax import SoftgripError
 from vision.frames import Frame
 from vision.segmentation import SegmentationError, SegmentationSettings, segment, segment_batch
-from vision.synthetic.render import (
+from synthetic.render import (
     LABEL_FIRST_FINGER,
     LABEL_OBJECT,
     Scene,
@@ -22,9 +22,9 @@ from vision.synthetic.render import (
     render,
     render_labels,
 )
-from vision.synthetic.rod import free_arc_points
-from vision.synthetic.scenes import gripper_centrelines
-from vision.synthetic.shapes import shape
+from synthetic.rod import free_arc_points
+from synthetic.scenes import gripper_centrelines
+from synthetic.shapes import shape
 
 INTR = d405_intrinsics()
 PLANE_MM = 120.0

@@ -12,7 +12,7 @@ import pytest
 
 from calib.one_frame import one_frame_from_frames
 from vision.segmentation import SegmentationError, segment, segment_batch
-from vision.synthetic.render import (
+from synthetic.render import (
     LABEL_FIRST_FINGER,
     LABEL_PALM,
     Scene,
@@ -21,8 +21,8 @@ from vision.synthetic.render import (
     render,
     render_labels,
 )
-from vision.synthetic.rod import free_arc_points
-from vision.synthetic.scenes import gripper_centrelines
+from synthetic.rod import free_arc_points
+from synthetic.scenes import gripper_centrelines
 
 INTR = d405_intrinsics()
 PLANE_MM = 120.0

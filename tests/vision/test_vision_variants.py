@@ -51,7 +51,7 @@ def test_the_profile_records_what_was_detected(variant, base_end, body):
 def test_the_profile_records_the_planes_tilt(variant):
     import math
 
-    from vision.synthetic.render import plane_rotation
+    from synthetic.render import plane_rotation
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

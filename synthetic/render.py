@@ -25,8 +25,8 @@ growing with depth squared (stereo-like) and a few small zero-depth holes on the
 all drawn from ``seed``.
 
 Example:
-    >>> from vision.synthetic.scenes import gripper_centrelines
-    >>> from vision.synthetic.shapes import shape
+    >>> from synthetic.scenes import gripper_centrelines
+    >>> from synthetic.shapes import shape
     >>> scene = Scene(gripper_centrelines((0.0, -40.0), 50.0, 52.0, 64),
     ...               object_polygon=shape("clover") + (0.0, 12.0))
     >>> frame = render(scene, d405_intrinsics())
@@ -43,7 +43,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from softgrip_jax import SoftgripError
+from softgrip_base import SoftgripError
 from vision.frames import Frame, Intrinsics
 
 LABEL_BACKGROUND = 0
@@ -150,7 +150,7 @@ class Scene:
 
     Attributes:
         fingers: finger centrelines, each an open polyline (K, 2), K >= 2, base first (see
-            ``vision.synthetic.scenes.gripper_centrelines``). May be empty (no gripper in view).
+            ``synthetic.scenes.gripper_centrelines``). May be empty (no gripper in view).
         half_thickness: finger half-thickness r (mm): a finger covers every point within r of its
             centreline.
         object_polygon: the object's outline (V, 2), already placed, or None for no object.
@@ -460,8 +460,8 @@ def render_labels(scene: Scene, intrinsics: Intrinsics) -> np.ndarray:
     These are exactly the masks :func:`render` paints; no noise or holes.
 
     Example:
-        >>> from vision.synthetic.scenes import gripper_centrelines
-        >>> from vision.synthetic.shapes import shape
+        >>> from synthetic.scenes import gripper_centrelines
+        >>> from synthetic.shapes import shape
         >>> scene = Scene(gripper_centrelines((0.0, -40.0), 60.0, 52.0), object_polygon=shape("circle", 20.0) + (0.0, 30.0))
         >>> sorted(set(render_labels(scene, d405_intrinsics()).ravel().tolist())) == [
         ...     LABEL_BACKGROUND, LABEL_OBJECT, LABEL_FIRST_FINGER, LABEL_FIRST_FINGER + 1]
@@ -515,8 +515,8 @@ def render(scene: Scene, intrinsics: Intrinsics) -> Frame:
         SoftgripError (a ValueError): the background depth does not fit in uint16 depth units.
 
     Example (an open gripper 120 mm from the camera above a 20 mm disc):
-        >>> from vision.synthetic.scenes import gripper_centrelines
-        >>> from vision.synthetic.shapes import shape
+        >>> from synthetic.scenes import gripper_centrelines
+        >>> from synthetic.shapes import shape
         >>> scene = Scene(gripper_centrelines((0.0, -40.0), 60.0, 52.0), object_polygon=shape("circle", 20.0) + (0.0, 30.0))
         >>> frame = render(scene, d405_intrinsics())
         >>> frame.color.shape, frame.depth.dtype.name

@@ -1,6 +1,6 @@
 """Layouts of a two-finger gripper for synthetic scenes.
 
-Coordinates are millimetres in the gripper plane (x right, y down, see ``vision.synthetic.render``).
+Coordinates are millimetres in the gripper plane (x right, y down, see ``synthetic.render``).
 A finger centreline is an open polyline (K, 2), base first. The left finger curls toward +x when
 the gripper closes (the project's core convention); the right finger is its mirror image.
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from softgrip_jax import SoftgripError
+from softgrip_base import SoftgripError
 
 
 def _finger(base: np.ndarray, offsets: np.ndarray, mirror: bool, what: str) -> np.ndarray:

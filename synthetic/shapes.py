@@ -29,7 +29,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from softgrip_jax import SoftgripError
+from softgrip_base import SoftgripError
 
 _CURVE_VERTICES = 192
 _CLOVER_VERTICES = 256  # a multiple of 8, so the notches between the lobes are vertices

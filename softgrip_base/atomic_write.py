@@ -1,0 +1,169 @@
+"""The output policy of every ``softgrip`` command: files are replaced atomically, and never onto
+something the user did not mean to lose.
+
+Writing: the bytes go to a new hidden file in the target's folder (``.<name>.<random>.tmp``), are
+flushed to the disk, and the temporary file is then renamed over the target with ``os.replace``,
+which is atomic within one file system. Until the rename the target keeps its old content; after it,
+the new. On any failure (an exception, a full disk, Ctrl-C) the temporary file is removed and the
+target is untouched; a ``kill -9`` can leave only the hidden temporary file, never a partial target.
+
+What is refused (:class:`OutputRefusedError`, naming the path and what to do), before anything is
+written:
+
+* a target that is one of the command's own inputs (compared by resolved path and by device and
+  inode, so hard links and ``..`` spellings are caught; a frame folder's inputs are its
+  ``color.png``, ``depth.png`` and ``intrinsics.json``, see :func:`frame_inputs`);
+* a target that exists and is not a regular file: a folder, a FIFO, a device (``/dev/full``), a
+  socket. These are never replaced, with or without ``force``;
+* a target that is a symbolic link, unless ``force``: the policy is to **follow** a link only when
+  asked. With ``force`` the file the link points to (its final target) is replaced atomically, the
+  link itself is kept, and every other check applies to that final target;
+* an existing file we may not write (read-only for us), unless ``force``.
+
+An existing file's permission bits are kept (a 0600 file stays 0600); a new file is created like any
+new file (mode 0o666 less the umask). The module imports neither JAX nor OpenCV.
+
+Example:
+    >>> import pathlib, tempfile
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "out.json"
+    >>> write_atomic(path, b"{}\\n").read_bytes()
+    b'{}\\n'
+    >>> write_atomic(path, b"[]\\n", inputs=[path])
+    Traceback (most recent call last):
+    ...
+    softgrip_base.atomic_write.OutputRefusedError: ... is one of this command's inputs; ...
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import stat
+import uuid
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import IO
+
+#: The files of a frame folder (see ``vision.frames``): what a command reading that frame must not
+#: overwrite.
+FRAME_FILES = ("color.png", "depth.png", "intrinsics.json")
+
+
+class OutputRefusedError(ValueError):
+    """An output path the policy refuses (an input, not a regular file, a link or read-only file
+    without ``force``). A user error: the command line prints the message and exits with 2."""
+
+
+def frame_inputs(folder: str | os.PathLike[str]) -> list[Path]:
+    """The input files of frame ``folder``, and the folder itself."""
+    folder = Path(folder)
+    return [folder, *(folder / name for name in FRAME_FILES)]
+
+
+def _identity(path: Path) -> tuple[str, tuple[int, int] | None]:
+    try:
+        st = os.stat(path)
+        inode = (st.st_dev, st.st_ino)
+    except OSError:
+        inode = None
+    return os.path.realpath(path), inode
+
+
+def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.PathLike[str]] = (),
+                 force: bool = False, what: str = "output") -> Path:
+    """Apply the policy (module docstring) to ``path`` and return the path to write: ``path``
+    itself, or with ``force`` the final target of a symbolic link.
+
+    Args:
+        path: the output file.
+        inputs: the command's input files (and frame folders, see :func:`frame_inputs`).
+        force: replace through a symbolic link, or a file that is read-only for us.
+        what: how the message names the output (e.g. ``"-o"``, ``"--heatmap"``).
+
+    Raises:
+        OutputRefusedError: the policy refuses ``path``.
+    """
+    given = Path(path)
+    target = given
+    if given.is_symlink():
+        if not force:
+            raise OutputRefusedError(
+                f"{what} {given} is a symbolic link (to {os.readlink(given)}); softgrip does not write through "
+                f"links unless told to: give the real file, or add --force to replace the file the link points "
+                f"to (the link is kept)")
+        target = Path(os.path.realpath(given))
+    real, inode = _identity(target)
+    for item in inputs:
+        item_real, item_inode = _identity(Path(item))
+        if real == item_real or (inode is not None and inode == item_inode):
+            raise OutputRefusedError(
+                f"{what} {given} is one of this command's inputs; writing there would destroy it: choose another "
+                f"file name")
+    try:
+        st = os.stat(target)
+    except FileNotFoundError:
+        return target
+    except OSError as err:
+        raise OutputRefusedError(f"{what} {given}: cannot check the file ({err.strerror})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise OutputRefusedError(f"{what} {given} is a folder, not a file: add a file name, e.g. {given / 'out'}")
+    if not stat.S_ISREG(st.st_mode):
+        kind = ("a FIFO" if stat.S_ISFIFO(st.st_mode) else "a device" if stat.S_ISCHR(st.st_mode) or
+                stat.S_ISBLK(st.st_mode) else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
+        raise OutputRefusedError(f"{what} {given} is {kind}; softgrip writes only regular files (it would be "
+                                 f"replaced by one): give a file name, or write to stdout and redirect it")
+    if not force and not os.access(target, os.W_OK):
+        raise OutputRefusedError(f"{what} {given} is read-only; add --force to replace it anyway")
+    return target
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike[str], *, inputs: Iterable[str | os.PathLike[str]] = (),
+                force: bool = False, what: str = "output") -> Iterator[IO[bytes]]:
+    """A binary file to write ``path``'s new content into; it replaces ``path`` atomically when the
+    ``with`` block ends without an exception (the policy of the module docstring is checked first).
+    For large outputs written piece by piece (streamed JSON).
+
+    Raises:
+        OutputRefusedError: the policy refuses ``path``.
+        OSError: the folder is missing or not writable, the disk is full, ...; ``path`` is then
+            unchanged and no temporary file is left.
+    """
+    target = check_output(path, inputs=inputs, force=force, what=what)
+    try:
+        mode = stat.S_IMODE(os.stat(target).st_mode)
+    except FileNotFoundError:
+        mode = None
+    temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex[:12]}.tmp")
+    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        if mode is not None:
+            os.fchmod(fd, mode)
+        with os.fdopen(fd, "wb") as handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        # The target may have become a link, folder or FIFO while we wrote: check again.
+        check_output(path, inputs=inputs, force=force, what=what)
+        os.replace(temporary, target)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def write_atomic(path: str | os.PathLike[str], data: bytes, *, inputs: Iterable[str | os.PathLike[str]] = (),
+                 force: bool = False, what: str = "output") -> Path:
+    """Write ``data`` to ``path`` atomically (replacing an existing regular file, keeping its mode)
+    and return the path written (with ``force``, a link's final target).
+
+    Raises:
+        OutputRefusedError: the policy (module docstring) refuses ``path``.
+        OSError: the folder is missing or not writable, the disk is full, ...; ``path`` is then
+            unchanged and no temporary file is left. Callers turn it into their own
+            :class:`~softgrip_jax.SoftgripError` naming the file.
+    """
+    inputs = list(inputs)
+    target = check_output(path, inputs=inputs, force=force, what=what)
+    with atomic_open(path, inputs=inputs, force=force, what=what) as handle:
+        handle.write(data)
+    return target
