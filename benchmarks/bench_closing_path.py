@@ -8,7 +8,7 @@ Run from the repository root (one heavy process; about ten minutes on two cores)
 
 Tables:
 
-1. Against the rod (``vision.synthetic.rod``, 96 segments, closed by its own 60-step continuation)
+1. Against the rod (``synthetic.rod``, 96 segments, closed by its own 60-step continuation)
    on true geometry, over a grid of finger bases around a disc where the tip slides off (Theta
    0.7 and 0.8), a square and a non-convex L shape: agreement of the contact pattern (touches at
    all, tip touches) and joint errors (mm).
@@ -42,10 +42,11 @@ from _machine import describe  # noqa: E402
 from bench_mechanics import speed_scene  # noqa: E402
 from softgrip_jax import (ContactCase, FingerModel, MechanicsConfig, PolygonSDF, Status, estimate,  # noqa: E402
                           estimate_batch)
-from vision.synthetic.rod import RodMechanics, close_rod, observed_joints  # noqa: E402
-from vision.synthetic.shapes import shape  # noqa: E402
+from synthetic.rod import RodMechanics, close_rod, observed_joints  # noqa: E402
+from synthetic.shapes import shape  # noqa: E402
 
 L, R, N = 52.0, 4.0, 20
+VERBOSE = False
 
 SCENES = {  # name: (polygon vertices (V, 2) mm, Theta, stiffness ratio)
     "disc r10 at (20, 60), Theta 0.7 (tip slides off)": (np.asarray(PolygonSDF.regular((20.0, 60.0), 10.0, 64).vertices),
@@ -83,6 +84,9 @@ def against_rod(quick: bool) -> list[str]:
                 agree += int(mine == (touches, tip) and bool(est.valid))
                 errors.append(error.mean())
                 worst = max(worst, float(error.max()))
+                if VERBOSE and (mine != (touches, tip) or error.max() > 0.3):
+                    print(f"  {name} base {base}: case {case} event {bool(est.event)} valid {bool(est.valid)} rod {(touches, tip)} "
+                          f"worst {error.max():.3f} mm, mean {error.mean():.3f}", flush=True)
                 events += int(est.event)
                 count += 1
         totals.append((agree, count, errors, worst))
@@ -185,7 +189,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--only", choices=["rod", "sweeps", "batch", "speed"], action="append")
+    parser.add_argument("--verbose", action="store_true", help="name every finger that disagrees with the rod")
     args = parser.parse_args()
+    global VERBOSE
+    VERBOSE = args.verbose
     parts = args.only or ["rod", "sweeps", "batch", "speed"]
     print(f"Machine: {describe()}\n")
     if "speed" in parts:

@@ -70,7 +70,7 @@ def as_candidates(x, width: int, dtype, what: str, single: bool = False) -> jax.
 
 
 def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_GROUPS, kinds=None,
-                 n_kinds: int = 1):
+                 n_kinds: int = 1, group_size: int | None = None):
     """``jax.vmap(fn)(inputs)`` evaluated only where ``need`` holds (elsewhere: zeros).
 
     The needed elements are gathered to the front and mapped a group at a time; groups with
@@ -81,8 +81,12 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
     Differentiable (gathers, ``lax.map`` and ``lax.cond``).
     """
     b = need.shape[0]
-    groups = max(1, min(groups, b))  # a small batch (one candidate) is one group, not eight
-    size = -(-b // groups)
+    if group_size is None:
+        groups = max(1, min(groups, b))  # a small batch (one candidate) is one group, not eight
+        size = -(-b // groups)
+    else:
+        size = group_size
+        groups = -(-b // size)
     # Needed first, each part in its original order: every element's place from two running
     # counts (cheaper than an argsort on XLA:CPU).
     count = jnp.sum(need)
@@ -155,7 +159,7 @@ def finger_chunk(finger, sdf, frames, config, mechanics, method):
     increments = jax.vmap(lambda st: path_increments(finger, closing_start(finger, st.contact, config)[0],
                                                      mechanics))(stages)
     eq = where_needed(lambda st: mechanics_of(finger, sdf, st, mechanics, config), need, stages,
-                      -(-need.shape[0] // _MECHANICS_GROUP), increments, mechanics.path_steps + 1)
+                      kinds=increments, n_kinds=mechanics.path_steps + 1, group_size=_MECHANICS_GROUP)
     return jax.vmap(lambda st, e: finish(finger, st, e))(stages, eq)
 
 

@@ -2,7 +2,7 @@
 
 * A finger whose tip meets a convex object near the end of its reach slides past it: the estimate
   follows the closure from the open finger and agrees with the independent rod
-  (``vision.synthetic.rod``, 96 segments, its own continuation), and flags the event.
+  (``synthetic.rod``, 96 segments, its own continuation), and flags the event.
 * Batch independence: an element's estimate does not depend on the rest of its batch (NaN,
   far-away, colliding elements, order, chunking), checked with hypothesis over compositions.
 
@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 from softgrip_jax import (CASE_NAMES, ContactCase, FingerModel, Gripper, MechanicsConfig, PolygonSDF, Status,
                           estimate, estimate_batch, score)
-from vision.synthetic.rod import RodMechanics, close_rod, observed_joints
+from synthetic.rod import RodMechanics, close_rod, observed_joints
 
 LENGTH, THETA, HALF_THICKNESS, N = 52.0, 0.7, 4.0, 20
 FINGER = FingerModel(LENGTH, THETA, HALF_THICKNESS, N, stiffness_ratio=2.0)
