@@ -99,11 +99,18 @@ class Estimate(eqx.Module):
         residual: mm. For ``method="mechanics"`` where the finger touches, how far the last
             Gauss-Newton step of the equilibrium solve moved the joints (to first order): converged
             estimates have it at most ``MechanicsConfig.step_tol``. 0 otherwise.
-        event: the closing path passed an event that makes the estimate jump with the pose: the
-            tip carried contact force while the finger closed, then slid off the object (the
-            finger snapped past it). A planner should treat such poses as a boundary, where
+        event: the estimate is at or near an event of the closing path, where it jumps or turns
+            steep with the pose: the tip carried contact force while the finger closed, then slid
+            off the object (the finger snapped past it); or the equilibrium is near a fold (its
+            ``sensitivity`` above ``MechanicsConfig.fold_sensitivity``: the tip is about to slide
+            off, or a contact to appear). A planner should treat such poses as a boundary, where
             neighbouring poses may close into a different equilibrium. False for the geometric
             estimate.
+        sensitivity: mm/mm. For ``method="mechanics"`` where the finger touches, how far the tip
+            moves per mm the base moves (the largest over directions, by implicit differentiation
+            of the equilibrium): about 1 where the shape follows the base, growing without bound
+            toward a fold. 1 for a finger that touches nothing (its tip follows the base rigidly);
+            0 where not computed (the geometric estimate of a touching finger).
     """
 
     joints: Float[Array, "joints 2"]
@@ -115,6 +122,7 @@ class Estimate(eqx.Module):
     status: Int[Array, ""]
     residual: Float[Array, ""]
     event: Bool[Array, ""]
+    sensitivity: Float[Array, ""]
 
 
 def case_shapes(finger: FingerModel, contact: Contact) -> tuple[Float[Array, "4"], Float[Array, "4 n"]]:
@@ -268,13 +276,15 @@ def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = 
     solved = jnp.array(True)
     residual = jnp.zeros((), psi.dtype)
     event = jnp.array(False)
+    sensitivity = jnp.where(contact.touches, 0.0, 1.0).astype(psi.dtype)
     if equilibrium is not None:
         eq, use = equilibrium, needs_mechanics(stage)
         psi = jnp.where(use, eq.psi, psi)
         turning = jnp.where(use, eq.turning, turning)
         solved = eq.converged | ~use
         residual = jnp.where(use, eq.residual, residual).astype(psi.dtype)
-        event = use & eq.slid_off
+        event = use & (eq.slid_off | eq.near_fold)
+        sensitivity = jnp.where(use, eq.sensitivity, sensitivity).astype(psi.dtype)
         tip_touches = use & ((eq.case == ContactCase.TIP) | (eq.case == ContactCase.TIP_AND_OTHER))
         contact = eqx.tree_at(lambda c: (c.case, c.p_o2), contact,
                               (jnp.where(use, eq.case, contact.case),
@@ -310,6 +320,7 @@ def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = 
     return Estimate(
         joints=joints, psi=psi, turning=turning, case=contact.case, contact=contact,
         valid=status == Status.OK, status=status, residual=residual, event=event,
+        sensitivity=sensitivity,
     )
 
 

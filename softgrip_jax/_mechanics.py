@@ -129,6 +129,10 @@ class MechanicsConfig(eqx.Module):
             increments of at most this (fewer steps where less actuation remains after the touch).
         path_steps: the most increments of the closing path (a longer remainder takes larger ones).
         path_iterations: Gauss-Newton iterations at each increment of the closing path.
+        fold_sensitivity: mm/mm. An equilibrium whose tip moves more than this per mm of base
+            motion is near a fold (the tip about to slide off, a contact about to appear) and is
+            flagged as an event (see ``Estimate.event``); an ordinary contact moves the tip about
+            as far as the base.
 
     Example:
         >>> import jax.numpy as jnp
@@ -152,6 +156,7 @@ class MechanicsConfig(eqx.Module):
     path_step: float = eqx.field(static=True, default=0.1)
     path_steps: int = eqx.field(static=True, default=8)
     path_iterations: int = eqx.field(static=True, default=2)
+    fold_sensitivity: float = eqx.field(static=True, default=5.0)
 
     def __check_init__(self):
         for name, low in (("max_steps", 1), ("stations_per_link", 1), ("active_rows", 1), ("path_steps", 1),
@@ -159,7 +164,7 @@ class MechanicsConfig(eqx.Module):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise SoftgripError(f"MechanicsConfig.{name} must be an integer >= {low}, got {value!r}")
-        for name in ("penalty", "contact_tol", "step_tol", "max_turn", "path_step"):
+        for name in ("penalty", "contact_tol", "step_tol", "max_turn", "path_step", "fold_sensitivity"):
             value = getattr(self, name)
             ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0 and value < float("inf")
             if not ok:
@@ -494,6 +499,55 @@ def follow_closing_path(
     return psi, turning, state.tip_pressed
 
 
+def tip_sensitivity(problem: _Problem, y: Float[Array, " n1"]) -> Float[Array, ""]:
+    """How far the equilibrium's tip moves per mm the base moves, at most over directions (mm/mm).
+
+    By the implicit function theorem at the equilibrium y (the energy's gradient G(y, base) = 0):
+    dy/dbase = -H^-1 dG/dbase with H the energy's full Hessian (curvature of the contact terms
+    included, unlike the Gauss-Newton model). A finger whose shape follows the base has a value near
+    1; near a fold of the equilibrium (where the tip is about to slide off, or a contact area to
+    appear) H turns singular and the value grows without bound. Diagnostic only: it carries no
+    derivative.
+    """
+    problem, y = jax.lax.stop_gradient((problem, y))
+
+    def energy_gradient(y, origin):
+        moved = eqx.tree_at(lambda p: p.frame.origin, problem, origin)
+        return jax.grad(lambda v: 0.5 * jnp.sum(moved.residuals(v) ** 2))(y)
+
+    def tip(y, origin):
+        moved = eqx.tree_at(lambda p: p.frame.origin, problem, origin)
+        return moved.frame.to_world(moved.stations(y)[0][-1])
+
+    origin = problem.frame.origin
+    hessian = jax.jacfwd(energy_gradient, 0)(y, origin)  # (N+1, N+1)
+    mixed = jax.jacfwd(energy_gradient, 1)(y, origin)  # (N+1, 2)
+    dy = -_gauss_jordan(hessian, mixed)
+    d_tip = jax.jacfwd(tip, 1)(y, origin) + jax.jacfwd(tip, 0)(y, origin) @ dy  # (2, 2)
+    # largest singular value of the 2 x 2 matrix, closed form
+    gram = d_tip.T @ d_tip
+    half_trace = 0.5 * jnp.trace(gram)
+    gap = jnp.sqrt(jnp.maximum(half_trace**2 - jnp.linalg.det(gram), 0.0))
+    value = jnp.sqrt(half_trace + gap)
+    return jnp.where(jnp.isfinite(value), value, jnp.inf)
+
+
+def _gauss_jordan(a: Float[Array, "n n"], b: Float[Array, "n k"]) -> Float[Array, "n k"]:
+    """Solve a x = b for a symmetric a, without pivoting (stable for a positive definite one, as
+    the Hessian of a stable equilibrium is), in a ``fori_loop`` of plain array operations: LAPACK's
+    solver is a custom call, and two programs running it at once from ``run_in_parts``' threads
+    deadlocked XLA:CPU. A vanishing pivot (a fold) gives inf."""
+    n = a.shape[0]
+    rows = jnp.arange(n)
+
+    def eliminate(k, m):
+        pivot = m[k, k]
+        row = m[k] / pivot
+        return jnp.where((rows == k)[:, None], row[None, :], m - m[:, k][:, None] * row[None, :])
+
+    return jax.lax.fori_loop(0, n, eliminate, jnp.concatenate([a, b], axis=1))[:, n:]
+
+
 class Equilibrium(eqx.Module):
     """The spring chain at equilibrium, in the finger's frame."""
 
@@ -506,6 +560,8 @@ class Equilibrium(eqx.Module):
     steps: Int[Array, ""]
     residual: Float[Array, ""]  #: the last Gauss-Newton step's largest joint displacement (mm)
     slid_off: Bool[Array, ""]  #: the tip carried force along the closing path, but not at its end
+    sensitivity: Float[Array, ""]  #: tip displacement per base displacement, largest (mm/mm)
+    near_fold: Bool[Array, ""]  #: sensitivity above ``MechanicsConfig.fold_sensitivity``
 
 
 def solve_equilibrium(
@@ -564,11 +620,13 @@ def solve_equilibrium(
     other = jnp.any(pressed & ~tip_area)
     case = jnp.where(tip, jnp.where(other, ContactCase.TIP_AND_OTHER, ContactCase.TIP),
                      jnp.where(other, ContactCase.OTHER, ContactCase.NONE)).astype(jnp.int32)
+    sensitivity = tip_sensitivity(problem, y)
     tip_point = joints[-1]
     tip_foot = surface_point(problem.distance, tip_point)
     penetration = jnp.maximum(jnp.max(r - d), 0.0)
     return Equilibrium(
         psi=psi, turning=turning, case=case, converged=solution.result == optx.RESULTS.successful,
         penetration=penetration, tip_foot=tip_foot, steps=solution.stats["num_steps"],
-        residual=solution.state.moved, slid_off=tip_pressed & ~tip,
+        residual=solution.state.moved, slid_off=tip_pressed & ~tip, sensitivity=sensitivity,
+        near_fold=sensitivity > mechanics.fold_sensitivity,
     )

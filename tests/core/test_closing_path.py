@@ -3,6 +3,10 @@
 * A finger whose tip meets a convex object near the end of its reach slides past it: the estimate
   follows the closure from the open finger and agrees with the independent rod
   (``synthetic.rod``, 96 segments, its own continuation), and flags the event.
+* Near a fold of the equilibrium (the tip about to slide off) the tip's sensitivity to the base
+  grows without bound; it matches finite differences where the equilibrium is regular, and poses
+  past ``MechanicsConfig.fold_sensitivity`` are flagged, so that on a smooth object a base sweep
+  is continuous wherever nothing is flagged.
 * Batch independence: an element's estimate does not depend on the rest of its batch (NaN,
   far-away, colliding elements, order, chunking), checked with hypothesis over compositions.
 
@@ -21,6 +25,7 @@ from hypothesis import strategies as st
 from softgrip_jax import (CASE_NAMES, ContactCase, FingerModel, Gripper, MechanicsConfig, PolygonSDF, Status,
                           estimate, estimate_batch, score)
 from synthetic.rod import RodMechanics, close_rod, observed_joints
+from synthetic.smooth import DiscSDF
 
 LENGTH, THETA, HALF_THICKNESS, N = 52.0, 0.7, 4.0, 20
 FINGER = FingerModel(LENGTH, THETA, HALF_THICKNESS, N, stiffness_ratio=2.0)
@@ -61,6 +66,56 @@ def test_a_tip_that_stays_on_the_object_is_no_event():
     assert not bool(est.event)
     error = np.linalg.norm(np.asarray(est.joints, np.float64) - observed, axis=-1)
     assert error.max() < 0.1, error.max()
+
+
+# ---------------------------------------------------------------------------------------------
+# Sensitivity and folds
+
+SMOOTH = DiscSDF((20.0, 60.0), 10.0)  # the same disc without facets
+PLAIN = FingerModel(LENGTH, THETA, HALF_THICKNESS, N)
+
+
+def test_the_sensitivity_is_the_tips_central_difference_and_one_for_a_free_finger():
+    tight = MechanicsConfig(step_tol=1e-5, max_steps=200)  # converged far below the difference's step
+    run = jax.jit(lambda b: estimate(PLAIN, SMOOTH, b, method="mechanics", mechanics=tight))
+    base = np.array([2.0, 0.0], np.float32)
+    est = run(jnp.asarray(base))
+    assert bool(est.valid) and int(est.case) == ContactCase.TIP and not bool(est.event)
+    h = 0.01
+    columns = []
+    for axis in range(2):
+        e = np.zeros(2, np.float32)
+        e[axis] = h
+        columns.append((np.asarray(run(jnp.asarray(base + e)).joints[-1], np.float64)
+                        - np.asarray(run(jnp.asarray(base - e)).joints[-1], np.float64)) / (2 * h))
+    central = np.linalg.norm(np.stack(columns, axis=1), 2)  # largest singular value of d tip / d base
+    assert 1.2 < central < tight.fold_sensitivity  # a held tip, amplified, not at a fold
+    assert abs(float(est.sensitivity) - central) <= 0.05 * central, (float(est.sensitivity), central)
+    free = run(jnp.asarray([-40.0, 0.0]))  # far beside the disc: touches nothing, follows the base
+    assert not bool(free.contact.touches) and float(free.sensitivity) == 1.0
+
+
+def test_a_sweep_through_the_fold_is_continuous_wherever_nothing_is_flagged():
+    # The base moved in y by 0.002 mm across the fold where the held tip slides off the disc
+    # (about y = -0.07 here; below it the finger snaps past the disc).
+    steps = np.arange(-0.2, 0.2 + 1e-9, 0.002)
+    bases = np.column_stack([np.zeros_like(steps), steps]).astype(np.float32)
+    est = jax.tree_util.tree_map(np.asarray, estimate_batch(PLAIN, SMOOTH, jnp.asarray(bases), method="mechanics"))
+    tips = est.joints[:, -1]
+    jump = np.linalg.norm(np.diff(tips, axis=0), axis=-1)
+    held = est.valid & (est.case == ContactCase.TIP)
+    assert held.any() and (est.valid & (est.case == ContactCase.NONE)).any()  # both sides of the fold
+    assert jump.max() > 1.0  # the snap
+    plain = (est.valid & ~est.event)[1:] & (est.valid & ~est.event)[:-1] & (est.case[1:] == est.case[:-1])
+    # Unflagged, a step moves the tip by at most fold_sensitivity times the base step, plus the
+    # solve's tolerance at both ends.
+    limit = MechanicsConfig().fold_sensitivity * 0.002 + 2 * MechanicsConfig().step_tol
+    assert jump[plain].max() <= limit, (jump[plain].max(), limit)
+    # Every snap and steep step is flagged on one side at least.
+    steep = jump > limit
+    flagged = est.event | ~est.valid
+    assert (flagged[1:][steep] | flagged[:-1][steep]).all()
+    assert (est.sensitivity[held & ~est.event] <= MechanicsConfig().fold_sensitivity).all()
 
 
 # ---------------------------------------------------------------------------------------------
