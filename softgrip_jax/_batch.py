@@ -31,7 +31,7 @@ from softgrip_jax._errors import SoftgripError
 from softgrip_jax._export import exportable
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, finger_frames
-from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
+from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method, closing_start, path_increments
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._sharding import device_mesh, run_sharded
@@ -46,8 +46,9 @@ DEFAULT_CHUNK = 4096
 _SOLVE_GROUPS = 8
 
 #: A chunk's touching candidates are solved for their equilibrium in groups of this many: under
-#: vmap a group iterates until its slowest element is done, so small groups keep few lanes waiting
-#: (eight groups per chunk, as for the contact, are far slower: benchmarks/RESULTS.md, issue 20).
+#: vmap a group iterates until its slowest element is done (the longest closing path, the most
+#: Gauss-Newton steps), so small groups keep few lanes waiting (eight groups per chunk, as for the
+#: contact, are far slower: benchmarks/RESULTS.md, issue 20).
 _MECHANICS_GROUP = 64
 
 #: Chunks smaller than this refine every finger (see :func:`finger_chunk`).
@@ -69,21 +70,35 @@ def as_candidates(x, width: int, dtype, what: str, single: bool = False) -> jax.
     return array.astype(dtype)
 
 
-def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_GROUPS):
+def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_GROUPS, kinds=None,
+                 n_kinds: int = 1, group_size: int | None = None):
     """``jax.vmap(fn)(inputs)`` evaluated only where ``need`` holds (elsewhere: zeros).
 
     The needed elements are gathered to the front and mapped a group at a time; groups with
     nothing to do are skipped (``lax.cond``), so the cost follows the number of needed elements
     (a group's spare lanes repeat one of its needed elements, so they never outlast it).
+    ``kinds`` (optional, (b,) integers in [0, ``n_kinds``)): the needed elements are ordered by
+    kind first, so that elements of like cost (say, as many loop iterations) share their groups.
     Differentiable (gathers, ``lax.map`` and ``lax.cond``).
     """
     b = need.shape[0]
-    groups = max(1, min(groups, b))  # a small batch (one candidate) is one group, not eight
-    size = -(-b // groups)
+    if group_size is None:
+        groups = max(1, min(groups, b))  # a small batch (one candidate) is one group, not eight
+        size = -(-b // groups)
+    else:
+        size = group_size
+        groups = -(-b // size)
     # Needed first, each part in its original order: every element's place from two running
     # counts (cheaper than an argsort on XLA:CPU).
     count = jnp.sum(need)
-    place = jnp.where(need, jnp.cumsum(need) - 1, count + jnp.cumsum(~need) - 1)
+    if kinds is None or n_kinds <= 1:
+        rank = jnp.cumsum(need) - 1
+    else:  # by kind, then in order: a running count per kind after the counts of the kinds before
+        of_kind = need[:, None] & (jnp.clip(kinds, 0, n_kinds - 1)[:, None] == jnp.arange(n_kinds)[None, :])
+        running = jnp.cumsum(of_kind, axis=0)
+        before = jnp.cumsum(running[-1]) - running[-1]
+        rank = jnp.sum(jnp.where(of_kind, running - 1 + before[None, :], 0), axis=1)
+    place = jnp.where(need, rank, count + jnp.cumsum(~need) - 1)
     order = jnp.zeros(b, place.dtype).at[place].set(jnp.arange(b, dtype=place.dtype), unique_indices=True)
     padded = jnp.concatenate([order, jnp.zeros(groups * size - b, order.dtype)])
     wanted = jnp.arange(groups * size) < count
@@ -94,8 +109,8 @@ def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_G
         idx = jax.lax.dynamic_slice_in_dim(padded, g * size, size)
         work = jax.lax.dynamic_slice_in_dim(wanted, g * size, size)
         # The group's spare lanes repeat its first (needed) element: an element that needs nothing
-        # can be one whose loops run to their budget (a collision, a base far off), and under vmap
-        # the whole group would wait on it; its answer is discarded anyway.
+        # can be one whose loops would run to their budget (a collision, a base far off), and
+        # under vmap the whole group would wait on it; its answer is discarded anyway.
         idx = jnp.where(work, idx, idx[0])
         return jax.lax.cond(
             jnp.any(work),
@@ -141,8 +156,11 @@ def finger_chunk(finger, sdf, frames, config, mechanics, method):
     if method == "geometric":
         return jax.vmap(lambda st: finish(finger, st))(stages)
     need = jax.vmap(needs_mechanics)(stages)
+    # Ordered by the closing path's increments, so that short paths do not wait on long ones.
+    increments = jax.vmap(lambda st: path_increments(finger, closing_start(finger, st.contact, config)[0],
+                                                     mechanics))(stages)
     eq = where_needed(lambda st: mechanics_of(finger, sdf, st, mechanics, config), need, stages,
-                      -(-need.shape[0] // _MECHANICS_GROUP))
+                      kinds=increments, n_kinds=mechanics.path_steps + 1, group_size=_MECHANICS_GROUP)
     return jax.vmap(lambda st, e: finish(finger, st, e))(stages, eq)
 
 

@@ -32,7 +32,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from softgrip_jax._contact import Bracket, Contact, ContactCase, ContactConfig, bracket_contact, free_contact, refine_contact
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics, pcc_turning
-from softgrip_jax._mechanics import DEFAULT_METHOD, Equilibrium, MechanicsConfig, check_method, mechanics_start, solve_equilibrium
+from softgrip_jax._mechanics import DEFAULT_METHOD, Equilibrium, MechanicsConfig, check_method, closing_start, solve_equilibrium
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
@@ -96,6 +96,21 @@ class Estimate(eqx.Module):
             geometric construction of Fig. 8.
         valid: the inputs were usable and the pose is collision-free at the start.
         status: a :class:`Status` value saying why not, when not valid.
+        residual: mm. For ``method="mechanics"`` where the finger touches, how far the last
+            Gauss-Newton step of the equilibrium solve moved the joints (to first order): converged
+            estimates have it at most ``MechanicsConfig.step_tol``. 0 otherwise.
+        event: the estimate is at or near an event of the closing path, where it jumps or turns
+            steep with the pose: the tip carried contact force while the finger closed, then slid
+            off the object (the finger snapped past it); or the equilibrium is near a fold (its
+            ``sensitivity`` above ``MechanicsConfig.fold_sensitivity``: the tip is about to slide
+            off, or a contact to appear). A planner should treat such poses as a boundary, where
+            neighbouring poses may close into a different equilibrium. False for the geometric
+            estimate.
+        sensitivity: mm/mm. For ``method="mechanics"`` where the finger touches, how far the tip
+            moves per mm the base moves (the largest over directions, by implicit differentiation
+            of the equilibrium): about 1 where the shape follows the base, growing without bound
+            toward a fold. 1 for a finger that touches nothing (its tip follows the base rigidly);
+            0 where not computed (the geometric estimate of a touching finger).
     """
 
     joints: Float[Array, "joints 2"]
@@ -105,6 +120,9 @@ class Estimate(eqx.Module):
     contact: Contact
     valid: Bool[Array, ""]
     status: Int[Array, ""]
+    residual: Float[Array, ""]
+    event: Bool[Array, ""]
+    sensitivity: Float[Array, ""]
 
 
 def case_shapes(finger: FingerModel, contact: Contact) -> tuple[Float[Array, "4"], Float[Array, "4 n"]]:
@@ -256,11 +274,17 @@ def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = 
     """
     contact, psi, turning = stage.contact, stage.psi, stage.turning
     solved = jnp.array(True)
+    residual = jnp.zeros((), psi.dtype)
+    event = jnp.array(False)
+    sensitivity = jnp.where(contact.touches, 0.0, 1.0).astype(psi.dtype)
     if equilibrium is not None:
         eq, use = equilibrium, needs_mechanics(stage)
         psi = jnp.where(use, eq.psi, psi)
         turning = jnp.where(use, eq.turning, turning)
         solved = eq.converged | ~use
+        residual = jnp.where(use, eq.residual, residual).astype(psi.dtype)
+        event = use & (eq.slid_off | eq.near_fold)
+        sensitivity = jnp.where(use, eq.sensitivity, sensitivity).astype(psi.dtype)
         tip_touches = use & ((eq.case == ContactCase.TIP) | (eq.case == ContactCase.TIP_AND_OTHER))
         contact = eqx.tree_at(lambda c: (c.case, c.p_o2), contact,
                               (jnp.where(use, eq.case, contact.case),
@@ -295,14 +319,15 @@ def finish(finger: FingerModel, stage: Stage, equilibrium: Equilibrium | None = 
     status = jnp.where((status == Status.OK) & ~sound, Status.NON_FINITE_RESULT, status).astype(jnp.int32)
     return Estimate(
         joints=joints, psi=psi, turning=turning, case=contact.case, contact=contact,
-        valid=status == Status.OK, status=status,
+        valid=status == Status.OK, status=status, residual=residual, event=event,
+        sensitivity=sensitivity,
     )
 
 
 def mechanics_of(
     finger: FingerModel, sdf: AbstractSDF, stage: Stage, mechanics: MechanicsConfig, config: ContactConfig
 ) -> Equilibrium:
-    """The spring chain's equilibrium started from a stage's geometric estimate.
+    """The spring chain's equilibrium reached by closing from a stage's first touch (the closing path).
 
     A stage whose input is unusable (a NaN Theta, a base outside the SDF or too far, NaN SDF
     data) is solved on a harmless stand-in instead: the nominal finger, its shape and contact
@@ -327,8 +352,8 @@ def mechanics_of(
                         jax.tree_util.tree_map(harmless, (stage.contact, stage.psi, stage.turning)))
     far = jnp.full_like(stage.frame.origin, 2.0 * MAX_COORDINATE_MM)
     frame = eqx.tree_at(lambda f: f.origin, stage.frame, jnp.where(bad, far, stage.frame.origin))
-    psi, turning = mechanics_start(finger, stage.contact, stage.psi, stage.turning, config)
-    return solve_equilibrium(finger, sdf, frame, psi, turning, mechanics, config)
+    s, psi, turning = closing_start(finger, stage.contact, config)
+    return solve_equilibrium(finger, sdf, frame, psi, turning, mechanics, config, start_actuation=s)
 
 
 def estimate_in_frame(

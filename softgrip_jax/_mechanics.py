@@ -40,10 +40,26 @@ its tolerances gets ``Status.MECHANICS_NOT_CONVERGED``) and derivatives by impli
 differentiation of the optimality condition: the equilibrium's derivatives in Theta, L, r, rho, c,
 the base pose and the object never go through the iterations.
 
-The solve starts from the geometric estimate; where that estimate turns the base like a pin (cases
-b and c), from the shape at first touch (the closing sweep at its first contact s1, eqs. 5-8), the
-last shape on which both models agree. Where the finger does not touch the object at all, the
-equilibrium is the PCC shape and batched code skips the solve (:mod:`softgrip_jax._batch`).
+The closing path. A contact problem of this kind has several equilibria (a tip held on the object,
+or the finger pressed along its middle after the tip slid past); the estimate is the one the finger
+reaches by closing. Model and assumptions: the actuation is ramped quasi-statically from the open
+finger (0) to Theta, the rest turning 2 s / N following the actuation s; contact is frictionless
+(the tip slides along the surface); inertia is neglected (a snap-through lands in the equilibrium
+the next increments find from the shape before it). Until the first touch s1 (the contact sweep,
+eqs. 5-8) the chain closes freely through its PCC shapes, so the path costs nothing there and
+starts at the PCC shape of s1 (:func:`closing_start`); from there the actuation rises to Theta in
+at most ``path_steps`` increments of at most ``path_step`` rad, each followed by
+``path_iterations`` Gauss-Newton steps warm-started from the last shape
+(:func:`follow_closing_path`), and the least-squares solve above finishes at Theta. The path
+carries no derivative: the equilibrium's derivatives come from implicit differentiation at Theta.
+When the tip carried force along the path but does not at the end, the tip slid off the object
+(``Equilibrium.slid_off``, the estimate's ``event``): near such poses the equilibrium may jump with
+the pose. Where the finger does not touch the object at all, the equilibrium is the PCC shape and
+batched code skips the solve (:mod:`softgrip_jax._batch`).
+
+Batch independence: the path's increments and the solve's iterations are per-element loops
+(``lax.while_loop`` under ``vmap`` holds each finished element), so an element's estimate does
+not depend on which other elements share its batch.
 
 Beyond the paper: the paper's own first modelling approach, the spring-joint chain of its ref.
 [16], at equilibrium against the object with a stiffness profile and a base spring, in place of
@@ -109,6 +125,14 @@ class MechanicsConfig(eqx.Module):
         step_tol: mm. Converged when the Gauss-Newton step (before it is shortened) moves no joint
             by more than this (to first order).
         max_turn: rad. A step changes no turning angle (or psi) by more than this.
+        path_step: rad. The closing path raises the actuation from first touch to Theta in
+            increments of at most this (fewer steps where less actuation remains after the touch).
+        path_steps: the most increments of the closing path (a longer remainder takes larger ones).
+        path_iterations: Gauss-Newton iterations at each increment of the closing path.
+        fold_sensitivity: mm/mm. An equilibrium whose tip moves more than this per mm of base
+            motion is near a fold (the tip about to slide off, a contact about to appear) and is
+            flagged as an event (see ``Estimate.event``); an ordinary contact moves the tip about
+            as far as the base.
 
     Example:
         >>> import jax.numpy as jnp
@@ -122,20 +146,25 @@ class MechanicsConfig(eqx.Module):
         ('other', True)
     """
 
-    max_steps: int = eqx.field(static=True, default=12)
+    max_steps: int = eqx.field(static=True, default=24)
     stations_per_link: int = eqx.field(static=True, default=3)
     penalty: float = eqx.field(static=True, default=1e4)
     active_rows: int = eqx.field(static=True, default=6)
     contact_tol: float = eqx.field(static=True, default=0.05)
     step_tol: float = eqx.field(static=True, default=0.01)
     max_turn: float = eqx.field(static=True, default=0.3)
+    path_step: float = eqx.field(static=True, default=0.1)
+    path_steps: int = eqx.field(static=True, default=8)
+    path_iterations: int = eqx.field(static=True, default=2)
+    fold_sensitivity: float = eqx.field(static=True, default=5.0)
 
     def __check_init__(self):
-        for name, low in (("max_steps", 1), ("stations_per_link", 1), ("active_rows", 1)):
+        for name, low in (("max_steps", 1), ("stations_per_link", 1), ("active_rows", 1), ("path_steps", 1),
+                          ("path_iterations", 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise SoftgripError(f"MechanicsConfig.{name} must be an integer >= {low}, got {value!r}")
-        for name in ("penalty", "contact_tol", "step_tol", "max_turn"):
+        for name in ("penalty", "contact_tol", "step_tol", "max_turn", "path_step", "fold_sensitivity"):
             value = getattr(self, name)
             ok = isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0 and value < float("inf")
             if not ok:
@@ -384,19 +413,139 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
         return y, aux, {}
 
 
-def mechanics_start(
-    finger: FingerModel,
-    contact: Contact,
-    psi: Float[Array, ""],
-    turning: Float[Array, " n"],
+def closing_start(
+    finger: FingerModel, contact: Contact, config: ContactConfig = ContactConfig()
+) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, " n"]]:
+    """Where the closing path leaves the free closure: ``(s, psi, turning)``, the actuation (rad)
+    and the chain's shape (rad; psi (), turning (N,)) at first touch.
+
+    Until the first touch the chain closes freely through its PCC shapes (eqs. 1-3), so the path
+    starts at the PCC shape of ``contact.s1``. A rigid contact sweep (``config.sweep="rigid"``)
+    measures its s1 on other shapes: the path then starts from the open finger (s = 0).
+    """
+    s = contact.s1 if config.sweep == "pcc" else jnp.zeros_like(contact.s1)
+    s = jnp.clip(s, 0.0, finger.theta_entire)
+    return s, jnp.zeros_like(s), pcc_turning(s, finger.n_links)
+
+
+def path_increments(finger: FingerModel, s_start: Float[Array, ""], mechanics: MechanicsConfig) -> Int[Array, ""]:
+    """How many increments the closing path takes from actuation ``s_start`` (rad) to Theta."""
+    remain = jnp.maximum(finger.theta_entire - s_start, 0.0)
+    return jnp.clip(jnp.ceil(remain / mechanics.path_step), 1, mechanics.path_steps).astype(jnp.int32)
+
+
+class _PathState(eqx.Module):
+    step: Int[Array, ""]
+    y: Float[Array, " n1"]
+    previous: Float[Array, " n1"]
+    tip_pressed: Bool[Array, ""]
+
+
+def _at_actuation(problem: _Problem, s) -> _Problem:
+    """The same problem with the rest turning of actuation ``s`` (rad) in place of Theta's."""
+    return eqx.tree_at(lambda p: p.finger.theta_entire, problem, s)
+
+
+def _tip_zone(problem: _Problem, config: ContactConfig) -> Bool[Array, " m"]:
+    """(M,) the stations within ``config.tip_tolerance`` links of the tip."""
+    f = problem.finger
+    arc = jnp.linspace(0.0, 1.0, problem.n_stations, dtype=f.length.dtype)
+    return arc >= 1.0 - config.tip_tolerance / f.n_links
+
+
+def follow_closing_path(
+    problem: _Problem, s_start: Float[Array, ""], psi: Float[Array, ""], turning: Float[Array, " n"],
     config: ContactConfig = ContactConfig(),
-) -> tuple[Float[Array, ""], Float[Array, " n"]]:
-    """The start of the solve: the geometric estimate ``(psi, turning)`` of ``contact``'s case,
-    except where it turns the base like a pin (cases b and c): there the shape at first touch
-    (the closing sweep at s1, eqs. 5-8), the last shape on which both models agree."""
-    pinned = (contact.case == ContactCase.TIP) | (contact.case == ContactCase.TIP_AND_OTHER)
-    touch_psi, touch_turning = sweep_shape(finger, contact.s1, config.sweep)
-    return jnp.where(pinned, touch_psi, psi), jnp.where(pinned, touch_turning, turning)
+) -> tuple[Float[Array, ""], Float[Array, " n"], Bool[Array, ""]]:
+    """Close the chain quasi-statically from actuation ``s_start`` (rad) and shape ``(psi, turning)``
+    to Theta: the rest turning ramps in ``n = clip(ceil((Theta - s_start) / path_step), 1,
+    path_steps)`` equal increments, each followed by ``path_iterations`` Gauss-Newton steps
+    (:func:`_newton_step`) warm-started from the last shape, contact frictionless.
+
+    Returns the shape at Theta (psi () and turning (N,), rad; not yet converged: the caller's
+    least-squares solve finishes it) and whether the tip carried contact force at some increment.
+
+    Every element of a batch runs its own n increments: under ``vmap`` the loop runs for the
+    longest path and holds each finished element (``lax.while_loop``'s per-element select), so
+    no element's answer depends on the others.
+    """
+    mech = problem.config
+    theta = problem.finger.theta_entire
+    remain = jnp.maximum(theta - s_start, 0.0)
+    count = path_increments(problem.finger, s_start, mech)
+    tip_zone = _tip_zone(problem, config)
+
+    def increment(state: _PathState) -> _PathState:
+        s_before = s_start + remain * state.step / count
+        s_after = jnp.where(state.step + 1 >= count, theta, s_start + remain * (state.step + 1) / count)
+        shape = _at_actuation(problem, s_before).shape(state.y)
+        here = _at_actuation(problem, s_after)
+        y = here.variables(*shape)
+
+        def iteration(_, carry):
+            y, previous, pressed = carry
+            step, _moved, _penetration, pushed = _newton_step(here, y, previous)
+            return y + step, step, pressed | jnp.any(pushed & tip_zone)
+
+        y, previous, pressed = jax.lax.fori_loop(0, mech.path_iterations, iteration,
+                                                 (y, state.previous, state.tip_pressed))
+        return _PathState(step=state.step + 1, y=y, previous=previous, tip_pressed=pressed)
+
+    start = _at_actuation(problem, s_start).variables(psi, turning)
+    state = _PathState(step=jnp.array(0, jnp.int32), y=start, previous=jnp.zeros_like(start),
+                       tip_pressed=jnp.array(False))
+    state = jax.lax.while_loop(lambda st: st.step < count, increment, state)
+    psi, turning = problem.shape(state.y)
+    return psi, turning, state.tip_pressed
+
+
+def tip_sensitivity(problem: _Problem, y: Float[Array, " n1"]) -> Float[Array, ""]:
+    """How far the equilibrium's tip moves per mm the base moves, at most over directions (mm/mm).
+
+    By the implicit function theorem at the equilibrium y (the energy's gradient G(y, base) = 0):
+    dy/dbase = -H^-1 dG/dbase with H the energy's full Hessian (curvature of the contact terms
+    included, unlike the Gauss-Newton model). A finger whose shape follows the base has a value near
+    1; near a fold of the equilibrium (where the tip is about to slide off, or a contact area to
+    appear) H turns singular and the value grows without bound. Diagnostic only: it carries no
+    derivative.
+    """
+    problem, y = jax.lax.stop_gradient((problem, y))
+
+    def energy_gradient(y, origin):
+        moved = eqx.tree_at(lambda p: p.frame.origin, problem, origin)
+        return jax.grad(lambda v: 0.5 * jnp.sum(moved.residuals(v) ** 2))(y)
+
+    def tip(y, origin):
+        moved = eqx.tree_at(lambda p: p.frame.origin, problem, origin)
+        return moved.frame.to_world(moved.stations(y)[0][-1])
+
+    origin = problem.frame.origin
+    hessian = jax.jacfwd(energy_gradient, 0)(y, origin)  # (N+1, N+1)
+    mixed = jax.jacfwd(energy_gradient, 1)(y, origin)  # (N+1, 2)
+    dy = -_gauss_jordan(hessian, mixed)
+    d_tip = jax.jacfwd(tip, 1)(y, origin) + jax.jacfwd(tip, 0)(y, origin) @ dy  # (2, 2)
+    # largest singular value of the 2 x 2 matrix, closed form
+    gram = d_tip.T @ d_tip
+    half_trace = 0.5 * jnp.trace(gram)
+    gap = jnp.sqrt(jnp.maximum(half_trace**2 - jnp.linalg.det(gram), 0.0))
+    value = jnp.sqrt(half_trace + gap)
+    return jnp.where(jnp.isfinite(value), value, jnp.inf)
+
+
+def _gauss_jordan(a: Float[Array, "n n"], b: Float[Array, "n k"]) -> Float[Array, "n k"]:
+    """Solve a x = b for a symmetric a, without pivoting (stable for a positive definite one, as
+    the Hessian of a stable equilibrium is), in a ``fori_loop`` of plain array operations: LAPACK's
+    solver is a custom call, and two programs running it at once from ``run_in_parts``' threads
+    deadlocked XLA:CPU. A vanishing pivot (a fold) gives inf."""
+    n = a.shape[0]
+    rows = jnp.arange(n)
+
+    def eliminate(k, m):
+        pivot = m[k, k]
+        row = m[k] / pivot
+        return jnp.where((rows == k)[:, None], row[None, :], m - m[:, k][:, None] * row[None, :])
+
+    return jax.lax.fori_loop(0, n, eliminate, jnp.concatenate([a, b], axis=1))[:, n:]
 
 
 class Equilibrium(eqx.Module):
@@ -409,6 +558,10 @@ class Equilibrium(eqx.Module):
     penetration: Float[Array, ""]  #: deepest station inside r (mm)
     tip_foot: Float[Array, "2"]  #: the tip moved onto the object surface (mm, finger frame)
     steps: Int[Array, ""]
+    residual: Float[Array, ""]  #: the last Gauss-Newton step's largest joint displacement (mm)
+    slid_off: Bool[Array, ""]  #: the tip carried force along the closing path, but not at its end
+    sensitivity: Float[Array, ""]  #: tip displacement per base displacement, largest (mm/mm)
+    near_fold: Bool[Array, ""]  #: sensitivity above ``MechanicsConfig.fold_sensitivity``
 
 
 def solve_equilibrium(
@@ -419,12 +572,16 @@ def solve_equilibrium(
     start_turning: Float[Array, " n"],
     mechanics: MechanicsConfig = MechanicsConfig(),
     config: ContactConfig = ContactConfig(),
+    *,
+    start_actuation: Float[Array, ""] | None = None,
 ) -> Equilibrium:
     """Equilibrium of the spring chain placed by ``frame`` against ``sdf``, from a start shape.
 
     ``start_psi, start_turning`` (finger frame) start the solve and carry no derivative: the
-    equilibrium's derivatives come from implicit differentiation. See :func:`mechanics_start` for
-    the start the estimate uses.
+    equilibrium's derivatives come from implicit differentiation. With ``start_actuation`` (rad)
+    they are the shape at that actuation and the chain first closes along the path to Theta
+    (:func:`follow_closing_path`; :func:`closing_start` gives the estimate's start); without it
+    the solve starts at Theta directly.
 
     The case says where the equilibrium carries contact force: a station carries force where it
     lies inside r (the penalty pushes it) or the solver's last step modelled a positive multiplier
@@ -435,6 +592,11 @@ def solve_equilibrium(
     the edge of the tip zone is a tip contact, as the observed-closure rod's case counts areas.
     """
     problem = _Problem(finger=finger, sdf=sdf, frame=frame, config=mechanics)
+    tip_pressed = jnp.array(False)
+    if start_actuation is not None:
+        start_psi, start_turning, tip_pressed = follow_closing_path(
+            jax.lax.stop_gradient(problem), jax.lax.stop_gradient(start_actuation),
+            jax.lax.stop_gradient(start_psi), jax.lax.stop_gradient(start_turning), config)
     y0 = jax.lax.stop_gradient(problem.variables(start_psi, start_turning))
     solver = ChainGaussNewton(rtol=mechanics.contact_tol, atol=mechanics.step_tol)
     solution = optx.least_squares(
@@ -458,10 +620,13 @@ def solve_equilibrium(
     other = jnp.any(pressed & ~tip_area)
     case = jnp.where(tip, jnp.where(other, ContactCase.TIP_AND_OTHER, ContactCase.TIP),
                      jnp.where(other, ContactCase.OTHER, ContactCase.NONE)).astype(jnp.int32)
+    sensitivity = tip_sensitivity(problem, y)
     tip_point = joints[-1]
     tip_foot = surface_point(problem.distance, tip_point)
     penetration = jnp.maximum(jnp.max(r - d), 0.0)
     return Equilibrium(
         psi=psi, turning=turning, case=case, converged=solution.result == optx.RESULTS.successful,
         penetration=penetration, tip_foot=tip_foot, steps=solution.stats["num_steps"],
+        residual=solution.state.moved, slid_off=tip_pressed & ~tip, sensitivity=sensitivity,
+        near_fold=sensitivity > mechanics.fold_sensitivity,
     )

@@ -10,7 +10,8 @@ candidate pose (score). Every enum is written by name (cases ``"none"``, ``"tip"
     {"side": "left"|"right", "valid": bool, "status": "ok"|"non_finite_input"|... (Status names),
      "case": "none"|"tip"|"tip_and_other"|"other", "theta_entire": rad,
      "joints_px": [[u, v], ...], "joints_mm": [[x, y], ...],    # N+1 joints, base (0) to tip (N)
-     "contacts_px": [[u, v], ...], "contacts_mm": [[x, y], ...]}  # P_o1, and P_o2 for tip_and_other
+     "contacts_px": [[u, v], ...], "contacts_mm": [[x, y], ...],  # P_o1, and P_o2 for tip_and_other
+     "event": bool, "sensitivity": mm/mm}  # mechanics: near a jump of the closing path; tip / base motion
 
 Coordinates that are not finite (an invalid candidate outside the image) are written as null.
 """
@@ -92,6 +93,8 @@ def finger_json(side: str, estimate, finger, camera) -> dict:
         "joints_mm": points_json(joints_mm, 4),
         "contacts_px": points_json(camera.mm_to_px(contacts_mm), 3),
         "contacts_mm": points_json(contacts_mm, 4),
+        "event": bool(estimate.event),
+        "sensitivity": number_json(estimate.sensitivity, 3),
     }
 
 

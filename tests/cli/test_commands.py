@@ -26,7 +26,7 @@ PROFILE = DATA / "sample_profile.json"
 SCENES = ("circle", "square", "star_a")
 FRAMES = [str(DATA / f"{name}_open") for name in SCENES]
 FINGER_KEYS = {"side", "valid", "status", "case", "theta_entire", "joints_px", "joints_mm", "contacts_px",
-               "contacts_mm"}
+               "contacts_mm", "event", "sensitivity"}
 CANDIDATE_KEYS = {"pose", "score", "components", "valid", "status", "fingers"}
 TOP = 40
 

@@ -161,6 +161,36 @@ def test_where_needed_maps_only_the_needed_elements_and_puts_them_back():
     out = jax.jit(lambda n, x: where_needed(lambda v: (v * 2.0, v + 1.0), n, x, groups=3))(need, xs)
     np.testing.assert_array_equal(out[0], np.where(need, 2.0 * xs, 0.0))
     np.testing.assert_array_equal(out[1], np.where(need, xs + 1.0, 0.0))
+    # ordered by kind (like cost together): the same answers, each in its place
+    kinds = jnp.array([2, 1, 0, 0, 2, 1, 1, 0, 2, 2, 0])
+    seen = []
+
+    def fn(v):
+        jax.debug.callback(lambda a: seen.append(np.asarray(a).ravel()), v)
+        return v * 2.0
+
+    out = jax.jit(lambda n, x, k: where_needed(fn, n, x, 6, k, 3))(need, xs, kinds)
+    np.testing.assert_array_equal(jax.block_until_ready(out), np.where(need, 2.0 * xs, 0.0))
+    # groups of two, in the order kind 0 (elements 2, 7), kind 1 (1), kind 2 (4, 8), a spare lane last
+    lanes = np.concatenate(seen).tolist()
+    assert [set(lanes[i:i + 2]) for i in (0, 2, 4)] == [{2.0, 7.0}, {1.0, 4.0}, {8.0}], lanes
+
+
+def test_where_needed_never_maps_an_element_that_is_not_needed():
+    # A group's spare lanes repeat a needed element: an element that needs nothing (one whose loop
+    # would run to a large budget, say) must not hold its group's vmapped loop: fn never sees it.
+    need = jnp.array([False, True, True, False, True, False, False, True, True, False, False])
+    xs = jnp.where(need, jnp.arange(11.0), 1000.0)
+    seen = []
+
+    def fn(v):
+        jax.debug.callback(lambda a: seen.append(np.asarray(a).ravel()), v)
+        return v
+
+    out = jax.jit(lambda n, x: where_needed(fn, n, x, groups=3))(need, xs)
+    jax.block_until_ready(out)
+    np.testing.assert_array_equal(out, np.where(need, xs, 0.0))
+    assert seen and np.concatenate(seen).max() < 1000.0
 
 
 # ---------------------------------------------------------------------------------------------
