@@ -54,8 +54,12 @@ at most ``path_steps`` increments of at most ``path_step`` rad, each followed by
 carries no derivative: the equilibrium's derivatives come from implicit differentiation at Theta.
 When the tip carried force along the path but does not at the end, the tip slid off the object
 (``Equilibrium.slid_off``, the estimate's ``event``): near such poses the equilibrium may jump with
-the pose. Where the finger does not touch the object at all, the equilibrium is the PCC shape and
-batched code skips the solve (:mod:`softgrip_jax._batch`).
+the pose. Near a fold of the equilibrium (a held tip about to slide off) the estimate is still
+continuous but steep: :func:`tip_sensitivity` measures how far the tip moves per mm of base motion
+(implicit differentiation with the energy's full Hessian, whose curvature terms the Gauss-Newton
+model leaves out), and ``Equilibrium.near_fold`` flags it above ``fold_sensitivity``. Where the
+finger does not touch the object at all, the equilibrium is the PCC shape and batched code skips
+the solve (:mod:`softgrip_jax._batch`).
 
 Batch independence: the path's increments and the solve's iterations are per-element loops
 (``lax.while_loop`` under ``vmap`` holds each finished element), so an element's estimate does
