@@ -538,9 +538,10 @@ def tip_sensitivity(problem: _Problem, y: Float[Array, " n1"]) -> Float[Array, "
 
 def _gauss_jordan(a: Float[Array, "n n"], b: Float[Array, "n k"]) -> Float[Array, "n k"]:
     """Solve a x = b for a symmetric a, without pivoting (stable for a positive definite one, as
-    the Hessian of a stable equilibrium is), in a ``fori_loop`` of plain array operations: LAPACK's
-    solver is a custom call, and two programs running it at once from ``run_in_parts``' threads
-    deadlocked XLA:CPU. A vanishing pivot (a fold) gives inf."""
+    the Hessian of a stable equilibrium is), in a ``fori_loop`` of plain array operations. With
+    ``jnp.linalg.solve`` (LAPACK, a custom call) in its place, a batched estimate split by
+    ``run_in_parts`` hung: both threads waiting in ``block_until_ready``, no CPU used. A vanishing
+    pivot (a fold) gives inf."""
     n = a.shape[0]
     rows = jnp.arange(n)
 
