@@ -436,6 +436,49 @@ def free_contact(finger: FingerModel, bracket: Bracket) -> Contact:
     )
 
 
+class _BracketState(eqx.Module):
+    lower: Float[Array, ""]
+    upper: Float[Array, ""]
+    diff: Float[Array, ""]
+    value: Float[Array, ""]
+
+
+class BracketedNewton(optx.AbstractRootFinder):
+    """Newton's method kept inside a bracket (the safeguard of Numerical Recipes' ``rtsafe``), for
+    a scalar function positive at ``options["lower"]`` and not positive at ``options["upper"]``.
+
+    Each evaluation's sign shrinks the bracket; a Newton step that would leave it (the clearance
+    g(s) is not monotone: it dips below zero and rises again when the sweep passes a corner) is
+    replaced by the bracket's midpoint, so the iterates never leave a bracket that holds a root.
+    Converged when the last step and |f| are both within ``atol``.
+    """
+
+    atol: float
+    rtol: float = 0.0
+    norm: Callable = jnp.abs
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        inf = jnp.asarray(jnp.inf, f_struct.dtype)
+        return _BracketState(lower=jnp.asarray(options["lower"], f_struct.dtype),
+                             upper=jnp.asarray(options["upper"], f_struct.dtype), diff=inf, value=inf)
+
+    def step(self, fn, y, args, options, state, tags):
+        value, slope, aux = jax.jvp(lambda s: fn(s, args), (y,), (jnp.ones_like(y),), has_aux=True)
+        free = value > 0
+        lower = jnp.where(free, y, state.lower)
+        upper = jnp.where(free, state.upper, y)
+        newton = y - value / jnp.where(slope == 0, 1.0, slope)
+        inside = (slope != 0) & (newton > lower) & (newton < upper)
+        new = jnp.where(value == 0, y, jnp.where(inside, newton, 0.5 * (lower + upper)))
+        return new, _BracketState(lower=lower, upper=upper, diff=new - y, value=jnp.abs(value)), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return (jnp.abs(state.diff) <= self.atol) & (state.value <= self.atol), optx.RESULTS.successful
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return y, aux, {}
+
+
 def refine_contact(
     finger: FingerModel,
     dist: Callable[[Float[Array, "*batch 2"]], Float[Array, "*batch"]],
@@ -462,7 +505,7 @@ def refine_contact(
 
     def solve(fn_, s0):
         solution = optx.root_find(
-            lambda s, _: fn_(s), optx.Newton(rtol=0.0, atol=config.root_atol), s0,
+            lambda s, _: fn_(s), BracketedNewton(atol=config.root_atol), s0,
             options=dict(lower=lower, upper=upper), throw=False, max_steps=config.root_max_steps,
         )
         # The flag as a float: custom_root gives its auxiliary outputs zero tangents of their own dtype.

@@ -341,9 +341,16 @@ def _newton_step(problem: _Problem, y, previous):
         lam = _spd_solve(jnp.eye(k, dtype=dtype) + a @ a.T, c - a @ y)
         return -y - a.T @ lam, lam
 
-    near = depth > -_GLUE_MM
-    _, lam = solve(near)
-    modelled = near & (lam >= 0)
+    # Dropping one station changes the others' multipliers, and a glued station outside the
+    # object can turn negative only after another is dropped: were it kept, the step's fixed point
+    # would hold it there by a pull, which stops the chain short of the true equilibrium (a tip
+    # on a face it meets nearly parallel ended 0.2 mm along the face from it). So drop until no
+    # multiplier is negative: at most K rounds, as each drops at least one row or changes nothing.
+    def drop_pulling(_, rows_on):
+        _, lam = solve(rows_on)
+        return rows_on & (lam >= 0)
+
+    modelled = jax.lax.fori_loop(0, k, drop_pulling, depth > -_GLUE_MM)
     step, lam = solve(modelled)
     # The stations that carry contact force after the step (the model's residuals, positive: pushed
     # by the object), for the contact case (see solve_equilibrium).
@@ -514,10 +521,23 @@ def tip_sensitivity(problem: _Problem, y: Float[Array, " n1"]) -> Float[Array, "
     derivative.
     """
     problem, y = jax.lax.stop_gradient((problem, y))
+    f = problem.finger
+    weight = jnp.sqrt(jnp.asarray(problem.config.penalty, y.dtype)) / f.length
+    # Only stations inside r add to the energy and its derivatives: the K least clear ones (the
+    # Newton step's rows) hold them all wherever the step is exact, and cost K SDF lookups per
+    # Hessian column instead of M.
+    _, index = jax.lax.top_k(f.half_thickness - problem.distance(problem.stations(y)[1]),
+                             min(problem.config.active_rows, problem.n_stations))
 
     def energy_gradient(y, origin):
         moved = eqx.tree_at(lambda p: p.frame.origin, problem, origin)
-        return jax.grad(lambda v: 0.5 * jnp.sum(moved.residuals(v) ** 2))(y)
+
+        def energy(v):
+            points = moved.stations(v)[1][index]
+            contact = weight * jnp.maximum(f.half_thickness - moved.distance(points), 0.0)
+            return 0.5 * (jnp.sum(v**2) + jnp.sum(contact**2))
+
+        return jax.grad(energy)(y)
 
     def tip(y, origin):
         moved = eqx.tree_at(lambda p: p.frame.origin, problem, origin)
