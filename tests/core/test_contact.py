@@ -81,6 +81,37 @@ def test_pcc_sweep_first_contact_matches_dense_sweep(sdf_kind, center, radius, n
     assert float(c.l_g1) == pytest.approx(l_g1, abs=tol_mm)
 
 
+def polygon_distance(points, vertices):
+    """Unsigned distance (mm) from points (P, 2) to a polygon's edges, by numpy (outside points)."""
+    a, b = vertices, np.roll(vertices, -1, axis=0)
+    ap = points[:, None, :] - a[None]
+    t = np.clip(np.sum(ap * (b - a), -1) / np.sum((b - a) ** 2, -1), 0.0, 1.0)
+    return np.min(np.linalg.norm(ap - t[..., None] * (b - a), axis=-1), axis=1)
+
+
+@pytest.mark.parametrize("base", [(-7.378, -7.336), (-3.602, -9.166), (-9.952, -5.649)])
+def test_the_root_stays_in_its_bracket_where_the_clearance_dips_past_a_corner(base):
+    # The sweep passes a square's corner: within one interval of the coarse grid the clearance
+    # falls below zero and rises again, and a plain Newton step from the interval's far end left
+    # it (ROOT_NOT_CONVERGED for about 1 in 500 random bases near this square).
+    from synthetic.shapes import shape
+
+    square = shape("square", 20.0, 0.3) + np.array([22.0, 48.0])
+    finger = FingerModel(length=52.0, theta_entire=0.7, half_thickness=4.0, n_links=20)
+    c = predict_contact(finger, PolygonSDF(jnp.asarray(square, jnp.float32)), jnp.asarray(base, jnp.float32))
+    assert bool(c.touches) and bool(c.root_converged)
+    # The dense sweep's first touch, with the polygon's exact distance (the finger is outside it
+    # until then, so the unsigned distance is the signed one).
+    n, i, t = 20, np.arange(21), np.linspace(0.0, 1.0, 200, endpoint=False)
+    for s in np.linspace(0.0, 0.7, 14001)[1:]:
+        chord = (52.0 / n) * np.sin(s * i / n) / np.sin(s / n)
+        joints = np.stack([chord * np.sin(s * i / n), chord * np.cos(s * i / n)], -1) + np.asarray(base)
+        pts = (joints[:-1, None] + t[None, :, None] * (joints[1:] - joints[:-1])[:, None]).reshape(-1, 2)
+        if polygon_distance(pts, square).min() <= 4.0:
+            break
+    assert float(c.s1) == pytest.approx(s, abs=2e-3)
+
+
 def test_no_object_in_reach_is_case_a():
     finger = FingerModel(length=L, theta_entire=0.5, half_thickness=R_FINGER, n_links=10)
     base = jnp.array([3.0, -2.0])
