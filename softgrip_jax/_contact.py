@@ -468,7 +468,8 @@ class BracketedNewton(optx.AbstractRootFinder):
         lower = jnp.where(free, y, state.lower)
         upper = jnp.where(free, state.upper, y)
         newton = y - value / jnp.where(slope == 0, 1.0, slope)
-        inside = (slope != 0) & (newton > lower) & (newton < upper)
+        # (Inclusive: at a root found to float precision the step rounds onto the bracket's end.)
+        inside = (slope != 0) & (newton >= lower) & (newton <= upper)
         new = jnp.where(value == 0, y, jnp.where(inside, newton, 0.5 * (lower + upper)))
         return new, _BracketState(lower=lower, upper=upper, diff=new - y, value=jnp.abs(value)), aux
 

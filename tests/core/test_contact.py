@@ -89,27 +89,42 @@ def polygon_distance(points, vertices):
     return np.min(np.linalg.norm(ap - t[..., None] * (b - a), axis=-1), axis=1)
 
 
-@pytest.mark.parametrize("base", [(-7.378, -7.336), (-3.602, -9.166), (-9.952, -5.649)])
-def test_the_root_stays_in_its_bracket_where_the_clearance_dips_past_a_corner(base):
+def dense_first_touch(base, vertices, theta, length, r, n, n_s=14001):
+    """The PCC sweep's first touch (rad) by brute force: chains of eq. 2 from ``base``, links
+    sampled densely, the polygon's exact distance (numpy)."""
+    i, t = np.arange(n + 1), np.linspace(0.0, 1.0, 200, endpoint=False)
+    for s in np.linspace(0.0, theta, n_s)[1:]:
+        chord = (length / n) * np.sin(s * i / n) / np.sin(s / n)
+        joints = np.stack([chord * np.sin(s * i / n), chord * np.cos(s * i / n)], -1) + np.asarray(base)
+        pts = (joints[:-1, None] + t[None, :, None] * (joints[1:] - joints[:-1])[:, None]).reshape(-1, 2)
+        if polygon_distance(pts, vertices).min() <= r:  # outside until then: unsigned = signed
+            return s
+    return None
+
+
+def square_near_the_finger():
+    from synthetic.shapes import shape
+
+    return shape("square", 20.0, 0.3) + np.array([22.0, 48.0])
+
+
+@pytest.mark.parametrize("vertices, theta, base", [
     # The sweep passes a square's corner: within one interval of the coarse grid the clearance
     # falls below zero and rises again, and a plain Newton step from the interval's far end left
     # it (ROOT_NOT_CONVERGED for about 1 in 500 random bases near this square).
-    from synthetic.shapes import shape
-
-    square = shape("square", 20.0, 0.3) + np.array([22.0, 48.0])
-    finger = FingerModel(length=52.0, theta_entire=0.7, half_thickness=4.0, n_links=20)
-    c = predict_contact(finger, PolygonSDF(jnp.asarray(square, jnp.float32)), jnp.asarray(base, jnp.float32))
+    (square_near_the_finger(), 0.7, (-7.378, -7.336)),
+    (square_near_the_finger(), 0.7, (-3.602, -9.166)),
+    (square_near_the_finger(), 0.7, (-9.952, -5.649)),
+    # A root met to float precision: the last Newton step rounds onto the bracket's end, which
+    # must count as inside it (it was replaced by a bisection and ran out of steps).
+    (np.asarray(PolygonSDF.regular((24.0, 44.0), 10.0, 64).vertices), 0.8, (1.8815513, -3.2346227)),
+])
+def test_the_first_contact_root_converges_inside_its_bracket(vertices, theta, base):
+    finger = FingerModel(length=52.0, theta_entire=theta, half_thickness=4.0, n_links=20)
+    c = predict_contact(finger, PolygonSDF(jnp.asarray(vertices, jnp.float32)), jnp.asarray(base, jnp.float32))
     assert bool(c.touches) and bool(c.root_converged)
-    # The dense sweep's first touch, with the polygon's exact distance (the finger is outside it
-    # until then, so the unsigned distance is the signed one).
-    n, i, t = 20, np.arange(21), np.linspace(0.0, 1.0, 200, endpoint=False)
-    for s in np.linspace(0.0, 0.7, 14001)[1:]:
-        chord = (52.0 / n) * np.sin(s * i / n) / np.sin(s / n)
-        joints = np.stack([chord * np.sin(s * i / n), chord * np.cos(s * i / n)], -1) + np.asarray(base)
-        pts = (joints[:-1, None] + t[None, :, None] * (joints[1:] - joints[:-1])[:, None]).reshape(-1, 2)
-        if polygon_distance(pts, square).min() <= 4.0:
-            break
-    assert float(c.s1) == pytest.approx(s, abs=2e-3)
+    assert float(c.s1) == pytest.approx(dense_first_touch(base, np.asarray(vertices, np.float64), theta, 52.0, 4.0, 20),
+                                        abs=2e-3)
 
 
 def test_no_object_in_reach_is_case_a():
