@@ -19,7 +19,7 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import ArrayLike, Bool, Float
+from jaxtyping import ArrayLike, Float
 
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._concurrent import pad_rows, run_in_parts

@@ -21,6 +21,7 @@ keyword arguments into an estimator, in one place.
 from __future__ import annotations
 
 import abc
+import dataclasses
 from typing import ClassVar
 
 import equinox as eqx
@@ -57,6 +58,13 @@ class AbstractEstimator(eqx.Module):
     """
 
     name: eqx.AbstractClassVar[str]
+
+    def __check_init__(self):
+        loose = [f.name for f in dataclasses.fields(self) if not f.metadata.get("static", False)]
+        if loose:
+            raise SoftgripError(f"{type(self).__name__}: every field of an estimator must be static "
+                                f"(eqx.field(static=True)) and hashable, so that equal estimators share a "
+                                f"compiled program; not static: {', '.join(loose)}")
 
     def finger_finite(self, finger: FingerModel) -> Bool[Array, ""]:
         """Whether the finger parameters this estimator reads beyond L, Theta and r are finite

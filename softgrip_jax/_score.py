@@ -216,7 +216,7 @@ def score(
     Example (the README's planner: score a grid of poses, refine the best, read both fingers'
     contacts; ``tests/test_readme.py`` keeps the README's copy identical):
         >>> import jax.numpy as jnp
-        >>> from softgrip_jax import CASE_NAMES, FingerModel, Gripper, PolygonSDF, refine, score
+        >>> from softgrip_jax import CASE_NAMES, FingerModel, Geometric, Gripper, PolygonSDF, refine, score
         >>> finger = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=20)  # mm, rad
         >>> gripper = Gripper(left=finger, right=finger, base_separation=56.0)  # mm
         >>> obj = PolygonSDF.regular(center=(0.0, 38.0), radius=15.0, n_vertices=128)  # a 30 mm disc
@@ -226,10 +226,10 @@ def score(
         ...                            jnp.linspace(-0.2, 0.2, 5), indexing="ij")
         >>> poses = jnp.stack([x.ravel(), y.ravel(), angle.ravel()], axis=-1)  # (605, 3)
         >>> # One compiled call; invalid candidates score -inf. The geometric estimate is the fastest
-        >>> # for a coarse grid; without method=, score and refine use the mechanics estimate.
-        >>> result = score(gripper, obj, poses, method="geometric")
+        >>> # for a coarse grid; without estimator=, score and refine use the mechanics estimate, Mechanics().
+        >>> result = score(gripper, obj, poses, estimator=Geometric())
         >>> best = int(jnp.argmax(result.score))
-        >>> refined = refine(gripper, obj, poses[best], method="geometric")  # never worse than its start
+        >>> refined = refine(gripper, obj, poses[best], estimator=Geometric())  # never worse than its start
         >>> bool(refined.score.score >= result.score[best])
         True
         >>> for side in ("left", "right"):  # both fingers of the refined pose, each an Estimate

@@ -30,6 +30,7 @@ Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps 
     >>> import numpy as np
     >>> import vision
     >>> from calib.profile import load_profile
+    >>> from softgrip_jax import Geometric
     >>> from vision.scene import frame_scene, rank
     >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames and profile
     >>> scene = frame_scene(data / "circle_open", load_profile(data / "sample_profile.json"))
@@ -40,7 +41,7 @@ Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps 
     >>> print({side: np.round(f["base_mm"], 1).tolist() for side, f in scene.finger_frames.items()})
     {'left': [-32.0, -45.1], 'right': [32.0, -45.0]}
     >>> # Both fingers at the frame's own pose; the first estimate compiles (seconds), later ones do not.
-    >>> grasp = scene.estimate(method="geometric")
+    >>> grasp = scene.estimate(estimator=Geometric())
     >>> for side in ("left", "right"):
     ...     f = getattr(grasp, side)
     ...     print(side, scene.case_name(grasp, side), "tip (mm):", [round(float(v), 1) for v in f.joints[-1]])
@@ -48,7 +49,7 @@ Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps 
     right other tip (mm): [7.1, -2.0]
     >>> # Candidate poses as numpy (B, 3): x mm, y mm, angle rad; here the frame's pose, 4 mm left, 80 mm up.
     >>> poses = scene.pose + np.array([[0.0, 0.0, 0.0], [-4.0, 0.0, 0.0], [0.0, -80.0, 0.0]])
-    >>> result = scene.score(poses, method="geometric")  # numpy out; -inf where not valid
+    >>> result = scene.score(poses, estimator=Geometric())  # numpy out; -inf where not valid
     >>> print(rank(result).tolist(), [round(float(v), 3) for v in result.score], result.valid.tolist())
     [0, 1, 2] [0.874, 0.859, -inf] [True, True, False]
 """

@@ -105,3 +105,11 @@ def test_as_estimator_is_the_one_alias():
         as_estimator("geometric")
     with pytest.raises((SoftgripError, TypeCheckError), match="MechanicsConfig"):  # (the tests' type checker first)
         Mechanics(config=3)
+
+
+def test_an_estimator_with_a_field_that_is_not_static_is_refused():
+    class Scaled(FreeClosure):
+        scale: float = 1.0  # not static: it would be traced, and estimators are static arguments
+
+    with pytest.raises(SoftgripError, match="must be static.*scale"):
+        Scaled()
