@@ -100,14 +100,21 @@ def _environment() -> str:
     return ";".join(parts)
 
 
-def static_ident(value) -> str:
-    """A static argument as it keys an exported program: an object by its class's module and
-    qualified name, its ``name`` (an estimator's) and its repr (which shows every field that differs
-    from its default, e.g. ``Mechanics(config=MechanicsConfig(max_steps=8))``); numbers and strings
-    by their repr."""
+def static_ident(value) -> str | None:
+    """A static argument as it keys an exported program: numbers and strings by their repr; an
+    object of this package (an estimator) by its class's module and qualified name, its ``name`` and
+    its repr (which shows every setting that differs from its default, e.g.
+    ``Mechanics(config=MechanicsConfig(max_steps=8))``).
+
+    None for an object of a class defined elsewhere (an estimator of the user's): its code is not in
+    the source hash above, so a program exported for it could outlive a change to it. Such a
+    signature runs on the jitted path instead (whose compilation cache keys the lowered program).
+    """
     if isinstance(value, (bool, int, float, str, type(None))):
         return repr(value)
     kind = type(value)
+    if kind.__module__.split(".")[0] != __name__.split(".")[0]:
+        return None
     name = getattr(value, "name", None)
     return f"{kind.__module__}.{kind.__qualname__}" + (f"[{name}]" if isinstance(name, str) else "") + f":{value!r}"
 
@@ -196,9 +203,12 @@ class exportable:  # noqa: N801 - used like jax.jit
             from jax import export
         except ImportError:
             return None
+        statics = [(k, static_ident(v)) for k, v in static]
+        if any(ident is None for _, ident in statics):  # e.g. an estimator defined outside this package
+            return None
         ident = "\n".join([self._fn.__module__ + "." + self._fn.__qualname__, _environment(), _backend_settings(),
                            repr(names), str(treedef), repr([(a.shape, str(a.dtype), a.weak_type) for a in avals]),
-                           repr([(k, static_ident(v)) for k, v in static])])
+                           repr(statics)])
         digest = hashlib.sha256(ident.encode()).hexdigest()
         path = folder / f"{self._fn.__name__.strip('_')}-{digest[:40]}.export"
         exported = out_treedef = None

@@ -113,3 +113,14 @@ def test_an_estimator_with_a_field_that_is_not_static_is_refused():
 
     with pytest.raises(SoftgripError, match="must be static.*scale"):
         Scaled()
+
+
+def test_exported_programs_are_keyed_by_the_estimators_class_and_settings():
+    from softgrip_jax._export import static_ident
+
+    tight = static_ident(Mechanics(MechanicsConfig(max_steps=8)))
+    assert "softgrip_jax._estimators.Mechanics[mechanics]" in tight and "max_steps=8" in tight
+    assert tight == static_ident(Mechanics(MechanicsConfig(max_steps=8)))
+    assert len({tight, static_ident(Mechanics()), static_ident(Geometric())}) == 3
+    # A class of the user's: its code is not in the package's source hash, so it is never exported.
+    assert static_ident(FreeClosure()) is None and static_ident(4096) == "4096"
