@@ -292,9 +292,10 @@ class Scene:
               weights=None):
         """Score poses (numpy or JAX, (3,) or (B, 3): x mm, y mm, angle rad) in one compiled call.
 
-        ``estimator`` (or the older ``method``) is as for :meth:`estimate`. Batches are padded to a power of two (at least :data:`MIN_BATCH`) so that batches of similar
-        sizes share one compilation. Returns a :class:`softgrip_jax.Score` with numpy leaves of
-        leading axis B (``score`` is -inf where not valid); rank with :func:`rank`.
+        ``estimator`` (or the older ``method``) is as for :meth:`estimate`. Batches are padded to a
+        power of two (at least :data:`MIN_BATCH`) so that batches of similar sizes share one
+        compilation. Returns a :class:`softgrip_jax.Score` with numpy leaves of leading axis B
+        (``score`` is -inf where not valid); rank with :func:`rank`.
         """
         import jax
         import jax.numpy as jnp
