@@ -13,9 +13,10 @@ deformation (forward mode). ``rho`` is a robust loss on each joint's distance (H
 scale about 1 mm), written as the residual ``sqrt(2 rho(|r|)) r / |r|`` so that a least-squares
 solver minimises it: a badly segmented frame pulls with a bounded force instead of a quadratic one.
 
-The estimate is chosen by ``method``: ``"geometric"`` (the paper's eq. 9) or ``"mechanics"`` (the
-spring-joint chain at equilibrium, :mod:`softgrip_jax._mechanics`, with the solver settings
-``mechanics``), by default ``softgrip_jax.DEFAULT_METHOD`` as everywhere else; the residuals,
+The estimate is chosen by ``estimator``: ``softgrip_jax.Geometric()`` (the paper's eq. 9) or
+``softgrip_jax.Mechanics(config)`` (the spring-joint chain at equilibrium,
+:mod:`softgrip_jax._mechanics`), by default ``Mechanics()`` as everywhere else (the older
+``method="geometric" | "mechanics"`` and ``mechanics=`` are accepted instead); the residuals,
 Jacobian and standard errors are those of the chosen estimate, differentiated through the
 mechanics solve by implicit differentiation.
 
@@ -34,7 +35,7 @@ estimates it affects, and how the solver's unknown maps to it:
   starts from :data:`COMPLIANCE_START` instead.
 
 Both stiffness parameters only change the mechanics estimate (the geometric one ignores them), so
-asking for them with ``method="geometric"`` is an error. Internally
+asking for them with ``Geometric()`` is an error. Internally
 the solver's unknown is a PyTree ``{side: {parameter: value}}`` of every registered parameter, and
 those not being fitted are held at their start values (their Jacobian columns are zero, which the
 damped solve handles), so every choice of fitted parameters reuses one compilation. Frames are
@@ -78,8 +79,8 @@ from tqdm import tqdm
 
 from calib.one_frame import frame_keypoints, frame_measurement
 from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
-from softgrip_jax import (DEFAULT_METHOD, METHODS, AbstractSDF, ContactConfig, FingerFrame, FingerModel, MechanicsConfig, SoftgripError,
-                          Status, estimate_in_frame)
+from softgrip_jax import (METHODS, AbstractEstimator, AbstractSDF, ContactConfig, FingerFrame, FingerModel,
+                          MechanicsConfig, SoftgripError, Status, as_estimator, estimate_in_frame)
 from vision.frames import Frame, load_frame
 from vision.measure import MeasureSettings
 from vision.segmentation import SegmentationSettings
@@ -137,7 +138,7 @@ class Parameter:
         why: the reason for ``min_frames``, for the error message.
         transform: how the solver's unknown y maps to the value: ``"identity"`` (y), ``"log"``
             (exp(y): stays > 0) or ``"sqrt"`` (y^2: stays >= 0).
-        methods: the estimates (``method`` of :func:`fit`) the value affects.
+        methods: the names of the estimates (``estimator.name``) the value affects; None: every one.
     """
 
     name: str
@@ -145,7 +146,7 @@ class Parameter:
     min_frames: int
     why: str = ""
     transform: Literal["identity", "log", "sqrt"] = "identity"
-    methods: tuple[str, ...] = METHODS
+    methods: tuple[str, ...] | None = None
 
 
 _STIFFNESS_WHY = ("a single pair's closure can be matched by trading Theta against the stiffness; pairs with the "
@@ -230,8 +231,9 @@ def fit(
     loss: Loss = "huber",
     loss_scale_mm: float = 1.0,
     config: ContactConfig = ContactConfig(),
-    method: EstimateMethod = DEFAULT_METHOD,
-    mechanics: MechanicsConfig = MechanicsConfig(),
+    estimator: AbstractEstimator | None = None,
+    method: EstimateMethod | None = None,
+    mechanics: MechanicsConfig | None = None,
     max_steps: int = 100,
     skipped: Sequence[dict[str, str]] = (),
     progress: bool = True,
@@ -244,14 +246,16 @@ def fit(
             camera). Both fingers must have the same ``n_links`` N, and every observation N+1
             joints per finger.
         parameters: names from :data:`PARAMETERS`, fitted for both fingers. ``stiffness_ratio``
-            and ``base_compliance`` need ``method="mechanics"``.
+            and ``base_compliance`` need the mechanics estimate.
         loss: ``"huber"`` (quadratic up to the scale, linear beyond) or ``"cauchy"`` (logarithmic
             beyond: ignores gross outliers more, but is not convex).
         loss_scale_mm: the scale c of the loss, mm (> 0); a very large value is plain least squares.
         config: the contact sweep's discretisation (as for the estimate).
-        method: the estimate the residuals go through: ``"geometric"`` (eq. 9) or
-            ``"mechanics"`` (the spring chain at equilibrium); by default ``softgrip_jax.DEFAULT_METHOD``.
-        mechanics: the mechanics estimate's solver settings (used with ``method="mechanics"``).
+        estimator: the estimate the residuals go through: ``Geometric()`` (eq. 9) or
+            ``Mechanics(config)`` (the spring chain at equilibrium, solver settings ``config``);
+            None: ``Mechanics()``, as everywhere else.
+        method, mechanics: the older spelling of ``estimator``: ``"geometric"`` or ``"mechanics"``,
+            and the latter's :class:`~softgrip_jax.MechanicsConfig`.
         max_steps: Levenberg-Marquardt iteration cap.
         skipped: pairs already left out upstream (``{"frame", "reason"}``), carried into the report.
         progress: show a progress bar on stderr. Its per-step report is a host callback: with
@@ -260,7 +264,7 @@ def fit(
 
     Returns:
         ``start`` with the fitted values and ``fit`` describing the fit: method ``"least-squares"``,
-        the estimate ``method`` (``fit.estimate_method``), the frames used, residual RMS (mm) per
+        the estimator's name (``fit.estimate_method``), the frames used, residual RMS (mm) per
         frame and overall, standard errors, skipped frames; and per frame the residual RMS at the
         start values (``fit.frame_start_residual_rms_mm``) and the fitted mean joint error at joint
         N // 2 and at the tip (``fit.frame_mid_error_mm``, ``fit.frame_tip_error_mm``), all mm; and
@@ -272,7 +276,7 @@ def fit(
 
     Raises:
         FitError: unknown parameters or bad settings (including a stiffness parameter with
-            ``method="geometric"``), more than one observation marked ``free_closure``, no usable frame pair, fewer usable pairs than a parameter needs
+            ``Geometric()``), more than one observation marked ``free_closure``, no usable frame pair, fewer usable pairs than a parameter needs
             (under-determined: the message names it), a parameter the frames do not constrain at all
             (e.g. the stiffness when no finger touches an object), mismatched N, no convergence, or a
             fitted Theta outside [0, pi/2).
@@ -291,11 +295,12 @@ def fit(
         >>> start = CalibrationProfile(fingers={"left": entry(0.5), "right": entry(0.5)}, base_separation=64.0,
         ...     segmentation={}, camera={"name": "example", "intrinsics": None},
         ...     fit=FitEntry(method="one-frame", frames=["nominal"]))
-        >>> fitted = fit([Observation(far, bases, observed, "pair 1")], start, method="geometric", progress=False)
+        >>> from softgrip_jax import Geometric
+        >>> fitted = fit([Observation(far, bases, observed, "pair 1")], start, estimator=Geometric(), progress=False)
         >>> [round(fitted.fingers[s].theta_entire, 3) for s in ("left", "right")], fitted.fit.method
         ([0.55, 0.45], 'least-squares')
     """
-    names = _check_settings(parameters, loss, loss_scale_mm, max_steps, method, mechanics)
+    names, estimator = _check_settings(parameters, loss, loss_scale_mm, max_steps, estimator, method, mechanics)
     n_links = _common_n_links(start, observations)
     free = [obs.label for obs in observations if obs.free_closure]
     if len(free) > 1:
@@ -318,7 +323,7 @@ def fit(
         y0, fixed, free = _unknowns(start, names)
         groups, index = _stack(candidates)
         out = _solve(y0, free, fixed, groups, jnp.asarray(loss_scale_mm, jnp.float64), n_links=n_links,
-                     config=config, method=method, mechanics=mechanics, loss=loss, max_steps=max_steps,
+                     config=config, estimator=estimator, loss=loss, max_steps=max_steps,
                      progress=progress)
         flat, result, start_status, start_residuals, residuals, robust, jacobian = jax.tree.map(np.asarray, out)
 
@@ -336,7 +341,7 @@ def fit(
     clusters = np.concatenate([np.broadcast_to((start_row + np.arange(len(g.real)))[:, None, None, None],
                                                g.observed.shape).ravel()
                                for start_row, g in zip(np.cumsum([0] + [len(g.real) for g in groups]), groups)])
-    fitted = _report(start, names, flat, final, robust, jacobian, y0, [o.label for o in used], skipped, method,
+    fitted = _report(start, names, flat, final, robust, jacobian, y0, [o.label for o in used], skipped, estimator.name,
                      clusters)
     return _with_frame_report(fitted, _per_frame(start_residuals, index)[start_ok], final,
                               next((o.label for o in used if o.free_closure), None))
@@ -550,21 +555,26 @@ def start_from_open_frame(
 # Checks on the host
 
 
-def _check_settings(parameters: Sequence[str], loss: str, scale: float, max_steps: int, method: str,
-                    mechanics: MechanicsConfig) -> list[str]:
+def _check_settings(parameters: Sequence[str], loss: str, scale: float, max_steps: int, estimator: object,
+                    method: object, mechanics: object) -> tuple[list[str], AbstractEstimator]:
+    """The parameter names, without repeats, and the estimator (:func:`softgrip_jax.as_estimator`)."""
     names = list(dict.fromkeys(parameters))
     unknown = [n for n in names if n not in PARAMETERS]
     if not names or unknown:
         raise FitError(f"unknown parameter(s) {', '.join(map(repr, unknown)) or '(none given)'}; the fit can "
                        f"adjust: {', '.join(PARAMETERS)}")
-    if not isinstance(method, str) or method not in METHODS:
+    if method is not None and (not isinstance(method, str) or method not in METHODS):
         raise FitError(f"method must be one of {', '.join(map(repr, METHODS))} (the estimate the residuals go "
                        f"through), got {method!r}")
-    if not isinstance(mechanics, MechanicsConfig):
+    if mechanics is not None and not isinstance(mechanics, MechanicsConfig):
         raise FitError(f"mechanics must be a softgrip_jax.MechanicsConfig, got {type(mechanics).__name__}")
-    unused = [n for n in names if method not in PARAMETERS[n].methods]
+    try:
+        estimator = as_estimator(estimator, method, mechanics)
+    except SoftgripError as err:  # (both estimator= and method=, or not an estimator)
+        raise FitError(str(err)) from None
+    unused = [n for n in names if PARAMETERS[n].methods is not None and estimator.name not in PARAMETERS[n].methods]
     if unused:
-        raise FitError(f"{', '.join(unused)} only affect(s) the mechanics estimate, so method={method!r} cannot fit "
+        raise FitError(f"{', '.join(unused)} only affect(s) the mechanics estimate, so method={estimator.name!r} cannot fit "
                        f"them: fit with method='mechanics' (softgrip calibrate --fit ... --method mechanics), or "
                        f"leave them out")
     if loss not in ("huber", "cauchy"):
@@ -573,7 +583,7 @@ def _check_settings(parameters: Sequence[str], loss: str, scale: float, max_step
         raise FitError(f"loss_scale_mm must be a finite number of mm > 0, got {scale!r}")
     if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
         raise FitError(f"max_steps must be an integer >= 1, got {max_steps!r}")
-    return names
+    return names, estimator
 
 
 def _common_n_links(start: CalibrationProfile, observations: Sequence[Observation]) -> int:
@@ -688,8 +698,8 @@ def _per_frame(per_group: Sequence[np.ndarray], index: Sequence[tuple[int, int]]
 # The compiled solve
 
 
-def _finger_residuals(values, fixed, frames: _Frames, n_links: int, config: ContactConfig, method: str,
-                      mechanics: MechanicsConfig):
+def _finger_residuals(values, fixed, frames: _Frames, n_links: int, config: ContactConfig,
+                      estimator: AbstractEstimator):
     """Estimated minus observed joints (F, 2, J, 2) mm and estimate statuses (F, 2) of one group.
     ``values`` are the solver's unknowns (see :data:`PARAMETERS` for their transforms)."""
     natural = {side: {name: _from_unknown(PARAMETERS[name], v) for name, v in values[side].items()} for side in SIDES}
@@ -701,7 +711,7 @@ def _finger_residuals(values, fixed, frames: _Frames, n_links: int, config: Cont
                              n_links=n_links, stiffness_ratio=p["stiffness_ratio"],
                              base_compliance=p["base_compliance"])
         frame = FingerFrame(origin=base + p["base_offset"], angle=jnp.zeros_like(hand), handedness=hand)
-        est = estimate_in_frame(finger, sdf, frame, config, method=method, mechanics=mechanics)
+        est = estimate_in_frame(finger, sdf, frame, config, estimator=estimator)
         return est.joints - observed, est.status
 
     def one_frame(sdf, bases, observed):
@@ -751,19 +761,18 @@ def _reporting_to(bar: tqdm) -> Iterator[None]:
         _ACTIVE_BARS.remove(bar)
 
 
-@partial(jax.jit, static_argnames=("n_links", "config", "method", "mechanics"))
-def _evaluate(values, fixed, groups: list[_Frames], n_links: int, config: ContactConfig, method: str,
-              mechanics: MechanicsConfig):
+@partial(jax.jit, static_argnames=("n_links", "config", "estimator"))
+def _evaluate(values, fixed, groups: list[_Frames], n_links: int, config: ContactConfig, estimator: AbstractEstimator):
     """Raw residuals (F, 2, J, 2) and statuses (F, 2) of every group. Jitted on its own so that the
     solve's several traces of it (start check, Jacobian) reuse one trace."""
-    out = [_finger_residuals(values, fixed, g, n_links, config, method, mechanics) for g in groups]
+    out = [_finger_residuals(values, fixed, g, n_links, config, estimator) for g in groups]
     return [r for r, _ in out], [s for _, s in out]
 
 
-@partial(jax.jit, static_argnames=("n_links", "config", "method", "mechanics", "loss", "max_steps", "progress"),
+@partial(jax.jit, static_argnames=("n_links", "config", "estimator", "loss", "max_steps", "progress"),
          compiler_options=_COMPILER_OPTIONS)
-def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, config: ContactConfig, method: str,
-           mechanics: MechanicsConfig, loss: Loss, max_steps: int, progress: bool = False):
+def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, config: ContactConfig,
+           estimator: AbstractEstimator, loss: Loss, max_steps: int, progress: bool = False):
     """Robust Levenberg-Marquardt from ``y0`` over the frames whose estimates are valid at ``y0``.
 
     Returns (flattened solution, optimistix result code, estimate statuses and raw residuals at the
@@ -776,7 +785,7 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
 
     @jax.custom_jvp
     def residuals(y):
-        return _evaluate(y, fixed, groups, n_links, config, method, mechanics)[0]
+        return _evaluate(y, fixed, groups, n_links, config, estimator)[0]
 
     @residuals.defjvp
     def residuals_jvp(primals, tangents):
@@ -788,7 +797,7 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
         return r, [sum(jnp.tensordot(j, d, axes=d.ndim) for j, d in zip(jax.tree.leaves(jg), dy_leaves))
                    for jg in jac]
 
-    start_residuals, start_status = _evaluate(y0, fixed, groups, n_links, config, method, mechanics)
+    start_residuals, start_status = _evaluate(y0, fixed, groups, n_links, config, estimator)
     usable = [g.real & jnp.all(s == Status.OK, axis=-1) for g, s in zip(groups, start_status)]
 
     def objective(y, args):
@@ -868,7 +877,7 @@ def _warn_if_poorly_determined(jac: np.ndarray, columns: list[tuple[str, str]],
 
 def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, residuals: np.ndarray,
             robust: np.ndarray, jacobian: np.ndarray, y0, labels: list[str],
-            skipped: list[dict[str, str]], method: str, clusters: np.ndarray) -> CalibrationProfile:
+            skipped: list[dict[str, str]], estimate_name: str, clusters: np.ndarray) -> CalibrationProfile:
     """The fitted profile: values, residual RMS per frame and overall, standard errors.
 
     ``residuals`` (F, 2, J, 2) are the raw residuals of the F used frames; ``robust`` (M,) and
@@ -916,7 +925,7 @@ def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, r
     standard_errors = {f"{side}.{name}": (se[0] if PARAMETERS[name].shape == () else se)
                        for (side, name), se in errors.items()}
     return dataclasses.replace(start, fingers=fingers, fit=FitEntry(
-        method="least-squares", estimate_method=method, frames=labels,
+        method="least-squares", estimate_method=estimate_name, frames=labels,
         residual_rms_mm=float(np.sqrt(np.mean(distances**2))),
         frame_residual_rms_mm=np.sqrt(np.mean(distances**2, axis=(1, 2))).tolist(),
         standard_errors=standard_errors, skipped=skipped))

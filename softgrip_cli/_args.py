@@ -28,7 +28,7 @@ def __getattr__(name: str):
 
 def add_method_argument(parser: argparse.ArgumentParser, from_profile: bool = True,
                         profile_text: str = "the profile") -> None:
-    """Add ``--method geometric|mechanics`` (default None: decided by :func:`resolve_method`).
+    """Add ``--method geometric|mechanics`` (default None: decided by :func:`resolve_estimator`).
     ``from_profile``: the command reads a profile (``profile_text`` in the help) whose recorded
     estimate is the default."""
     from softgrip_jax import DEFAULT_METHOD, METHODS as METHOD_CHOICES
@@ -48,3 +48,13 @@ def resolve_method(method: str | None, profile=None) -> str:
 
     recorded = getattr(getattr(profile, "fit", None), "estimate_method", None)
     return recorded or DEFAULT_METHOD
+
+
+def resolve_estimator(method: str | None, profile=None):
+    """The estimator object every command uses (a ``softgrip_jax.AbstractEstimator``): the one named by
+    ``--method``, else by the estimate ``profile`` was fitted through, else the default
+    (:func:`resolve_method`). The one place where a command turns a name into an estimator; its
+    ``name`` is what the JSON documents and profiles record."""
+    from softgrip_jax import as_estimator
+
+    return as_estimator(method=resolve_method(method, profile))

@@ -17,7 +17,6 @@ from pathlib import Path
 
 from softgrip_cli._files import add_force_argument, check_output_file, ensure_dir, frame_inputs, unique_png_names
 from softgrip_cli._pictures import caption, grasp_overlay
-from softgrip_jax import DEFAULT_METHOD
 from vision.documents import (SIDES, candidate_json, components_json, failed_frame_json, finger_contacts_mm,
                               finger_json, fingers_json, frame_json, number_json, points_json, pose_json,
                               status_name)
@@ -116,7 +115,7 @@ def estimate_grasp_jit():
     return _estimate_grasp_jit()
 
 
-def estimate_scene(scene: Scene, method: str = DEFAULT_METHOD):
+def estimate_scene(scene: Scene, estimator=None):
     """Both fingers' estimates at the frame's own pose, as numpy (a ``GraspEstimate``), with the
-    deformation estimate ``method`` (``"geometric"`` or ``"mechanics"``)."""
-    return scene.estimate(method=method)
+    deformation ``estimator`` (``softgrip_jax.Geometric()`` or ``Mechanics(config)``; None: the default)."""
+    return scene.estimate(estimator=estimator)

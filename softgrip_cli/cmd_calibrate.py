@@ -9,7 +9,7 @@ import warnings
 from pathlib import Path
 
 from softgrip_jax import SoftgripError
-from softgrip_cli._args import add_method_argument, positive_int, resolve_method
+from softgrip_cli._args import add_method_argument, positive_int, resolve_estimator
 
 DEFAULT_N_LINKS = 10
 
@@ -242,12 +242,12 @@ def _fit(args: argparse.Namespace):
             message = str(err)
             raise type(err)(message if str(pairs[0][0]) in message else f"{pairs[0][0]}: {message}") from None
         settings = None
-    method = resolve_method(args.method, start if args.profile is not None else None)
+    estimator = resolve_estimator(args.method, start if args.profile is not None else None)
     mechanics_only = [flag for flag, on in (("--stiffness", args.stiffness),
                                             ("--base-compliance", args.base_compliance)) if on]
-    if mechanics_only and method != "mechanics":
+    if mechanics_only and estimator.name != "mechanics":
         raise SoftgripError(f"{' and '.join(mechanics_only)} only change the mechanics estimate; add --method "
-                            f"mechanics (the fit is going through the {method} estimate)")
+                            f"mechanics (the fit is going through the {estimator.name} estimate)")
     parameters = ["theta_entire"] + [name for name, on in (("base_offset", args.base_offset),
                                                             ("stiffness_ratio", args.stiffness),
                                                             ("base_compliance", args.base_compliance)) if on]
@@ -266,7 +266,7 @@ def _fit(args: argparse.Namespace):
               "keeps it from making the free closure worse; add one with --empty OPEN CLOSED", file=sys.stderr)
     # A progress bar only on a terminal: its per-step callback keeps the solve out of the compilation
     # cache, so scripted runs (stderr not a terminal) compile once per machine instead of once per run.
-    fitted = fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, method=method,
+    fitted = fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, estimator=estimator,
                  skipped=skipped, progress=sys.stderr.isatty())
     # The start's method says what the free closure's start residual is (e.g. the one-frame calibration's).
     return dataclasses.replace(fitted, vision={**fitted.vision, **measure.to_dict()}), start.fit.method

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from softgrip_cli import _pipeline as pipe
-from softgrip_cli._args import add_method_argument, resolve_method
+from softgrip_cli._args import add_method_argument, resolve_estimator
 from softgrip_jax import SoftgripError, joint_errors
 from softgrip_base.atomic_write import write_atomic
 
@@ -69,31 +69,31 @@ def run(args: argparse.Namespace) -> int:
 
     t = time.perf_counter()
     profile, calibration = _calibrate(data, out)
-    method = resolve_method(args.method, profile)
+    estimator = resolve_estimator(args.method, profile)
     written.append("profile.json")
     timings["calibrate"] = time.perf_counter() - t
 
     t = time.perf_counter()
     scene_results, scene_objects = [], {}
     for name in scenes:
-        result, scene = _estimate_scene(data, name, profile, out, method)
+        result, scene = _estimate_scene(data, name, profile, out, estimator)
         scene_results.append(result)
         scene_objects[name] = scene
         written.append(result["overlay"])
     timings["estimate"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    scored = _score_scene(scene_objects[scenes[0]], out, method)
+    scored = _score_scene(scene_objects[scenes[0]], out, estimator)
     written.append(scored["heatmap"])
     timings["score"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    refined = _refine(scene_objects[scenes[0]], scored, out, method)
+    refined = _refine(scene_objects[scenes[0]], scored, out, estimator)
     written.append(refined["overlay"])
     timings["refine"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
 
-    summary = {"data": str(data), "out": str(out), "method": method, "calibration": calibration,
+    summary = {"data": str(data), "out": str(out), "method": estimator.name, "calibration": calibration,
                "scenes": scene_results,
                "score": scored, "refine": refined, "timings_s": {k: round(v, 2) for k, v in timings.items()},
                "files": written + ["summary.json"]}
@@ -162,14 +162,14 @@ def _calibrate(data: Path, out: Path):
                      "residual_rms_mm": None if residual is None else round(residual, 4)}
 
 
-def _estimate_scene(data: Path, name: str, profile, out: Path, method: str):
-    """Estimate one scene at its frame's pose with the estimate ``method``; compare with its
-    observed closure when present."""
+def _estimate_scene(data: Path, name: str, profile, out: Path, estimator):
+    """Estimate one scene at its frame's pose with ``estimator``; compare with its observed closure
+    when present."""
     from vision.overlay import save_png
 
     scene = pipe.frame_scene(data / f"{name}_open", profile)
-    grasp = pipe.estimate_scene(scene, method)
-    record = pipe.frame_json(scene, grasp, method)
+    grasp = pipe.estimate_scene(scene, estimator)
+    record = pipe.frame_json(scene, grasp, estimator.name)
     result = {"scene": name, "frame": record["frame"], "pose": pipe.pose_json(scene.pose),
               "valid": bool(grasp.valid), "n_links": record["n_links"], "fingers": record["fingers"]}
     observed_px, errors = [], None
@@ -209,14 +209,14 @@ def _observed(path: Path, profile, n_links: int) -> list[np.ndarray]:
     return [k.observed_mm(n_links) for k in keypoints]
 
 
-def _score_scene(scene: pipe.FrameScene, out: Path, method: str) -> dict:
-    """Score the default grid on ``scene`` with the estimate ``method`` and write its heat map."""
+def _score_scene(scene: pipe.FrameScene, out: Path, estimator) -> dict:
+    """Score the default grid on ``scene`` with ``estimator`` and write its heat map."""
     from softgrip_cli import cmd_score
     from vision.overlay import save_png
 
     grid = cmd_score.default_grid(scene)
     poses = cmd_score.grid_poses(*grid)
-    result, elapsed = cmd_score.score_poses(scene, poses, method)
+    result, elapsed = cmd_score.score_poses(scene, poses, estimator)
     order = cmd_score.rank(result)
     best = int(order[0])
     name = scene.name[:-len("_open")] if scene.name.endswith("_open") else scene.name
@@ -243,8 +243,8 @@ def _score_scene(scene: pipe.FrameScene, out: Path, method: str) -> dict:
     }
 
 
-def _refine(scene: pipe.FrameScene, scored: dict, out: Path, method: str) -> dict:
-    """Refine the best grid pose by gradient (softgrip_jax.refine, estimate ``method``) and draw the result."""
+def _refine(scene: pipe.FrameScene, scored: dict, out: Path, estimator) -> dict:
+    """Refine the best grid pose by gradient (softgrip_jax.refine with ``estimator``) and draw the result."""
     import jax.numpy as jnp
 
     from softgrip_jax import RefineStatus, refine
@@ -253,7 +253,7 @@ def _refine(scene: pipe.FrameScene, scored: dict, out: Path, method: str) -> dic
     best = scored["best"]["pose"]
     start_pose = np.array([best["x_mm"], best["y_mm"], best["angle_rad"]])
     refined = pipe.to_numpy(refine(scene.gripper, scene.sdf,
-                                   jnp.asarray(start_pose, scene.gripper.base_separation.dtype), method=method))
+                                   jnp.asarray(start_pose, scene.gripper.base_separation.dtype), estimator=estimator))
     pose = np.asarray(refined.pose, np.float64)
     status = RefineStatus(int(refined.status)).name.lower()
     candidate = pipe.candidate_json(pose, refined.score, scene.gripper, scene.camera)

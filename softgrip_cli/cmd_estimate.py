@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from softgrip_cli import _pipeline as pipe
-from softgrip_cli._args import add_method_argument, resolve_method
+from softgrip_cli._args import add_method_argument, resolve_estimator
 from softgrip_cli._main import one_line
 from softgrip_jax import SoftgripError, Status
 
@@ -93,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
     from vision.scene import conventions
 
     profile = pipe.load_profile(args.profile)
-    method = resolve_method(args.method, profile)
+    estimator = resolve_estimator(args.method, profile)
+    method = estimator.name  # what the documents record
     settings = pipe.segmentation_settings(profile)
     overlay_dir = pipe.ensure_dir(args.overlay_dir, "overlay folder") if args.overlay_dir else None
     names = pipe.unique_png_names(args.frames)
@@ -143,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
                     emit(pipe.failed_frame_json(path, method, str(err)))
                     bar.update()
                     continue
-                grasp = pipe.estimate_scene(scene, method)
+                grasp = pipe.estimate_scene(scene, estimator)
                 for side in pipe.SIDES:
                     estimate = getattr(grasp, side)
                     if not bool(estimate.valid):

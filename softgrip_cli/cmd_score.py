@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 
 from softgrip_cli import _pipeline as pipe
-from softgrip_cli._args import add_method_argument, resolve_method
-from softgrip_jax import DEFAULT_METHOD, SoftgripError, finger_frames
+from softgrip_cli._args import add_method_argument, resolve_estimator
+from softgrip_jax import SoftgripError, finger_frames
 from vision import documents
 from vision import scene as scene_api
 from softgrip_base import user_json
@@ -100,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
     if args.top < 0:
         raise SoftgripError(f"--top must be >= 0 (0 prints every candidate), got {args.top}")
     profile = pipe.load_profile(args.profile)
-    method = resolve_method(args.method, profile)
+    estimator = resolve_estimator(args.method, profile)
+    method = estimator.name  # what the documents record
     grid = None
     if args.poses:
         poses = read_poses(args.poses)  # before the frame: a bad file fails fast
@@ -125,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
     if not scene.has_object:
         pipe.warn(f"{args.frame}: no object found; every candidate closes on nothing (case none)")
 
-    result, elapsed = score_poses(scene, poses, method)
+    result, elapsed = score_poses(scene, poses, estimator)
     order = rank(result)
     n_valid = int(np.sum(result.valid))
     pipe.note(f"scored {len(poses)} candidate poses ({method} estimate) in {elapsed:.1f} s (including compilation "
@@ -425,16 +426,16 @@ def _show(value) -> str:
 MIN_BATCH = scene_api.MIN_BATCH
 
 
-def score_poses(scene: pipe.FrameScene, poses: np.ndarray, method: str = DEFAULT_METHOD):
+def score_poses(scene: pipe.FrameScene, poses: np.ndarray, estimator=None):
     """Score (B, 3) poses on ``scene`` in one compiled call (``vision.scene.Scene.score``), with the
-    deformation estimate ``method`` (``"geometric"`` or ``"mechanics"``).
+    deformation ``estimator`` (``softgrip_jax.Geometric()`` or ``Mechanics(config)``; None: the default).
 
     Returns:
         The ``Score`` with numpy leaves of leading axis B, and the seconds it took (compilation
         included the first time a batch size is seen).
     """
     start = time.perf_counter()
-    result = scene.score(poses, method=method)
+    result = scene.score(poses, estimator=estimator)
     return result, time.perf_counter() - start
 
 

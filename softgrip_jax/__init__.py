@@ -6,12 +6,14 @@ Where each equation of the paper lives:
 eqs. 1-3              :mod:`softgrip_jax._kinematics` (``pcc_joints``, ``forward_kinematics``)
 eqs. 5-8, Figs. 7-8   :mod:`softgrip_jax._contact` (``predict_contact``)
 eq. 9, Fig. 9         :mod:`softgrip_jax._deformation` (``estimate``)
-spring chain [16]     :mod:`softgrip_jax._mechanics` (``method="mechanics"``, ``MechanicsConfig``)
+spring chain [16]     :mod:`softgrip_jax._mechanics` (``Mechanics(MechanicsConfig(...))``)
 eq. 10                :mod:`softgrip_jax._metrics` (``joint_errors``)
 ====================  ===============================================================
 
-The spring chain at equilibrium (the paper's ref. [16]) is beyond the paper: an estimate chosen by
-``method="mechanics"`` in every estimate, score and refine function.
+The deformation estimate is an object (:mod:`softgrip_jax._estimators`), passed as ``estimator=`` to
+every estimate, score and refine function: ``Geometric()`` (the paper's eq. 9) or
+``Mechanics(config)`` (the default), the spring chain at equilibrium (the paper's ref. [16]), which
+is beyond the paper. New estimators subclass ``AbstractEstimator``.
 
 The object is a signed-distance function (:mod:`softgrip_jax._sdf`); fingers at other places,
 rotated or mirrored, see it through a frame (:mod:`softgrip_jax._frames`). The layers, conventions,
@@ -21,7 +23,9 @@ frames and units and the estimators' assumptions are described in the source tre
 from softgrip_jax._cache import enable_compilation_cache
 from softgrip_jax._batch import estimate_batch, estimate_grasp_batch
 from softgrip_jax._contact import CASE_NAMES, Contact, ContactCase, ContactConfig, predict_contact, predict_contact_local, sweep_shape
-from softgrip_jax._deformation import Estimate, Status, case_shapes, estimate, estimate_in_frame
+from softgrip_jax._deformation import Estimate, Status, case_shapes
+from softgrip_jax._estimate import estimate, estimate_in_frame
+from softgrip_jax._estimators import DEFAULT_ESTIMATOR, AbstractEstimator, Geometric, Mechanics, as_estimator
 from softgrip_base.errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp, finger_frames
@@ -34,7 +38,7 @@ from softgrip_jax._score import (RefineStatus, Refined, Score, ScoreComponents, 
 from softgrip_jax._sdf import FAR_MM, AbstractSDF, PolygonSDF, SDFGrid
 
 __all__ = [
-    "AbstractSDF", "CASE_NAMES", "FAR_MM", "Contact", "ContactCase", "ContactConfig", "Estimate", "FingerFrame",
+    "AbstractEstimator", "AbstractSDF", "CASE_NAMES", "DEFAULT_ESTIMATOR", "Geometric", "Mechanics", "as_estimator", "FAR_MM", "Contact", "ContactCase", "ContactConfig", "Estimate", "FingerFrame",
     "FingerModel", "GraspEstimate", "Gripper", "PolygonSDF", "SDFGrid", "SoftgripError",
     "Status", "case_shapes", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
     "enable_compilation_cache", "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",

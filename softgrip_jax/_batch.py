@@ -1,14 +1,15 @@
 """Many candidates at once, in chunks so that memory stays bounded for any batch size.
 
 Most of a finger's estimate is needed only where it touches the object: the root finder, the
-contact chain and the second contact (and, with ``method="mechanics"``, the equilibrium solve). Each
+contact chain and the second contact (and, with ``Mechanics()``, the equilibrium solve). Each
 chunk therefore first brackets every finger's first contact (:func:`search_contact`; over the first
 half of the sweep, then over the second half for only the fingers still free there), then refines
 the contact only of the fingers whose bracket holds one (the others close freely, start in
-collision, or are invalid: :func:`free_contact`), then solves the equilibrium only of those that
-touch. These steps gather the needed candidates to the front and run them a group of
-``ceil(chunk / _SOLVE_GROUPS)`` at a time (:func:`where_needed`), so their cost follows the number
-of candidates that need them rather than the batch size. The results are those of :func:`estimate`.
+collision, or are invalid: :func:`free_contact`), then hands the chunk's stages to the estimator's
+``deform_batch`` (``Mechanics`` solves the equilibrium only of the fingers that touch). These steps
+gather the needed candidates to the front and run them a group at a time
+(:func:`~softgrip_jax._gather.where_needed`), so their cost follows the number of candidates that
+need them rather than the batch size. The results are those of :func:`estimate`.
 """
 
 from __future__ import annotations
@@ -18,20 +19,20 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import ArrayLike, Bool, Float
+from jaxtyping import ArrayLike, Float
 
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._concurrent import pad_rows, run_in_parts
 from softgrip_jax._contact import ContactConfig, sweep_parts
-from softgrip_jax._deformation import (
-    Estimate, estimate_in_frame, finish, mechanics_of, needs_mechanics, refine_search, search_contact, search_further,
-    stage_of,
-)
+from softgrip_jax._deformation import Estimate, refine_search, search_contact, search_further, stage_of
+from softgrip_jax._estimate import estimate_in_frame
+from softgrip_jax._estimators import AbstractEstimator, as_estimator
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._export import exportable
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, finger_frames
-from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method, closing_start, path_increments
+from softgrip_jax._gather import where_needed
+from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._sharding import device_mesh, run_sharded
@@ -41,15 +42,6 @@ from softgrip_jax._sharding import device_mesh, run_sharded
 #: benchmarks/profile_estimate.py --touching --batch 100000 --chunks 2048,4096``. ``score``'s
 #: default of 2048 poses is as many finger estimates.)
 DEFAULT_CHUNK = 4096
-
-#: A chunk's touching candidates are solved in groups of ceil(chunk / _SOLVE_GROUPS).
-_SOLVE_GROUPS = 8
-
-#: A chunk's touching candidates are solved for their equilibrium in groups of this many: under
-#: vmap a group iterates until its slowest element is done (the longest closing path, the most
-#: Gauss-Newton steps), so small groups keep few lanes waiting (eight groups per chunk, as for the
-#: contact, are far slower: benchmarks/RESULTS.md, issue 20).
-_MECHANICS_GROUP = 64
 
 #: Chunks smaller than this refine every finger (see :func:`finger_chunk`).
 _SMALL_CHUNK = 16
@@ -70,68 +62,11 @@ def as_candidates(x, width: int, dtype, what: str, single: bool = False) -> jax.
     return array.astype(dtype)
 
 
-def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_GROUPS, kinds=None,
-                 n_kinds: int = 1, group_size: int | None = None):
-    """``jax.vmap(fn)(inputs)`` evaluated only where ``need`` holds (elsewhere: zeros).
-
-    The needed elements are gathered to the front and mapped a group at a time; groups with
-    nothing to do are skipped (``lax.cond``), so the cost follows the number of needed elements
-    (a group's spare lanes repeat one of its needed elements, so they never outlast it).
-    ``kinds`` (optional, (b,) integers in [0, ``n_kinds``)): the needed elements are ordered by
-    kind first, so that elements of like cost (say, as many loop iterations) share their groups.
-    Differentiable (gathers, ``lax.map`` and ``lax.cond``).
-    """
-    b = need.shape[0]
-    if group_size is None:
-        groups = max(1, min(groups, b))  # a small batch (one candidate) is one group, not eight
-        size = -(-b // groups)
-    else:
-        size = group_size
-        groups = -(-b // size)
-    # Needed first, each part in its original order: every element's place from two running
-    # counts (cheaper than an argsort on XLA:CPU).
-    count = jnp.sum(need)
-    if kinds is None or n_kinds <= 1:
-        rank = jnp.cumsum(need) - 1
-    else:  # by kind, then in order: a running count per kind after the counts of the kinds before
-        of_kind = need[:, None] & (jnp.clip(kinds, 0, n_kinds - 1)[:, None] == jnp.arange(n_kinds)[None, :])
-        running = jnp.cumsum(of_kind, axis=0)
-        before = jnp.cumsum(running[-1]) - running[-1]
-        rank = jnp.sum(jnp.where(of_kind, running - 1 + before[None, :], 0), axis=1)
-    place = jnp.where(need, rank, count + jnp.cumsum(~need) - 1)
-    order = jnp.zeros(b, place.dtype).at[place].set(jnp.arange(b, dtype=place.dtype), unique_indices=True)
-    padded = jnp.concatenate([order, jnp.zeros(groups * size - b, order.dtype)])
-    wanted = jnp.arange(groups * size) < count
-    take = lambda idx: jax.tree_util.tree_map(lambda x: x[idx], inputs)  # noqa: E731
-    out_shape = jax.eval_shape(jax.vmap(fn), take(padded[:size]))
-
-    def group(g):
-        idx = jax.lax.dynamic_slice_in_dim(padded, g * size, size)
-        work = jax.lax.dynamic_slice_in_dim(wanted, g * size, size)
-        # The group's spare lanes repeat its first (needed) element: an element that needs nothing
-        # can be one whose loops would run to their budget (a collision, a base far off), and
-        # under vmap the whole group would wait on it; its answer is discarded anyway.
-        idx = jnp.where(work, idx, idx[0])
-        return jax.lax.cond(
-            jnp.any(work),
-            lambda: jax.vmap(fn)(take(idx)),
-            lambda: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape),
-        )
-
-    out = jax.lax.map(group, jnp.arange(groups))
-
-    def restore(x):
-        x = x.reshape((groups * size,) + x.shape[2:])[place]
-        return jnp.where(need.reshape((b,) + (1,) * (x.ndim - 1)), x, jnp.zeros((), x.dtype))
-
-    return jax.tree_util.tree_map(restore, out)
-
-
-def geometric_stages(finger, sdf, frames, config, method):
+def geometric_stages(finger, sdf, frames, config, estimator):
     """:func:`geometric_stage` of a chunk of finger frames (leading axis), the contact refined
     (root finder, second contact) only for the fingers whose bracket holds a first contact."""
     first, second = sweep_parts(config) or (None, None)  # (None: the whole grid at once)
-    searches = jax.vmap(lambda f: search_contact(finger, sdf, f, config, method, first))(frames)
+    searches = jax.vmap(lambda f: search_contact(finger, sdf, f, config, estimator, first))(frames)
     if second is not None:  # the grid's second part only for the fingers still free after its first
         free = ~searches.bracket.touches
         later = where_needed(lambda s: search_further(finger, sdf, s, config, second), free, searches)
@@ -142,26 +77,19 @@ def geometric_stages(finger, sdf, frames, config, method):
     return jax.vmap(lambda s, c: stage_of(finger, s, c))(searches, refined)
 
 
-def finger_chunk(finger, sdf, frames, config, mechanics, method):
-    """Estimates of a chunk of finger frames (leading axis): the contact refined, and with
-    ``method="mechanics"`` the equilibrium solved, only where the finger touches the object.
+def finger_chunk(finger, sdf, frames, config, estimator):
+    """Estimates of a chunk of finger frames (leading axis): the contact refined only where the
+    finger touches the object, then the ``estimator``'s ``deform_batch`` (``Mechanics`` solves the
+    equilibrium only where the finger touches).
 
     A chunk of 2 to ``_SMALL_CHUNK - 1`` fingers (a batch that small) is every finger's
     :func:`estimate_in_frame`, refined whether needed or not: sorting out the few that need it
     costs more there than it saves, in loops whose per-kernel cost sets a small batch's latency.
     """
     if 1 < frames.origin.shape[0] < _SMALL_CHUNK:  # (one finger: its refinement is one skippable group)
-        return jax.vmap(lambda fr: estimate_in_frame(finger, sdf, fr, config, method=method, mechanics=mechanics))(frames)
-    stages = geometric_stages(finger, sdf, frames, config, method)
-    if method == "geometric":
-        return jax.vmap(lambda st: finish(finger, st))(stages)
-    need = jax.vmap(needs_mechanics)(stages)
-    # Ordered by the closing path's increments, so that short paths do not wait on long ones.
-    increments = jax.vmap(lambda st: path_increments(finger, closing_start(finger, st.contact, config)[0],
-                                                     mechanics))(stages)
-    eq = where_needed(lambda st: mechanics_of(finger, sdf, st, mechanics, config), need, stages,
-                      kinds=increments, n_kinds=mechanics.path_steps + 1, group_size=_MECHANICS_GROUP)
-    return jax.vmap(lambda st, e: finish(finger, st, e))(stages, eq)
+        return jax.vmap(lambda fr: estimate_in_frame(finger, sdf, fr, config, estimator=estimator))(frames)
+    stages = geometric_stages(finger, sdf, frames, config, estimator)
+    return estimator.deform_batch(finger, sdf, stages, config)
 
 
 def map_chunks(fn, xs, chunk_size):
@@ -189,39 +117,40 @@ def map_chunks(fn, xs, chunk_size):
     return jax.lax.fori_loop(0, n_chunks, write, out)
 
 
-def _estimate_share(finger, sdf, bases, config, mechanics, chunk_size, method):
+def _estimate_share(finger, sdf, bases, config, chunk_size, estimator):
     frames = jax.vmap(FingerFrame.hanging_from)
-    return map_chunks(lambda chunk: finger_chunk(finger, sdf, frames(chunk), config, mechanics, method), bases,
-                      chunk_size)
+    return map_chunks(lambda chunk: finger_chunk(finger, sdf, frames(chunk), config, estimator), bases, chunk_size)
 
 
-_estimate_batch = exportable(tuned_jit(_estimate_share, static_argnames=("chunk_size", "method")), ("chunk_size", "method"))
+#: Static arguments of the jitted batch functions: the estimator is keyed by value (its class and settings).
+_STATIC = ("chunk_size", "estimator")
+
+_estimate_batch = exportable(tuned_jit(_estimate_share, static_argnames=_STATIC), _STATIC)
 
 
-@partial(tuned_jit, static_argnames=("chunk_size", "method"))
-def _estimate_sharded(finger, sdf, bases, config, mechanics, chunk_size, method):
+@partial(tuned_jit, static_argnames=_STATIC)
+def _estimate_sharded(finger, sdf, bases, config, chunk_size, estimator):
     # bases: (devices, per_device, 2); the device axis is vmapped (and sharded across the devices).
-    return jax.vmap(lambda share: _estimate_share(finger, sdf, share, config, mechanics, chunk_size, method))(bases)
+    return jax.vmap(lambda share: _estimate_share(finger, sdf, share, config, chunk_size, estimator))(bases)
 
 
-def grasp_chunk(gripper, sdf, poses, config, mechanics, method):
+def grasp_chunk(gripper, sdf, poses, config, estimator):
     left, right = jax.vmap(lambda p: finger_frames(gripper, p))(poses)
-    left = finger_chunk(gripper.left, sdf, left, config, mechanics, method)
-    right = finger_chunk(gripper.right, sdf, right, config, mechanics, method)
+    left = finger_chunk(gripper.left, sdf, left, config, estimator)
+    right = finger_chunk(gripper.right, sdf, right, config, estimator)
     return jax.vmap(lambda a, b: GraspEstimate(left=a, right=b, valid=a.valid & b.valid))(left, right)
 
 
-def _estimate_grasp_share(gripper, sdf, poses, config, mechanics, chunk_size, method):
-    return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, mechanics, method), poses, chunk_size)
+def _estimate_grasp_share(gripper, sdf, poses, config, chunk_size, estimator):
+    return map_chunks(lambda chunk: grasp_chunk(gripper, sdf, chunk, config, estimator), poses, chunk_size)
 
 
-_estimate_grasp_batch = exportable(tuned_jit(_estimate_grasp_share, static_argnames=("chunk_size", "method")), ("chunk_size", "method"))
+_estimate_grasp_batch = exportable(tuned_jit(_estimate_grasp_share, static_argnames=_STATIC), _STATIC)
 
 
-@partial(tuned_jit, static_argnames=("chunk_size", "method"))
-def _estimate_grasp_sharded(gripper, sdf, poses, config, mechanics, chunk_size, method):
-    return jax.vmap(lambda share: _estimate_grasp_share(gripper, sdf, share, config, mechanics, chunk_size,
-                                                        method))(poses)
+@partial(tuned_jit, static_argnames=_STATIC)
+def _estimate_grasp_sharded(gripper, sdf, poses, config, chunk_size, estimator):
+    return jax.vmap(lambda share: _estimate_grasp_share(gripper, sdf, share, config, chunk_size, estimator))(poses)
 
 
 def estimate_batch(
@@ -231,41 +160,43 @@ def estimate_batch(
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = DEFAULT_CHUNK,
-    method: str = DEFAULT_METHOD,
-    mechanics: MechanicsConfig = MechanicsConfig(),
+    estimator: AbstractEstimator | None = None,
+    method: str | None = None,
+    mechanics: MechanicsConfig | None = None,
     workers: int | None = None,
 ) -> Estimate:
     """:func:`estimate` for B finger bases (mm), compiled once per shape, ``chunk_size`` at a time.
 
     Returns an :class:`Estimate` whose every leaf has a leading axis of length B. A bad base
     (NaN, outside the SDF grid) comes back ``valid=False`` and does not affect the others.
-    ``method`` and ``mechanics`` (static) are as for :func:`estimate`; with ``"mechanics"`` the
-    equilibrium is solved only for the candidates that touch the object. With several JAX devices
+    ``estimator`` (or the older ``method`` / ``mechanics``) is as for :func:`estimate`; with
+    ``Mechanics()`` (the default) the equilibrium is solved only for the candidates that touch the object. With several JAX devices
     (GPUs, or processes joined by ``jax.distributed``) the batch is split evenly across them, as
     :func:`~softgrip_jax.score` does (:mod:`softgrip_jax._sharding`); results are one device's.
 
     Args:
         bases: (B, 2) finger bases in mm (each finger hangs toward +y and curls toward +x).
         chunk_size: bases evaluated together (static); memory grows with it, not with B.
+        estimator: ``Geometric()`` or ``Mechanics(config)`` (None: ``Mechanics()``); equal
+            estimators reuse one compiled program.
         workers: on one device, concurrent parts the batch is split into (None: one per CPU core on
             a CPU backend, one elsewhere; see :mod:`softgrip_jax._concurrent`). Results do not depend on it.
 
     Example:
         >>> import jax.numpy as jnp
-        >>> from softgrip_jax import CASE_NAMES, FingerModel, PolygonSDF
+        >>> from softgrip_jax import CASE_NAMES, FingerModel, Geometric, PolygonSDF
         >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
         >>> bases = jnp.array([[0.0, 0.0], [-60.0, 0.0], [jnp.nan, 0.0]])  # mm
-        >>> est = estimate_batch(f, PolygonSDF.regular((20.0, 30.0), 8.0), bases, method="geometric")
+        >>> est = estimate_batch(f, PolygonSDF.regular((20.0, 30.0), 8.0), bases, estimator=Geometric())
         >>> est.joints.shape, [CASE_NAMES[int(c)] for c in est.case[:2]], est.valid.tolist()
         ((3, 11, 2), ['other', 'none'], [True, True, False])
     """
-    check_method(method)
+    estimator = as_estimator(estimator, method, mechanics)
     bases = as_candidates(bases, 2, finger.length.dtype, "estimate_batch: bases")
     mesh = device_mesh()
     if mesh is not None:  # several devices (or processes joined by jax.distributed): an even share each
-        return run_sharded(_estimate_sharded, mesh, (finger, sdf), bases, (config, mechanics), chunk_size,
-                           method=method)
-    return run_in_parts(_estimate_batch, (finger, sdf), bases, (config, mechanics), workers, chunk_size, method=method)
+        return run_sharded(_estimate_sharded, mesh, (finger, sdf), bases, (config,), chunk_size, estimator=estimator)
+    return run_in_parts(_estimate_batch, (finger, sdf), bases, (config,), workers, chunk_size, estimator=estimator)
 
 
 def estimate_grasp_batch(
@@ -275,13 +206,14 @@ def estimate_grasp_batch(
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = DEFAULT_CHUNK,
-    method: str = DEFAULT_METHOD,
-    mechanics: MechanicsConfig = MechanicsConfig(),
+    estimator: AbstractEstimator | None = None,
+    method: str | None = None,
+    mechanics: MechanicsConfig | None = None,
     workers: int | None = None,
 ) -> GraspEstimate:
     """:func:`estimate_grasp` for B poses (x mm, y mm, angle rad), ``chunk_size`` at a time.
 
-    ``method`` and ``mechanics`` (static) are as for :func:`estimate_grasp`.
+    ``estimator`` (or the older ``method`` / ``mechanics``) is as for :func:`estimate_grasp`.
 
     Args:
         poses: (B, 3) gripper poses: centre x, y (mm) and angle (rad).
@@ -293,19 +225,19 @@ def estimate_grasp_batch(
 
     Example:
         >>> import jax.numpy as jnp
-        >>> from softgrip_jax import FingerModel, Gripper, PolygonSDF
+        >>> from softgrip_jax import FingerModel, Geometric, Gripper, PolygonSDF
         >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
         >>> poses = jnp.array([[0.0, 0.0, 0.0], [0.0, -100.0, 0.0]])  # mm, mm, rad
         >>> g = estimate_grasp_batch(Gripper(f, f, 50.0), PolygonSDF.regular((0.0, 35.0), 9.0), poses,
-        ...                          method="geometric")
+        ...                          estimator=Geometric())
         >>> g.left.joints.shape, g.valid.tolist()
         ((2, 11, 2), [True, True])
     """
-    check_method(method)
+    estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "estimate_grasp_batch: poses")
     mesh = device_mesh()
     if mesh is not None:
-        return run_sharded(_estimate_grasp_sharded, mesh, (gripper, sdf), poses, (config, mechanics), chunk_size,
-                           method=method)
-    return run_in_parts(_estimate_grasp_batch, (gripper, sdf), poses, (config, mechanics), workers, chunk_size,
-                        method=method)
+        return run_sharded(_estimate_grasp_sharded, mesh, (gripper, sdf), poses, (config,), chunk_size,
+                           estimator=estimator)
+    return run_in_parts(_estimate_grasp_batch, (gripper, sdf), poses, (config,), workers, chunk_size,
+                        estimator=estimator)

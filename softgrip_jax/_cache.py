@@ -72,7 +72,7 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
         The folder in use, or None when the cache is off (``SOFTGRIP_JAX_CACHE=0``, or a folder that
         cannot be created: the program then runs, compiling as without the cache).
 
-    Gradients through the mechanics estimate (``refine(method="mechanics")``, the mechanics fit) are
+    Gradients through the mechanics estimate (``refine`` with ``Mechanics()``, the mechanics fit) are
     only cached when ``EQX_ON_ERROR=nan`` was set before equinox was imported; without it this
     function warns once (see the module docstring).
 

@@ -15,14 +15,16 @@ Cases (b) and (c) rotate the whole free arc about P_base as if the base were a p
 clamped at its base unbends instead, so against a clamped closure they miss the tip by
 millimetres. That is the paper's model, kept faithful here.
 
-``method="mechanics"`` replaces eq. 9 by the spring chain at equilibrium against the object
-(:mod:`softgrip_jax._mechanics`), started from the geometric estimate; the contact prediction
-(eqs. 5-8) is shared.
+The estimators (:mod:`softgrip_jax._estimators`) start from a :class:`Stage` (the contact and
+eq. 9's shape) and end in :func:`finish`: ``Geometric()`` keeps eq. 9's shape, ``Mechanics(config)``
+replaces it by the spring chain at equilibrium against the object (:mod:`softgrip_jax._mechanics`),
+started from it. The whole estimate of one finger is :mod:`softgrip_jax._estimate`.
 """
 
 from __future__ import annotations
 
 import enum
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -32,10 +34,13 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from softgrip_jax._contact import Bracket, Contact, ContactCase, ContactConfig, bracket_contact, free_contact, refine_contact
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics, pcc_turning
-from softgrip_jax._mechanics import DEFAULT_METHOD, Equilibrium, MechanicsConfig, check_method, closing_start, solve_equilibrium
+from softgrip_jax._mechanics import Equilibrium, MechanicsConfig, closing_start, solve_equilibrium
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
+
+if TYPE_CHECKING:
+    from softgrip_jax._estimators import AbstractEstimator
 
 
 class Status(enum.IntEnum):
@@ -59,18 +64,18 @@ class Status(enum.IntEnum):
 MAX_COORDINATE_MM = 1.0e5
 
 
-def input_problem(finger: FingerModel, sdf: AbstractSDF, origin: Array, method: str) -> Int[Array, ""]:
+def input_problem(finger: FingerModel, sdf: AbstractSDF, origin: Array, estimator: AbstractEstimator) -> Int[Array, ""]:
     """The :class:`Status` of inputs that are finite but unusable (0 if none): a base beyond
     :data:`MAX_COORDINATE_MM`, a finger parameter out of its range (checked here because under
-    ``jit``/``vmap`` the model's construction cannot see the values), or non-finite SDF data."""
+    ``jit``/``vmap`` the model's construction cannot see the values; the ``estimator`` checks the
+    parameters only it reads), or non-finite SDF data."""
     from softgrip_jax._model import THETA_MAX
 
     in_range = (
         (finger.theta_entire >= 0) & (finger.theta_entire < THETA_MAX) & (finger.length > 0)
         & (finger.half_thickness >= 0)
     )
-    if method == "mechanics":
-        in_range = in_range & (finger.stiffness_ratio > 0) & (finger.base_compliance >= 0)
+    in_range = in_range & estimator.finger_in_range(finger)
     near = jnp.all(jnp.abs(origin) <= MAX_COORDINATE_MM)
     return jnp.where(~near, Status.COORDINATE_OUT_OF_RANGE,
                      jnp.where(~in_range, Status.PARAMETER_OUT_OF_RANGE,
@@ -84,19 +89,19 @@ class Estimate(eqx.Module):
         joints: (N+1, 2) joints from the base (index 0) to the tip (index N).
         psi: base rotation of the estimated shape (rad, in the finger's frame).
         turning: (N,) turning angles of the estimated shape (rad).
-        case: the :class:`ContactCase` value. For ``method="mechanics"``, read from the
+        case: the :class:`ContactCase` value. For ``Mechanics()``, read from the
             equilibrium: which contact areas carry force (runs of centreline stations within
             ``MechanicsConfig.contact_tol``; see :func:`solve_equilibrium`), the tip's (reaching
             within ``ContactConfig.tip_tolerance`` links of it), another, both or none.
         contact: the :class:`Contact` prediction, with its points in image-plane mm and its
             angles in the finger's frame. Its first touch (``s1``, ``p_g1``, ``p_o1``, ``l_g1``,
-            ``n_g1``, ``theta_o1``) holds for both methods: the finger closes freely until then.
-            For ``method="mechanics"``, ``contact.case`` is the equilibrium's case and ``p_o2`` the
+            ``n_g1``, ``theta_o1``) holds for both estimators: the finger closes freely until then.
+            For ``Mechanics()``, ``contact.case`` is the equilibrium's case and ``p_o2`` the
             tip's foot on the object when the tip touches; the other fields describe the
             geometric construction of Fig. 8.
         valid: the inputs were usable and the pose is collision-free at the start.
         status: a :class:`Status` value saying why not, when not valid.
-        residual: mm. For ``method="mechanics"`` where the finger touches, how far the last
+        residual: mm. For ``Mechanics()`` where the finger touches, how far the last
             Gauss-Newton step of the equilibrium solve moved the joints (to first order): converged
             estimates have it at most ``MechanicsConfig.step_tol``. 0 otherwise.
         event: the estimate is at or near an event of the closing path, where it jumps or turns
@@ -106,7 +111,7 @@ class Estimate(eqx.Module):
             off, or a contact to appear). A planner should treat such poses as a boundary, where
             neighbouring poses may close into a different equilibrium. False for the geometric
             estimate.
-        sensitivity: mm/mm. For ``method="mechanics"`` where the finger touches, how far the tip
+        sensitivity: mm/mm. For ``Mechanics()`` where the finger touches, how far the tip
             moves per mm the base moves (the largest over directions, by implicit differentiation
             of the equilibrium): about 1 where the shape follows the base, growing without bound
             toward a fold. 1 for a finger that touches nothing (its tip follows the base rigidly);
@@ -195,7 +200,7 @@ def _distance_in(sdf: AbstractSDF, frame: FingerFrame):
 
 
 def search_contact(
-    finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig, method: str,
+    finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig, estimator: AbstractEstimator,
     rows: tuple[int, int] | None = None,
 ) -> Search:
     """Check the inputs, place the finger and bracket its first contact (eq. 5) over the coarse grid,
@@ -204,9 +209,8 @@ def search_contact(
         jnp.all(jnp.isfinite(frame.origin)) & jnp.isfinite(frame.angle)
         & jnp.isfinite(finger.theta_entire) & jnp.isfinite(finger.length) & jnp.isfinite(finger.half_thickness)
     )
-    if method == "mechanics":
-        finite = finite & jnp.isfinite(finger.stiffness_ratio) & jnp.isfinite(finger.base_compliance)
-    problem = input_problem(finger, sdf, jnp.where(finite, frame.origin, 0.0), method)
+    finite = finite & estimator.finger_finite(finger)
+    problem = input_problem(finger, sdf, jnp.where(finite, frame.origin, 0.0), estimator)
     inside = sdf.contains(jnp.where(finite, frame.origin, 0.0))
     usable = finite & inside & (problem != Status.COORDINATE_OUT_OF_RANGE)
     # An unusable input is replaced by a harmless one so it cannot produce NaN gradients;
@@ -243,7 +247,7 @@ def stage_of(finger: FingerModel, search: Search, refined: Contact) -> Stage:
 
 
 def geometric_stage(
-    finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig, method: str
+    finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig, estimator: AbstractEstimator
 ) -> Stage:
     """Contact prediction (eqs. 5-8) and the deformation of its case (eq. 9), in the finger frame.
 
@@ -252,7 +256,7 @@ def geometric_stage(
     the SDF grid included, to the batch size: out of memory for a vmapped estimate over 100,000
     bases.) Batched code refines only where needed, with the same result.
     """
-    search = search_contact(finger, sdf, frame, config, method)
+    search = search_contact(finger, sdf, frame, config, estimator)
     return stage_of(finger, search, refine_search(finger, sdf, search, config))
 
 
@@ -354,68 +358,3 @@ def mechanics_of(
     frame = eqx.tree_at(lambda f: f.origin, stage.frame, jnp.where(bad, far, stage.frame.origin))
     s, psi, turning = closing_start(finger, stage.contact, config)
     return solve_equilibrium(finger, sdf, frame, psi, turning, mechanics, config, start_actuation=s)
-
-
-def estimate_in_frame(
-    finger: FingerModel,
-    sdf: AbstractSDF,
-    frame: FingerFrame,
-    config: ContactConfig = ContactConfig(),
-    *,
-    method: str = DEFAULT_METHOD,
-    mechanics: MechanicsConfig = MechanicsConfig(),
-) -> Estimate:
-    """Estimate one finger placed by ``frame`` (base, gripper angle, handedness); image-plane output.
-
-    ``method`` (static) chooses the deformation: ``"geometric"`` (the paper's eq. 9) or
-    ``"mechanics"`` (the spring chain at equilibrium, :mod:`softgrip_jax._mechanics`, solved with
-    the settings ``mechanics`` wherever the finger touches the object).
-
-    Example (a right finger, mirrored: it curls toward -x):
-        >>> import jax.numpy as jnp
-        >>> from softgrip_jax import PolygonSDF
-        >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
-        >>> frame = FingerFrame(origin=jnp.zeros(2), angle=jnp.array(0.0), handedness=jnp.array(-1.0))
-        >>> import jax
-        >>> run = jax.jit(estimate_in_frame, static_argnames="method")  # compiles once; op by op is slower
-        >>> est = run(f, PolygonSDF.regular((100.0, 30.0), 5.0), frame, method="geometric")
-        >>> bool(est.joints[-1, 0] < 0), est.joints.shape  # tip left of the base; (N+1, 2) mm
-        (True, (11, 2))
-    """
-    check_method(method)
-    stage = geometric_stage(finger, sdf, frame, config, method)
-    if method == "geometric":
-        return finish(finger, stage)
-    return finish(finger, stage, mechanics_of(finger, sdf, stage, mechanics, config))
-
-
-def estimate(
-    finger: FingerModel,
-    sdf: AbstractSDF,
-    base: Float[ArrayLike, "2"],
-    config: ContactConfig = ContactConfig(),
-    *,
-    method: str = DEFAULT_METHOD,
-    mechanics: MechanicsConfig = MechanicsConfig(),
-) -> Estimate:
-    """Estimate the deformation of a finger hanging from ``base`` (mm) and curling toward +x.
-
-    The whole pipeline for one finger: contact prediction (eqs. 5-8), then the deformation chosen by
-    ``method`` (static): ``"mechanics"`` (the default, :data:`DEFAULT_METHOD`), the spring chain at
-    equilibrium against the object (:mod:`softgrip_jax._mechanics`, settings ``mechanics``), or
-    ``"geometric"``, the paper's deformation of the predicted case (eq. 9). Pure and jit-, vmap- and
-    grad-compatible; a NaN or out-of-grid ``base`` gives ``valid=False`` and NaN joints without
-    affecting other batch elements.
-
-    Example:
-        >>> import jax.numpy as jnp
-        >>> from softgrip_jax import CASE_NAMES, PolygonSDF
-        >>> finger = FingerModel(length=50.0, theta_entire=0.4, half_thickness=3.0, n_links=10)
-        >>> import jax
-        >>> run = jax.jit(estimate, static_argnames="method")  # compiles once; op by op is slower
-        >>> est = run(finger, PolygonSDF.regular((60.0, 40.0), 8.0), jnp.zeros(2), method="geometric")
-        >>> CASE_NAMES[int(est.case)], est.joints.shape  # joints: (N+1, 2) mm, base first
-        ('none', (11, 2))
-    """
-    frame = FingerFrame.hanging_from(jnp.asarray(base, finger.length.dtype))
-    return estimate_in_frame(finger, sdf, frame, config, method=method, mechanics=mechanics)

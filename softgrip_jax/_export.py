@@ -11,7 +11,8 @@ writes the serialized export to ``<cache folder>/softgrip-export/``; a later pro
 signature reads it back and calls it, without tracing. The compiled program then comes from the
 persistent cache as before. A signature is the function, the shapes, dtypes and weak types of the
 array arguments, the tree structure of the arguments (which holds every static field of the models
-and configs), the static arguments, and the versions that decide the program: jax, jaxlib,
+and configs), the static arguments (an estimator by its class, name and settings:
+:func:`static_ident`), and the versions that decide the program: jax, jaxlib,
 equinox, lineax, optimistix, a hash of this package's source files, ``EQX_ON_ERROR``, the x64 flag
 and the backend. A file that does not match, does not load, or a function that cannot be exported
 (host callbacks, e.g. equinox's runtime errors without ``EQX_ON_ERROR=nan``) falls back to the
@@ -99,6 +100,25 @@ def _environment() -> str:
     return ";".join(parts)
 
 
+def static_ident(value) -> str | None:
+    """A static argument as it keys an exported program: numbers and strings by their repr; an
+    object of this package (an estimator) by its class's module and qualified name, its ``name`` and
+    its repr (which shows every setting that differs from its default, e.g.
+    ``Mechanics(config=MechanicsConfig(max_steps=8))``).
+
+    None for an object of a class defined elsewhere (an estimator of the user's): its code is not in
+    the source hash above, so a program exported for it could outlive a change to it. Such a
+    signature runs on the jitted path instead (whose compilation cache keys the lowered program).
+    """
+    if isinstance(value, (bool, int, float, str, type(None))):
+        return repr(value)
+    kind = type(value)
+    if kind.__module__.split(".")[0] != __name__.split(".")[0]:
+        return None
+    name = getattr(value, "name", None)
+    return f"{kind.__module__}.{kind.__qualname__}" + (f"[{name}]" if isinstance(name, str) else "") + f":{value!r}"
+
+
 def _backend_settings() -> str:
     return (f"backend={jax.default_backend()};x64={jax.config.jax_enable_x64};"
             f"options={sorted(compiler_options().items())}")
@@ -183,9 +203,12 @@ class exportable:  # noqa: N801 - used like jax.jit
             from jax import export
         except ImportError:
             return None
+        statics = [(k, static_ident(v)) for k, v in static]
+        if any(ident is None for _, ident in statics):  # e.g. an estimator defined outside this package
+            return None
         ident = "\n".join([self._fn.__module__ + "." + self._fn.__qualname__, _environment(), _backend_settings(),
                            repr(names), str(treedef), repr([(a.shape, str(a.dtype), a.weak_type) for a in avals]),
-                           repr(static)])
+                           repr(statics)])
         digest = hashlib.sha256(ident.encode()).hexdigest()
         path = folder / f"{self._fn.__name__.strip('_')}-{digest[:40]}.export"
         exported = out_treedef = None

@@ -14,9 +14,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from softgrip_jax._contact import ContactConfig
-from softgrip_jax._deformation import Estimate, estimate_in_frame
+from softgrip_jax._deformation import Estimate
+from softgrip_jax._estimate import estimate_in_frame
+from softgrip_jax._estimators import AbstractEstimator, as_estimator
 from softgrip_jax._frames import FingerFrame, across_direction
-from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
+from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import Gripper
 from softgrip_jax._sdf import AbstractSDF
 
@@ -58,13 +60,15 @@ def estimate_grasp(
     pose: Float[ArrayLike, "3"],
     config: ContactConfig = ContactConfig(),
     *,
-    method: str = DEFAULT_METHOD,
-    mechanics: MechanicsConfig = MechanicsConfig(),
+    estimator: AbstractEstimator | None = None,
+    method: str | None = None,
+    mechanics: MechanicsConfig | None = None,
 ) -> GraspEstimate:
     """Estimate both fingers of ``gripper`` at ``pose`` = (x mm, y mm, angle rad) against ``sdf``.
 
-    ``method`` (static): ``"mechanics"`` (the default: the spring chain at equilibrium, solver
-    settings ``mechanics``) or ``"geometric"`` (the paper's eq. 9), as for :func:`estimate_in_frame`.
+    ``estimator``: ``Mechanics(config)`` (None: the default, ``Mechanics()``; the spring chain at
+    equilibrium) or ``Geometric()`` (the paper's eq. 9), as for :func:`estimate_in_frame`; the older
+    ``method=`` (static under ``jit``) and ``mechanics=`` are accepted instead.
 
     Example:
         >>> import jax.numpy as jnp
@@ -73,16 +77,17 @@ def estimate_grasp(
         >>> g = Gripper(left=f, right=f, base_separation=50.0)
         >>> disc = PolygonSDF.regular((0.0, 35.0), 9.0)
         >>> import jax
-        >>> run = jax.jit(estimate_grasp, static_argnames="method")  # compiles once; op by op is slower
-        >>> est = run(g, disc, jnp.array([0.0, 0.0, 0.0]), method="geometric")
+        >>> from softgrip_jax import Geometric
+        >>> run = jax.jit(estimate_grasp)  # compiles once per estimator; op by op is slower
+        >>> est = run(g, disc, jnp.array([0.0, 0.0, 0.0]), estimator=Geometric())
         >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
         ['other', 'other']
         >>> est = run(g, disc, jnp.array([0.0, 0.0, 0.0]))  # the default: mechanics
         >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
         ['tip', 'tip']
     """
-    check_method(method)
+    estimator = as_estimator(estimator, method, mechanics)
     left_frame, right_frame = finger_frames(gripper, pose)
-    left = estimate_in_frame(gripper.left, sdf, left_frame, config, method=method, mechanics=mechanics)
-    right = estimate_in_frame(gripper.right, sdf, right_frame, config, method=method, mechanics=mechanics)
+    left = estimate_in_frame(gripper.left, sdf, left_frame, config, estimator=estimator)
+    right = estimate_in_frame(gripper.right, sdf, right_frame, config, estimator=estimator)
     return GraspEstimate(left=left, right=right, valid=left.valid & right.valid)

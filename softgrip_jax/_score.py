@@ -40,7 +40,8 @@ from softgrip_jax._deformation import Estimate, Status
 from softgrip_jax._export import exportable
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
 from softgrip_jax._kinematics import chain_stations
-from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method
+from softgrip_jax._estimators import AbstractEstimator, as_estimator
+from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
@@ -104,29 +105,31 @@ def score_pose(
     weights: ScoreWeights = ScoreWeights(),
     config: ContactConfig = ContactConfig(),
     *,
-    method: str = DEFAULT_METHOD,
-    mechanics: MechanicsConfig = MechanicsConfig(),
+    estimator: AbstractEstimator | None = None,
+    method: str | None = None,
+    mechanics: MechanicsConfig | None = None,
 ) -> Score:
     """Score one pose (x mm, y mm, angle rad). Pure; jit-, vmap- and grad-compatible.
 
-    ``method`` (static) chooses the fingers' deformation estimate, ``"geometric"`` or
-    ``"mechanics"`` (solver settings ``mechanics``), as for :func:`estimate_grasp`.
+    ``estimator`` chooses the fingers' deformation estimate, ``Mechanics(config)`` (None: the
+    default, ``Mechanics()``) or ``Geometric()``, as for :func:`estimate_grasp` (or the older
+    ``method=``, static under ``jit``, and ``mechanics=``).
 
     Example:
         >>> import jax.numpy as jnp
-        >>> from softgrip_jax import FingerModel, Gripper, PolygonSDF
+        >>> from softgrip_jax import FingerModel, Geometric, Gripper, PolygonSDF
         >>> f = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=10)
         >>> g = Gripper(left=f, right=f, base_separation=56.0)
         >>> disc = PolygonSDF.regular((0.0, 38.0), 15.0, 128)
         >>> import jax
-        >>> run = jax.jit(score_pose, static_argnames="method")  # compiles once; op by op is slower
-        >>> centred = run(g, disc, jnp.array([0.0, 0.0, 0.0]), method="geometric")
-        >>> missing = run(g, disc, jnp.array([0.0, -60.0, 0.0]), method="geometric")
+        >>> run = jax.jit(score_pose)  # compiles once per estimator; op by op is slower
+        >>> centred = run(g, disc, jnp.array([0.0, 0.0, 0.0]), estimator=Geometric())
+        >>> missing = run(g, disc, jnp.array([0.0, -60.0, 0.0]), estimator=Geometric())
         >>> bool(centred.score > missing.score)
         True
     """
-    check_method(method)
-    grasp = estimate_grasp(gripper, sdf, pose, config, method=method, mechanics=mechanics)
+    estimator = as_estimator(estimator, method, mechanics)
+    grasp = estimate_grasp(gripper, sdf, pose, config, estimator=estimator)
     return _score_grasp(gripper, sdf, grasp, weights, config)
 
 
@@ -152,24 +155,25 @@ def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weigh
     )
 
 
-def _score_share(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
+def _score_share(gripper, sdf, poses, weights, config, chunk_size, estimator):
     """The :class:`Score` of poses (P, 3) on one device, ``chunk_size`` at a time: in each chunk both
     fingers' estimates (the contact refined and the equilibrium solved only where a finger touches,
     :mod:`softgrip_jax._batch`), then the score of each pose."""
     def chunk(share):
-        grasps = grasp_chunk(gripper, sdf, share, config, mechanics, method)
+        grasps = grasp_chunk(gripper, sdf, share, config, estimator)
         return jax.vmap(lambda g: _score_grasp(gripper, sdf, g, weights, config))(grasps)
 
     return map_chunks(chunk, poses, chunk_size)
 
 
-_score_one_device = exportable(tuned_jit(_score_share, static_argnames=("chunk_size", "method")), ("chunk_size", "method"))
+_score_one_device = exportable(tuned_jit(_score_share, static_argnames=("chunk_size", "estimator")),
+                               ("chunk_size", "estimator"))
 
 
-@partial(tuned_jit, static_argnames=("chunk_size", "method"))
-def _score_sharded(gripper, sdf, poses, weights, config, mechanics, chunk_size, method):
+@partial(tuned_jit, static_argnames=("chunk_size", "estimator"))
+def _score_sharded(gripper, sdf, poses, weights, config, chunk_size, estimator):
     # poses: (devices, per_device, 3); the device axis is vmapped (and sharded across the devices).
-    return jax.vmap(lambda share: _score_share(gripper, sdf, share, weights, config, mechanics, chunk_size, method))(poses)
+    return jax.vmap(lambda share: _score_share(gripper, sdf, share, weights, config, chunk_size, estimator))(poses)
 
 
 def score(
@@ -180,8 +184,9 @@ def score(
     config: ContactConfig = ContactConfig(),
     *,
     chunk_size: int = 2048,
-    method: str = DEFAULT_METHOD,
-    mechanics: MechanicsConfig = MechanicsConfig(),
+    estimator: AbstractEstimator | None = None,
+    method: str | None = None,
+    mechanics: MechanicsConfig | None = None,
     workers: int | None = None,
 ) -> Score:
     """Score B candidate poses (x mm, y mm, angle rad) in one compiled call.
@@ -190,14 +195,17 @@ def score(
     devices are present (GPUs, or hosts joined by ``jax.distributed``), the batch is split evenly
     across them with ``jax.sharding``; results are identical to a single device's. Returns a
     :class:`Score` whose leaves have a leading axis B; rank with ``jnp.argsort(-result.score)``.
-    ``method`` and ``mechanics`` (static) choose the deformation estimate, as for
-    :func:`score_pose`; with ``"mechanics"`` the equilibrium is solved only for fingers that touch.
+    ``estimator`` (or the older ``method`` / ``mechanics``) chooses the deformation estimate, as for
+    :func:`score_pose`; with ``Mechanics()`` (the default) the equilibrium is solved only for
+    fingers that touch.
 
     Args:
         gripper: both fingers and the base separation W (mm, rad).
         sdf: the object (mm), in the frame's millimetre coordinates (x right, y down).
         poses: (B, 3) candidate poses: gripper centre x, y (mm) and angle (rad).
         chunk_size: poses evaluated together (static); memory grows with it, not with B.
+        estimator: ``Geometric()`` or ``Mechanics(config)`` (None: ``Mechanics()``); equal
+            estimators reuse one compiled program.
         workers: on one device, concurrent parts the batch is split into (None: one per CPU core
             on a CPU, one elsewhere), as for :func:`estimate_batch`; results do not depend on it.
 
@@ -208,7 +216,7 @@ def score(
     Example (the README's planner: score a grid of poses, refine the best, read both fingers'
     contacts; ``tests/test_readme.py`` keeps the README's copy identical):
         >>> import jax.numpy as jnp
-        >>> from softgrip_jax import CASE_NAMES, FingerModel, Gripper, PolygonSDF, refine, score
+        >>> from softgrip_jax import CASE_NAMES, FingerModel, Geometric, Gripper, PolygonSDF, refine, score
         >>> finger = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=20)  # mm, rad
         >>> gripper = Gripper(left=finger, right=finger, base_separation=56.0)  # mm
         >>> obj = PolygonSDF.regular(center=(0.0, 38.0), radius=15.0, n_vertices=128)  # a 30 mm disc
@@ -218,10 +226,10 @@ def score(
         ...                            jnp.linspace(-0.2, 0.2, 5), indexing="ij")
         >>> poses = jnp.stack([x.ravel(), y.ravel(), angle.ravel()], axis=-1)  # (605, 3)
         >>> # One compiled call; invalid candidates score -inf. The geometric estimate is the fastest
-        >>> # for a coarse grid; without method=, score and refine use the mechanics estimate.
-        >>> result = score(gripper, obj, poses, method="geometric")
+        >>> # for a coarse grid; without estimator=, score and refine use the mechanics estimate, Mechanics().
+        >>> result = score(gripper, obj, poses, estimator=Geometric())
         >>> best = int(jnp.argmax(result.score))
-        >>> refined = refine(gripper, obj, poses[best], method="geometric")  # never worse than its start
+        >>> refined = refine(gripper, obj, poses[best], estimator=Geometric())  # never worse than its start
         >>> bool(refined.score.score >= result.score[best])
         True
         >>> for side in ("left", "right"):  # both fingers of the refined pose, each an Estimate
@@ -231,14 +239,14 @@ def score(
         left other first contact on the object (mm): [-10.1, 49.1] tip (mm): [-4.5, 56.6]
         right other first contact on the object (mm): [13.9, 43.7] tip (mm): [11.5, 53.4]
     """
-    check_method(method)
+    estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
     mesh = device_mesh()
     if mesh is None:  # one device: on a CPU, concurrent parts over its cores (softgrip_jax._concurrent)
-        return run_in_parts(_score_one_device, (gripper, sdf), poses, (weights, config, mechanics), workers,
-                            chunk_size, method=method)
-    return run_sharded(_score_sharded, mesh, (gripper, sdf), poses, (weights, config, mechanics), chunk_size,
-                       method=method)
+        return run_in_parts(_score_one_device, (gripper, sdf), poses, (weights, config), workers, chunk_size,
+                            estimator=estimator)
+    return run_sharded(_score_sharded, mesh, (gripper, sdf), poses, (weights, config), chunk_size,
+                       estimator=estimator)
 
 
 class RefineStatus(enum.IntEnum):
@@ -258,9 +266,9 @@ class Refined(eqx.Module):
     steps: Int[Array, ""]
 
 
-def _refine_one(gripper, sdf, pose, weights, config, mechanics, max_steps, angle_scale, method):
+def _refine_one(gripper, sdf, pose, weights, config, max_steps, angle_scale, estimator):
     scale = jnp.array([1.0, 1.0, angle_scale], pose.dtype)
-    score_at = lambda p: score_pose(gripper, sdf, p, weights, config, method=method, mechanics=mechanics)  # noqa: E731
+    score_at = lambda p: score_pose(gripper, sdf, p, weights, config, estimator=estimator)  # noqa: E731
 
     def objective(z, _):
         s = score_at(z * scale)
@@ -286,12 +294,12 @@ def _refine_one(gripper, sdf, pose, weights, config, mechanics, max_steps, angle
     )
 
 
-def _refine_poses(gripper, sdf, poses, weights, config, mechanics, max_steps, angle_scale, method):
-    return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, mechanics, max_steps, angle_scale,
-                                          method))(poses)
+def _refine_poses(gripper, sdf, poses, weights, config, max_steps, angle_scale, estimator):
+    return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, max_steps, angle_scale, estimator))(poses)
 
 
-_refine_batch = exportable(tuned_jit(_refine_poses, static_argnames=("max_steps", "method")), ("max_steps", "method"))
+_refine_batch = exportable(tuned_jit(_refine_poses, static_argnames=("max_steps", "estimator")),
+                           ("max_steps", "estimator"))
 
 
 def refine(
@@ -303,16 +311,17 @@ def refine(
     *,
     max_steps: int = 40,
     angle_scale: float = 0.05,
-    method: str = DEFAULT_METHOD,
-    mechanics: MechanicsConfig = MechanicsConfig(),
+    estimator: AbstractEstimator | None = None,
+    method: str | None = None,
+    mechanics: MechanicsConfig | None = None,
 ) -> Refined:
     """Improve one pose (3,) or a batch (B, 3) by gradient ascent of the score (optimistix BFGS).
 
     The result never gets worse: when the minimiser ends at a pose that scores lower or is not
     valid, the start pose is returned with ``status = NO_IMPROVEMENT``. ``angle_scale`` (rad per
-    unit of the minimiser's variable) balances millimetres against radians. ``method`` and
-    ``mechanics`` (static) choose the deformation estimate, as for :func:`score_pose`; the
-    mechanics estimate's gradient in the pose comes from implicit differentiation.
+    unit of the minimiser's variable) balances millimetres against radians. ``estimator`` (or the
+    older ``method`` / ``mechanics``) chooses the deformation estimate, as for :func:`score_pose`;
+    the mechanics estimate's gradient in the pose comes from implicit differentiation.
 
     Args:
         pose: (3,) or (B, 3) start poses: gripper centre x, y (mm) and angle (rad).
@@ -324,9 +333,9 @@ def refine(
 
     Example: :func:`score`'s example refines the best pose of a scored grid.
     """
-    check_method(method)
+    estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(pose, 3, gripper.base_separation.dtype, "refine: pose", single=True)
     single = poses.ndim == 1
-    out = _refine_batch(gripper, sdf, poses.reshape(-1, 3), weights, config, mechanics, max_steps,
-                        jnp.asarray(angle_scale, poses.dtype), method)
+    out = _refine_batch(gripper, sdf, poses.reshape(-1, 3), weights, config, max_steps,
+                        jnp.asarray(angle_scale, poses.dtype), estimator)
     return jax.tree_util.tree_map(lambda x: x[0], out) if single else out

@@ -30,6 +30,7 @@ Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps 
     >>> import numpy as np
     >>> import vision
     >>> from calib.profile import load_profile
+    >>> from softgrip_jax import Geometric
     >>> from vision.scene import frame_scene, rank
     >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames and profile
     >>> scene = frame_scene(data / "circle_open", load_profile(data / "sample_profile.json"))
@@ -40,7 +41,7 @@ Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps 
     >>> print({side: np.round(f["base_mm"], 1).tolist() for side, f in scene.finger_frames.items()})
     {'left': [-32.0, -45.1], 'right': [32.0, -45.0]}
     >>> # Both fingers at the frame's own pose; the first estimate compiles (seconds), later ones do not.
-    >>> grasp = scene.estimate(method="geometric")
+    >>> grasp = scene.estimate(estimator=Geometric())
     >>> for side in ("left", "right"):
     ...     f = getattr(grasp, side)
     ...     print(side, scene.case_name(grasp, side), "tip (mm):", [round(float(v), 1) for v in f.joints[-1]])
@@ -48,7 +49,7 @@ Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps 
     right other tip (mm): [7.1, -2.0]
     >>> # Candidate poses as numpy (B, 3): x mm, y mm, angle rad; here the frame's pose, 4 mm left, 80 mm up.
     >>> poses = scene.pose + np.array([[0.0, 0.0, 0.0], [-4.0, 0.0, 0.0], [0.0, -80.0, 0.0]])
-    >>> result = scene.score(poses, method="geometric")  # numpy out; -inf where not valid
+    >>> result = scene.score(poses, estimator=Geometric())  # numpy out; -inf where not valid
     >>> print(rank(result).tolist(), [round(float(v), 3) for v in result.score], result.valid.tolist())
     [0, 1, 2] [0.874, 0.859, -inf] [True, True, False]
 """
@@ -65,7 +66,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from softgrip_jax import CASE_NAMES, DEFAULT_METHOD, Gripper, SoftgripError
+from softgrip_jax import CASE_NAMES, AbstractEstimator, Gripper, SoftgripError, as_estimator
 from vision.frames import Frame
 
 SIDES: tuple[str, str] = ("left", "right")
@@ -258,13 +259,15 @@ class Scene:
             text += "no object; "
         return text + f"plane {self.camera.depth_mm:.1f} mm deep"
 
-    def estimate(self, poses: Any = None, *, method: str = DEFAULT_METHOD):
+    def estimate(self, poses: Any = None, *, estimator: AbstractEstimator | None = None, method: str | None = None):
         """Both fingers' estimates, as numpy (a :class:`softgrip_jax.GraspEstimate`).
 
         Args:
             poses: None (the frame's own pose), one pose (3,) or B poses (B, 3), numpy or JAX:
                 x mm, y mm, angle rad.
-            method: the deformation estimate, ``"geometric"`` or ``"mechanics"``.
+            estimator: the deformation estimate, ``softgrip_jax.Geometric()`` or
+                ``softgrip_jax.Mechanics(config)`` (None: ``Mechanics()``).
+            method: the older spelling of ``estimator``: ``"geometric"`` or ``"mechanics"``.
 
         Returns:
             For None or one pose, one ``GraspEstimate`` (joints (N+1, 2) mm per finger); for (B, 3),
@@ -272,22 +275,27 @@ class Scene:
         """
         import jax.numpy as jnp
 
+        estimator = as_estimator(estimator, method)
         dtype = self.gripper.base_separation.dtype
         if poses is None or np.ndim(poses) == 1:
             pose = _poses(self.pose if poses is None else poses, "Scene.estimate")[0]
-            return to_numpy(_estimate_grasp_jit()(self.gripper, self.sdf, jnp.asarray(pose, dtype), method=method))
+            return to_numpy(_estimate_grasp_jit()(self.gripper, self.sdf, jnp.asarray(pose, dtype),
+                                                     estimator=estimator))
         from softgrip_jax import estimate_grasp_batch
 
         batch = _poses(poses, "Scene.estimate")
-        result = estimate_grasp_batch(self.gripper, self.sdf, jnp.asarray(_pad(batch, 64), dtype), method=method)
+        result = estimate_grasp_batch(self.gripper, self.sdf, jnp.asarray(_pad(batch, 64), dtype),
+                                      estimator=estimator)
         return take_rows(to_numpy(result), len(batch))
 
-    def score(self, poses: Any, *, method: str = DEFAULT_METHOD, weights=None):
+    def score(self, poses: Any, *, estimator: AbstractEstimator | None = None, method: str | None = None,
+              weights=None):
         """Score poses (numpy or JAX, (3,) or (B, 3): x mm, y mm, angle rad) in one compiled call.
 
-        Batches are padded to a power of two (at least :data:`MIN_BATCH`) so that batches of similar
-        sizes share one compilation. Returns a :class:`softgrip_jax.Score` with numpy leaves of
-        leading axis B (``score`` is -inf where not valid); rank with :func:`rank`.
+        ``estimator`` (or the older ``method``) is as for :meth:`estimate`. Batches are padded to a
+        power of two (at least :data:`MIN_BATCH`) so that batches of similar sizes share one
+        compilation. Returns a :class:`softgrip_jax.Score` with numpy leaves of leading axis B
+        (``score`` is -inf where not valid); rank with :func:`rank`.
         """
         import jax
         import jax.numpy as jnp
@@ -297,7 +305,7 @@ class Scene:
         batch = _poses(poses, "Scene.score")
         padded = jnp.asarray(_pad(batch), self.gripper.base_separation.dtype)
         result = jax.block_until_ready(score(self.gripper, self.sdf, padded, ScoreWeights() if weights is None
-                                            else weights, method=method))
+                                            else weights, estimator=as_estimator(estimator, method)))
         return take_rows(to_numpy(result), len(batch))
 
     @staticmethod

@@ -648,9 +648,10 @@ def test_cli_fit_passes_the_method_and_parameters(frames, tmp_path: Path, monkey
     calls = []
 
     def fake_fit(observations, start, parameters, **kwargs):
-        calls.append((list(parameters), kwargs["method"]))
+        name = kwargs["estimator"].name  # the command passes the estimator object (--method mapped once)
+        calls.append((list(parameters), name))
         return dataclasses.replace(start, fit=FitEntry("least-squares", [o.label for o in observations],
-                                                       residual_rms_mm=0.0, estimate_method=kwargs["method"]))
+                                                       residual_rms_mm=0.0, estimate_method=name))
 
     monkeypatch.setattr(calib.fit, "fit", fake_fit)
     output = tmp_path / "p.json"

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import pytest
 
 import softgrip_jax
-from softgrip_jax import ContactConfig, FingerModel, Gripper, MechanicsConfig, PolygonSDF, ScoreWeights
+from softgrip_jax import ContactConfig, FingerModel, Geometric, Gripper, Mechanics, MechanicsConfig, PolygonSDF, ScoreWeights
 from softgrip_jax._cache import default_cache_dir
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -80,12 +80,11 @@ def test_score_and_estimate_batch_compile_without_host_callbacks() -> None:
     from softgrip_jax._score import _score_one_device
 
     poses = jnp.zeros((4, 3))
-    for method in ("geometric", "mechanics"):
-        lowered = _score_one_device.lower(GRIPPER, DISC, poses, ScoreWeights(), ContactConfig(), MechanicsConfig(),
-                                          4, method)
-        assert _callbacks(lowered) == 0, method
+    for estimator in (Geometric(), Mechanics(MechanicsConfig())):
+        lowered = _score_one_device.lower(GRIPPER, DISC, poses, ScoreWeights(), ContactConfig(), 4, estimator)
+        assert _callbacks(lowered) == 0, estimator.name
     bases = jnp.zeros((4, 2))
-    lowered = _estimate_batch.lower(FINGER, DISC, bases, ContactConfig(), MechanicsConfig(), 4, "geometric")
+    lowered = _estimate_batch.lower(FINGER, DISC, bases, ContactConfig(), 4, Geometric())
     assert _callbacks(lowered) == 0
 
 
@@ -95,7 +94,7 @@ def test_refine_geometric_compiles_without_host_callbacks() -> None:
     from softgrip_jax._score import _refine_batch
 
     lowered = _refine_batch.lower(GRIPPER, DISC, jnp.zeros((1, 3)), ScoreWeights(), ContactConfig(),
-                                  MechanicsConfig(), 4, jnp.asarray(0.05), "geometric")
+                                  4, jnp.asarray(0.05), Geometric())
     assert _callbacks(lowered) == 0
 
 
@@ -106,14 +105,14 @@ def test_refine_mechanics_compiles_without_host_callbacks_under_eqx_on_error_nan
     equinox reads the variable at import."""
     script = textwrap.dedent("""
         import jax.numpy as jnp
-        from softgrip_jax import ContactConfig, FingerModel, Gripper, MechanicsConfig, PolygonSDF, ScoreWeights
+        from softgrip_jax import ContactConfig, FingerModel, Gripper, Mechanics, MechanicsConfig, PolygonSDF, ScoreWeights
         from softgrip_jax._cache import equinox_errors_cacheable
         from softgrip_jax._score import _refine_batch
         f = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=10)
         g = Gripper(left=f, right=f, base_separation=56.0)
         lowered = _refine_batch.lower(g, PolygonSDF.regular((0.0, 38.0), 15.0, 32), jnp.zeros((1, 3)),
-                                      ScoreWeights(), ContactConfig(), MechanicsConfig(), 4, jnp.asarray(0.05),
-                                      "mechanics")
+                                      ScoreWeights(), ContactConfig(), 4, jnp.asarray(0.05),
+                                      Mechanics(MechanicsConfig()))
         print(equinox_errors_cacheable(), lowered.as_text().count("callback"))
     """)
     counts = {}
@@ -139,7 +138,7 @@ def test_fit_compiles_without_host_callbacks_unless_a_progress_bar_is_shown() ->
         groups, _ = _stack([observation(rng, "pair 1")])
         texts = {progress: _solve.lower(y0, free, fixed, groups, jnp.asarray(1.0, jnp.float64),
                                         n_links=start.fingers["left"].n_links, config=ContactConfig(),
-                                        method="geometric", mechanics=MechanicsConfig(), loss="huber",
+                                        estimator=Geometric(), loss="huber",
                                         max_steps=10, progress=progress).as_text()
                  for progress in (False, True)}
     assert texts[False].count("callback") == 0

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 import softgrip_jax
-from softgrip_jax import ContactConfig, FingerModel, Gripper, MechanicsConfig, PolygonSDF, ScoreWeights
+from softgrip_jax import ContactConfig, FingerModel, Geometric, Gripper, PolygonSDF, ScoreWeights
 from softgrip_jax import _export
 from softgrip_jax._batch import _estimate_batch, _estimate_grasp_batch
 from softgrip_jax._score import _refine_batch, _score_one_device
@@ -66,45 +66,45 @@ def _assert_identical(a, b) -> None:
 
 
 def _score_args():
-    return (GRIPPER, DISC, POSES, ScoreWeights(), ContactConfig(), MechanicsConfig())
+    return (GRIPPER, DISC, POSES, ScoreWeights(), ContactConfig())
 
 
 def test_exported_score_equals_the_jitted_one(export_cache) -> None:
     assert _export.active_folder() == export_cache
     before = _score_one_device.export_info()
-    exported = _score_one_device(*_score_args(), chunk_size=8, method="geometric")
+    exported = _score_one_device(*_score_args(), chunk_size=8, estimator=Geometric())
     assert _score_one_device.export_info() == before._replace(exported=before.exported + 1)  # written to disk
     assert len(list(export_cache.glob("score_share-*.export"))) == 1
-    jitted = _score_one_device._jitted(*_score_args(), chunk_size=8, method="geometric")
+    jitted = _score_one_device._jitted(*_score_args(), chunk_size=8, estimator=Geometric())
     _assert_identical(exported, jitted)
     # The public function goes the same way.
     _assert_identical(softgrip_jax.score(GRIPPER, DISC, POSES, method="geometric", chunk_size=8), jitted)
 
 
 def test_a_broken_or_stale_export_falls_back_silently(export_cache) -> None:
-    reference = _score_one_device._jitted(*_score_args(), chunk_size=8, method="geometric")
-    _score_one_device(*_score_args(), chunk_size=8, method="geometric")
+    reference = _score_one_device._jitted(*_score_args(), chunk_size=8, estimator=Geometric())
+    _score_one_device(*_score_args(), chunk_size=8, estimator=Geometric())
     (path,) = export_cache.glob("score_share-*.export")
     path.write_bytes(b"not an export")
     _score_one_device._calls.clear()  # as a new process: read the file again
     before = _score_one_device.export_info()
-    _assert_identical(_score_one_device(*_score_args(), chunk_size=8, method="geometric"), reference)
+    _assert_identical(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
     after = _score_one_device.export_info()
     assert after.loaded == before.loaded
     assert after.exported == before.exported + 1  # exported again, over the broken file
     _score_one_device._calls.clear()
-    _assert_identical(_score_one_device(*_score_args(), chunk_size=8, method="geometric"), reference)
+    _assert_identical(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
     assert _score_one_device.export_info().loaded == before.loaded + 1
 
 
 def test_another_cache_folder_prepares_its_own_exports(export_cache, tmp_path) -> None:
     """The folder is part of each signature's memo: a cache folder configured later gets its own
     files instead of the programs prepared for the first one."""
-    _score_one_device(*_score_args(), chunk_size=8, method="geometric")
+    _score_one_device(*_score_args(), chunk_size=8, estimator=Geometric())
     other = tmp_path / "other"
     jax.config.update("jax_compilation_cache_dir", str(other))  # the fixture puts it back
     before = _score_one_device.export_info()
-    _score_one_device(*_score_args(), chunk_size=8, method="geometric")
+    _score_one_device(*_score_args(), chunk_size=8, estimator=Geometric())
     assert _score_one_device.export_info().exported == before.exported + 1
     assert len(list((other / _export.EXPORT_SUBFOLDER).glob("score_share-*.export"))) == 1
 
@@ -117,15 +117,14 @@ def test_without_the_cache_nothing_is_exported(export_cache, monkeypatch, off) -
         jax.config.update("jax_compilation_cache_dir", None)  # the fixture puts it back
     assert _export.active_folder() is None
     before = _totals()
-    _score_one_device(*_score_args(), chunk_size=8, method="geometric")
+    _score_one_device(*_score_args(), chunk_size=8, estimator=Geometric())
     assert _totals() == before
     assert not export_cache.exists()
 
 
 @pytest.mark.slow
 def test_exported_refine_equals_the_jitted_one(export_cache) -> None:
-    args = (GRIPPER, DISC, POSES[:2], ScoreWeights(), ContactConfig(), MechanicsConfig(), 10, jnp.asarray(0.05),
-            "geometric")
+    args = (GRIPPER, DISC, POSES[:2], ScoreWeights(), ContactConfig(), 10, jnp.asarray(0.05), Geometric())
     _assert_identical(_refine_batch(*args), _refine_batch._jitted(*args))
     assert len(list(export_cache.glob("refine_poses-*.export"))) == 1
 

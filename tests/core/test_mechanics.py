@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from softgrip_jax import (CASE_NAMES, METHODS, ContactCase, ContactConfig, FingerFrame, FingerModel, Gripper,
-                          MechanicsConfig, PolygonSDF, RefineStatus, SDFGrid, SoftgripError, Status, estimate,
+                          Mechanics, MechanicsConfig, PolygonSDF, RefineStatus, SDFGrid, SoftgripError, Status, estimate,
                           estimate_batch, estimate_grasp, estimate_grasp_batch, estimate_in_frame, forward_kinematics,
                           pcc_joints, refine, score, score_pose)
 from softgrip_jax._batch import where_needed
@@ -84,9 +84,9 @@ def rod_joints(scene, stiffness_ratio, base_compliance):
 @jax.jit
 def both_estimates(finger_, sdf, base):
     """The geometric and the mechanics estimate, sharing one contact prediction (half the compile
-    time of two ``estimate`` calls; ``estimate_in_frame(method="mechanics")`` is these stages)."""
+    time of two ``estimate`` calls; ``estimate_in_frame(estimator=Mechanics())`` is these stages)."""
     frame = FingerFrame(base, jnp.zeros((), base.dtype), jnp.ones((), base.dtype))
-    stage = geometric_stage(finger_, sdf, frame, ContactConfig(), "mechanics")
+    stage = geometric_stage(finger_, sdf, frame, ContactConfig(), Mechanics())
     config = MechanicsConfig()
     mech = finish(finger_, stage, mechanics_of(finger_, sdf, stage, config, ContactConfig()))
     return finish(finger_, stage), mech, stage
