@@ -8,8 +8,8 @@ the angle of the base-tip chord. The clearance
     g(s) = min over centreline stations of (sdf(station) - r)
 
 is positive while the finger is free. The first contact s1 is the smallest root of g: bracketed on
-a coarse grid of s values (one vectorised SDF lookup), then refined by an optimistix root finder, so
-that derivatives of s1 come from the implicit function theorem. Then (eqs. 6-8):
+a coarse grid of s values (one vectorised SDF lookup), then refined by Newton's method kept inside
+that bracket (:class:`BracketedNewton`, an optimistix root finder), so that derivatives of s1 come from the implicit function theorem. Then (eqs. 6-8):
 
 * P_g1: the touching point of the finger (nearest the base), L_g1 its arc length, N_g1 = L_g1 N / L;
 * P_o1: P_g1 moved onto the object surface along the SDF's normal;
