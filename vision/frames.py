@@ -11,10 +11,15 @@ lengths and ``ppx``/``ppy`` principal point in pixels, ``depth_scale`` in metres
 and optionally the lens distortion, ``model`` (a name from :data:`DISTORTION_MODELS`) and its
 ``coeffs`` (absent: no distortion).
 The depth image is registered to the colour image (pixel (u, v) of both sees the same point).
+In place of ``depth.png`` a folder may hold floating-point depth in metres (Open3D's and ROS's
+32FC1 convention), as ``depth.npy`` (a numpy array (H, W)) or ``depth.tiff`` (a 32-bit float TIFF);
+:func:`load_frame` converts it to units of ``depth_scale`` (NaN, infinite, zero or negative: no
+reading). :func:`save_frame` always writes ``depth.png``.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -34,6 +39,8 @@ from softgrip_base import user_json
 
 COLOR_FILE = "color.png"
 DEPTH_FILE = "depth.png"
+#: Floating-point depth in metres that :func:`load_frame` reads in place of ``depth.png``.
+FLOAT_DEPTH_FILES = ("depth.npy", "depth.tiff")
 INTRINSICS_FILE = "intrinsics.json"
 
 
@@ -369,7 +376,8 @@ def depth_from_metres(depth: np.ndarray, depth_scale: float, name: str = "depth"
 
 
 def load_frame(path: str | os.PathLike[str]) -> Frame:
-    """Read a frame folder (``color.png``, ``depth.png``, ``intrinsics.json``).
+    """Read a frame folder (``color.png``, ``depth.png``, ``intrinsics.json``; or floating-point
+    depth in metres as ``depth.npy`` or ``depth.tiff`` in place of ``depth.png``).
 
     Returns:
         ``Frame``: ``color`` uint8 (H, W, 3) RGB, ``depth`` uint16 (H, W) in units of
@@ -391,15 +399,53 @@ def load_frame(path: str | os.PathLike[str]) -> Frame:
     if not folder.is_dir():
         raise FrameError(f"{folder} is not a folder: a frame is a folder with {COLOR_FILE}, "
                          f"{DEPTH_FILE} and {INTRINSICS_FILE}")
-    color_path, depth_path, intr_path = (folder / COLOR_FILE, folder / DEPTH_FILE,
-                                         folder / INTRINSICS_FILE)
+    color_path, intr_path = folder / COLOR_FILE, folder / INTRINSICS_FILE
     color = _read_png(color_path)
     if color.ndim == 3 and color.shape[2] == 3:
         color = cv2.cvtColor(color, cv2.COLOR_BGR2RGB)
-    depth = _read_png(depth_path)
     intrinsics = Intrinsics.from_dict(_read_json(intr_path), source=str(intr_path))
+    depth_path = _depth_file(folder)
+    if depth_path.name == DEPTH_FILE:
+        depth = _read_png(depth_path)
+    else:
+        metres = _read_float_depth(depth_path)
+        if metres.shape != color.shape[:2]:
+            raise FrameError(f"{color_path} is {color.shape[1]}x{color.shape[0]} but {depth_path} is "
+                             f"{metres.shape[1]}x{metres.shape[0]} (width x height): depth must be registered "
+                             f"to the colour image, at the same size")
+        depth = depth_from_metres(metres, intrinsics.depth_scale, name=str(depth_path))
     _check_frame(color, depth, intrinsics, str(color_path), str(depth_path), str(intr_path))
     return Frame(color=color, depth=depth, intrinsics=intrinsics)
+
+
+def _depth_file(folder: Path) -> Path:
+    """The folder's one depth file: ``depth.png``, or one of :data:`FLOAT_DEPTH_FILES`."""
+    present = [folder / name for name in (DEPTH_FILE, *FLOAT_DEPTH_FILES) if (folder / name).exists()]
+    if len(present) > 1:
+        raise FrameError(f"{folder} holds {' and '.join(p.name for p in present)}: keep one depth file "
+                         f"(remove the others), so that it is clear which one the frame is")
+    return present[0] if present else folder / DEPTH_FILE  # (missing: _read_png names it)
+
+
+def _read_float_depth(path: Path) -> np.ndarray:
+    """Floating-point depth in metres (H, W) from ``depth.npy`` or a 32-bit float ``depth.tiff``."""
+    if path.suffix == ".npy":
+        try:
+            depth = np.load(io.BytesIO(_read_file(path)), allow_pickle=False)
+        except (OSError, ValueError) as error:
+            raise FrameError(f"{path} is not a readable numpy array ({error}): save it with numpy.save") from None
+    else:
+        depth = cv2.imdecode(np.frombuffer(_read_file(path), np.uint8), cv2.IMREAD_UNCHANGED)
+        if depth is None:
+            raise FrameError(f"{path} is not a readable TIFF image: write it again, e.g. with "
+                             f"cv2.imwrite(path, depth_metres.astype(numpy.float32))")
+    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.floating):
+        raise FrameError(f"{path} must hold floating-point depth in metres, one channel (H, W), got "
+                         f"{_describe(depth)}; integer depth in units of depth_scale goes in {DEPTH_FILE}")
+    if not all(1 <= side <= MAX_IMAGE_SIDE for side in depth.shape):
+        raise FrameError(f"{path} is {depth.shape[1]}x{depth.shape[0]}: a frame image may be at most "
+                         f"{MAX_IMAGE_SIDE} px wide and high")
+    return depth
 
 
 def save_frame(frame: Frame, path: str | os.PathLike[str]) -> Path:

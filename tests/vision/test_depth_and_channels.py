@@ -66,3 +66,50 @@ def test_a_grey_region_says_nothing_about_the_order(circle):
     grey = np.full((4, 4, 3), 128, np.uint8)
     check_channel_order(grey, np.ones((4, 4), bool), (200, 20, 20))  # far from red, but not swapped
     check_channel_order(grey, np.zeros((4, 4), bool), (200, 20, 20))  # nothing to compare
+
+
+def folder_with_float_depth(tmp_path, circle, name, metres):
+    """A copy of the circle frame's colour and intrinsics with ``metres`` written as ``name``."""
+    import shutil
+
+    import cv2
+
+    folder = tmp_path / "frame"
+    folder.mkdir()
+    for keep in ("color.png", "intrinsics.json"):
+        shutil.copy(DATA / "circle_open" / keep, folder / keep)
+    if name.endswith(".npy"):
+        np.save(folder / name, metres)
+    else:
+        assert cv2.imwrite(str(folder / name), metres)
+    return folder
+
+
+@pytest.mark.parametrize("name, dtype", [("depth.npy", np.float64), ("depth.npy", np.float32),
+                                         ("depth.tiff", np.float32)])
+def test_a_folder_with_float_depth_in_metres_loads_as_the_same_frame(tmp_path, circle, name, dtype):
+    metres = (circle.depth * circle.intrinsics.depth_scale).astype(dtype)
+    metres[circle.depth == 0] = np.nan
+    frame = load_frame(folder_with_float_depth(tmp_path, circle, name, metres))
+    np.testing.assert_array_equal(frame.depth, circle.depth)
+    np.testing.assert_array_equal(frame.color, circle.color)
+
+
+def test_float_depth_files_are_checked_and_named(tmp_path, circle):
+    metres = (circle.depth * circle.intrinsics.depth_scale).astype(np.float32)
+    folder = folder_with_float_depth(tmp_path, circle, "depth.npy", metres * 1000.0)  # millimetres
+    with pytest.raises(FrameError, match=r"depth\.npy.*millimetres"):
+        load_frame(folder)
+    np.save(folder / "depth.npy", circle.depth)  # integer units belong in depth.png
+    with pytest.raises(FrameError, match=r"depth\.npy must hold floating-point depth in metres.*depth\.png"):
+        load_frame(folder)
+    np.save(folder / "depth.npy", metres[:, :-1])
+    with pytest.raises(FrameError, match=r"depth\.npy is 639x480.*registered"):
+        load_frame(folder)
+    (folder / "depth.npy").write_bytes(b"not numpy")
+    with pytest.raises(FrameError, match=r"depth\.npy is not a readable numpy array"):
+        load_frame(folder)
+    np.save(folder / "depth.npy", metres)
+    (folder / "depth.png").write_bytes((DATA / "circle_open" / "depth.png").read_bytes())
+    with pytest.raises(FrameError, match=r"depth\.png and depth\.npy.*keep one"):
+        load_frame(folder)
