@@ -142,7 +142,7 @@ def sweeps(quick: bool) -> list[str]:
                 centre_flagged = bool(estimate(finger, sdf, c, method="mechanics").event)
                 rows.append(f"| {name} | {centre} | {'xy'[axis]} | {steps.size} | "
                             f"{int(np.asarray(est.contact.touches).sum())} | {int(np.asarray(est.event).sum())} | "
-                            f"{jump[plain].max() if plain.any() else float('nan'):.4f} | "
+                            f"{jump[plain].max() if plain.any() else float('nan'):.5f} | "
                             f"{g:.3f}, {central[0]:.3f}, {central[1]:.3f}{' (flagged)' if centre_flagged else ''} |")
     return rows
 

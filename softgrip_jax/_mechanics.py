@@ -38,7 +38,10 @@ least-squares solver (:class:`ChainGaussNewton`), so ``optimistix.least_squares`
 iteration budget (``max_steps``), a per-candidate result (``throw=False``: a candidate that misses
 its tolerances gets ``Status.MECHANICS_NOT_CONVERGED``) and derivatives by implicit
 differentiation of the optimality condition: the equilibrium's derivatives in Theta, L, r, rho, c,
-the base pose and the object never go through the iterations.
+the base pose and the object never go through the iterations. From the converged point one full Newton
+step, with the energy's Hessian (contact curvature included), finishes the solve where it is small
+and lowers the energy (:func:`_polish`): near a fold the Gauss-Newton model converges slowly in the
+soft direction and would stop short by a pose-dependent amount.
 
 The closing path. A contact problem of this kind has several equilibria (a tip held on the object,
 or the finger pressed along its middle after the tip slid past); the estimate is the one the finger
@@ -520,6 +523,15 @@ def tip_sensitivity(problem: _Problem, y: Float[Array, " n1"]) -> Float[Array, "
     appear) H turns singular and the value grows without bound. Diagnostic only: it carries no
     derivative.
     """
+    return _second_order(problem, y)[0]
+
+
+def _second_order(
+    problem: _Problem, y: Float[Array, " n1"]
+) -> tuple[Float[Array, ""], Float[Array, " n1"], Float[Array, " n1"]]:
+    """From one Hessian H of the energy at y: the tip's sensitivity (:func:`tip_sensitivity`,
+    mm/mm), the full Newton step -H^-1 G (scaled variables, (N+1,)) and the gradient G ((N+1,)).
+    No derivatives."""
     problem, y = jax.lax.stop_gradient((problem, y))
     f = problem.finger
     weight = jnp.sqrt(jnp.asarray(problem.config.penalty, y.dtype)) / f.length
@@ -546,7 +558,9 @@ def tip_sensitivity(problem: _Problem, y: Float[Array, " n1"]) -> Float[Array, "
     origin = problem.frame.origin
     hessian = jax.jacfwd(energy_gradient, 0)(y, origin)  # (N+1, N+1)
     mixed = jax.jacfwd(energy_gradient, 1)(y, origin)  # (N+1, 2)
-    dy = -_gauss_jordan(hessian, mixed)
+    gradient = energy_gradient(y, origin)
+    solved = -_gauss_jordan(hessian, jnp.concatenate([mixed, gradient[:, None]], axis=1))
+    dy, newton = solved[:, :2], solved[:, 2]
     d_tip = jax.jacfwd(tip, 1)(y, origin) + jax.jacfwd(tip, 0)(y, origin) @ dy  # (2, 2)
     # largest singular value of the 2 x 2 matrix, closed form
     gram = d_tip.T @ d_tip
@@ -554,7 +568,7 @@ def tip_sensitivity(problem: _Problem, y: Float[Array, " n1"]) -> Float[Array, "
     det = gram[0, 0] * gram[1, 1] - gram[0, 1] * gram[1, 0]  # (not jnp.linalg.det: an LU custom call)
     gap = jnp.sqrt(jnp.maximum(half_trace**2 - det, 0.0))
     value = jnp.sqrt(half_trace + gap)
-    return jnp.where(jnp.isfinite(value), value, jnp.inf)
+    return jnp.where(jnp.isfinite(value), value, jnp.inf), newton, gradient
 
 
 def _gauss_jordan(a: Float[Array, "n n"], b: Float[Array, "n k"]) -> Float[Array, "n k"]:
@@ -572,6 +586,26 @@ def _gauss_jordan(a: Float[Array, "n n"], b: Float[Array, "n k"]) -> Float[Array
         return jnp.where((rows == k)[:, None], row[None, :], m - m[:, k][:, None] * row[None, :])
 
     return jax.lax.fori_loop(0, n, eliminate, jnp.concatenate([a, b], axis=1))[:, n:]
+
+
+def _polish(problem: _Problem, y, newton, gradient, converged) -> Float[Array, " n1"]:
+    """The full Newton step taken from the converged Gauss-Newton point, or zeros (N+1,).
+
+    The Gauss-Newton model leaves out the contact terms' curvature. Near a fold, in the soft
+    direction (a held tip's slide along the surface), it then converges slowly and stops up to
+    several ``step_tol`` short, by a different amount at neighbouring poses: steps in the estimate
+    as the pose moves. One Newton step with the full Hessian (the one the sensitivity needs)
+    removes most of that. It is taken only from a converged point, where it is small (no joint
+    moves more than 10 ``step_tol``: the same contacts), descends and lowers the energy.
+    """
+    def energy(v):
+        return 0.5 * jnp.sum(problem.residuals(v) ** 2)
+
+    trial = y + newton
+    shift = jnp.max(jnp.linalg.norm(problem.stations(trial)[0] - problem.stations(y)[0], axis=-1))
+    take = (converged & jnp.all(jnp.isfinite(newton)) & (shift <= 10.0 * problem.config.step_tol)
+            & (jnp.dot(gradient, newton) < 0) & (energy(trial) <= energy(y) * (1.0 + 1e-6)))
+    return jnp.where(take, newton, 0.0)
 
 
 class Equilibrium(eqx.Module):
@@ -629,6 +663,9 @@ def solve_equilibrium(
         _residual_fn, solver, y0, args=problem, max_steps=mechanics.max_steps, throw=False,
     )
     y = solution.value
+    converged = solution.result == optx.RESULTS.successful
+    sensitivity, newton, gradient = _second_order(problem, y)
+    y = y + jax.lax.stop_gradient(_polish(problem, y, newton, gradient, converged))
     psi, turning = problem.shape(y)
     joints, points = problem.stations(y)
     arc = jnp.linspace(0.0, 1.0, points.shape[0], dtype=points.dtype) * finger.length
@@ -646,12 +683,11 @@ def solve_equilibrium(
     other = jnp.any(pressed & ~tip_area)
     case = jnp.where(tip, jnp.where(other, ContactCase.TIP_AND_OTHER, ContactCase.TIP),
                      jnp.where(other, ContactCase.OTHER, ContactCase.NONE)).astype(jnp.int32)
-    sensitivity = tip_sensitivity(problem, y)
     tip_point = joints[-1]
     tip_foot = surface_point(problem.distance, tip_point)
     penetration = jnp.maximum(jnp.max(r - d), 0.0)
     return Equilibrium(
-        psi=psi, turning=turning, case=case, converged=solution.result == optx.RESULTS.successful,
+        psi=psi, turning=turning, case=case, converged=converged,
         penetration=penetration, tip_foot=tip_foot, steps=solution.stats["num_steps"],
         residual=solution.state.moved, slid_off=tip_pressed & ~tip, sensitivity=sensitivity,
         near_fold=sensitivity > mechanics.fold_sensitivity,
