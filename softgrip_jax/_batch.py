@@ -24,7 +24,6 @@ from jaxtyping import ArrayLike, Float
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._concurrent import pad_rows, run_in_parts
 from softgrip_jax._contact import ContactConfig, sweep_parts
-from softgrip_jax._deformation import Estimate, refine_search, search_contact, search_further, stage_of
 from softgrip_jax._estimate import estimate_in_frame
 from softgrip_jax._estimators import AbstractEstimator, as_estimator
 from softgrip_jax._errors import SoftgripError
@@ -36,6 +35,7 @@ from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._sharding import device_mesh, run_sharded
+from softgrip_jax._stage import Estimate, refine_search, search_contact, search_further, stage_of
 
 #: Candidates evaluated together inside one chunk; peak memory scales with this, not the batch.
 #: (4096 against 2048: 1.00x, 1.10x and 1.12x in three processes of ``python
@@ -117,6 +117,19 @@ def map_chunks(fn, xs, chunk_size):
     return jax.lax.fori_loop(0, n_chunks, write, out)
 
 
+def run_batch(one_device, sharded, before: tuple, xs: jax.Array, after: tuple, chunk_size: int,
+              workers: int | None, estimator: AbstractEstimator):
+    """A jitted batch function over the candidates ``xs`` (B, ...), with outputs of leading axis B:
+    with several JAX devices (GPUs, or processes joined by ``jax.distributed``) ``sharded`` on an
+    even share per device (:func:`~softgrip_jax._sharding.run_sharded`), else ``one_device`` in
+    ``workers`` concurrent parts (:func:`~softgrip_jax._concurrent.run_in_parts`). Both are called
+    as ``fn(*before, xs, *after, chunk_size=..., estimator=estimator)``."""
+    mesh = device_mesh()
+    if mesh is not None:
+        return run_sharded(sharded, mesh, before, xs, after, chunk_size, estimator=estimator)
+    return run_in_parts(one_device, before, xs, after, workers, chunk_size, estimator=estimator)
+
+
 def _estimate_share(finger, sdf, bases, config, chunk_size, estimator):
     frames = jax.vmap(FingerFrame.hanging_from)
     return map_chunks(lambda chunk: finger_chunk(finger, sdf, frames(chunk), config, estimator), bases, chunk_size)
@@ -193,10 +206,7 @@ def estimate_batch(
     """
     estimator = as_estimator(estimator, method, mechanics)
     bases = as_candidates(bases, 2, finger.length.dtype, "estimate_batch: bases")
-    mesh = device_mesh()
-    if mesh is not None:  # several devices (or processes joined by jax.distributed): an even share each
-        return run_sharded(_estimate_sharded, mesh, (finger, sdf), bases, (config,), chunk_size, estimator=estimator)
-    return run_in_parts(_estimate_batch, (finger, sdf), bases, (config,), workers, chunk_size, estimator=estimator)
+    return run_batch(_estimate_batch, _estimate_sharded, (finger, sdf), bases, (config,), chunk_size, workers, estimator)
 
 
 def estimate_grasp_batch(
@@ -235,9 +245,5 @@ def estimate_grasp_batch(
     """
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "estimate_grasp_batch: poses")
-    mesh = device_mesh()
-    if mesh is not None:
-        return run_sharded(_estimate_grasp_sharded, mesh, (gripper, sdf), poses, (config,), chunk_size,
-                           estimator=estimator)
-    return run_in_parts(_estimate_grasp_batch, (gripper, sdf), poses, (config,), workers, chunk_size,
-                        estimator=estimator)
+    return run_batch(_estimate_grasp_batch, _estimate_grasp_sharded, (gripper, sdf), poses, (config,), chunk_size,
+                     workers, estimator)

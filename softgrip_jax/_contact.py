@@ -39,7 +39,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from softgrip_base.errors import SoftgripError
-from softgrip_jax._kinematics import chain_stations, forward_kinematics, pcc_turning
+from softgrip_jax._kinematics import chain_points, pcc_chord_joints, pcc_joints, pcc_turning
 from softgrip_jax._model import FingerModel
 from softgrip_jax._safe import direction_angle, safe_divide, unit_direction
 from softgrip_jax._sdf import AbstractSDF, surface_point
@@ -146,10 +146,10 @@ def sweep_shape(
     return s, jnp.zeros((finger.n_links,), dtype=jnp.result_type(s))
 
 
-def _stations(finger, base, s, config):
-    psi, turning = sweep_shape(finger, s, config.sweep)
-    joints = forward_kinematics(base, psi, turning, finger.length)
-    return chain_stations(joints, finger.length, config.per_link(finger.n_links))
+def _sweep_chain(finger, base, s, config):
+    """Joints (N+1, 2) mm, stations (M, 2) mm and their arc lengths (M,) mm of the finger at
+    closing progress ``s`` (rad), drawn by :func:`~softgrip_jax._kinematics.chain_points`."""
+    return chain_points(base, *sweep_shape(finger, s, config.sweep), finger.length, config.per_link(finger.n_links))
 
 
 def _interior_vertices(
@@ -206,10 +206,12 @@ _ROOT_WINDOW = 5
 def _window_stations(finger, base, s, config, first):
     """The ``_ROOT_WINDOW`` stations from index ``first`` at closing progress ``s``, in closed form.
 
-    Joints of the PCC sweep lie on a circle through the base (eq. 2): joint i is at chord angle
-    s i / N and distance (L/N) sin(s i / N) / sin(s / N); of the rigid sweep, at i L / N along
-    the direction s. Only the joints the window needs are computed, so a root-finder iteration
-    costs a handful of lookups instead of the whole chain.
+    Joints of the PCC sweep lie on a circle through the base (eq. 2,
+    :func:`~softgrip_jax._kinematics.pcc_chord_joints`): joint i is at chord angle s i / N and
+    distance (L/N) sin(s i / N) / sin(s / N); of the rigid sweep, at i L / N along the direction s.
+    The same stations as :func:`_sweep_chain`'s to rounding, but only the joints the window needs
+    are computed: the root finder evaluates this (and its derivative in s) at every iteration, for
+    every touching candidate, where drawing the whole chain would cost N joints for five stations.
     """
     n, per_link = finger.n_links, config.per_link(finger.n_links)
     index = first + jnp.arange(_ROOT_WINDOW)
@@ -220,12 +222,7 @@ def _window_stations(finger, base, s, config, first):
         frac = ((index - link * per_link) / per_link).astype(s.dtype)
         ends = jnp.stack([link, link + 1]).astype(s.dtype)  # (2, window) joint indices
     if config.sweep == "pcc":
-        chord_angle = s * ends / n
-        sin_a, cos_a = jnp.sin(chord_angle), jnp.cos(chord_angle)  # shared by distance and direction
-        small = jnp.abs(s) < 1e-4
-        s_safe = jnp.where(small, 1.0, s)
-        ratio = jnp.where(small, ends * (1.0 - (s**2) * (ends**2 - 1.0) / (6.0 * n**2)), sin_a / jnp.sin(s_safe / n))
-        joints = base + (finger.length / n) * ratio[..., None] * jnp.stack([sin_a, cos_a], axis=-1)
+        joints = base + pcc_chord_joints(s, ends, n, finger.length)
     else:
         joints = base + (finger.length / n) * ends[..., None] * unit_direction(s)
     if per_link == 1:
@@ -386,7 +383,7 @@ def bracket_contact(
     s_grid = theta * jnp.linspace(0.0, 1.0, config.n_sweep, dtype=dtype)
     first_row, stop = rows or (0, config.n_sweep)
     s_rows = s_grid[first_row:stop]
-    points = jax.vmap(lambda s: _stations(finger, base, s, config)[0])(s_rows)
+    points = jax.vmap(lambda s: _sweep_chain(finger, base, s, config)[1])(s_rows)
     d_grid = dist(points)  # (rows, stations)
     hit = _chain_clearance(d_grid, spacing, r) <= 0
     if first_row > 0:
@@ -424,8 +421,7 @@ def free_contact(finger: FingerModel, bracket: Bracket) -> Contact:
     (0 for an initial overlap), P_g1 = P_o1 = P_o2 = the tip, L_g1 = L, N_g1 = N.
     """
     theta, n = finger.theta_entire, finger.n_links
-    tip = forward_kinematics(jnp.zeros(2, theta.dtype), jnp.zeros_like(theta), pcc_turning(theta, n),
-                             finger.length)[-1]
+    tip = pcc_joints(finger, jnp.zeros(2, theta.dtype))[-1]
     theta_o1 = direction_angle(tip)
     false = jnp.zeros((), bool)
     return Contact(
@@ -522,8 +518,7 @@ def refine_contact(
 
     # First contact point on the finger (eq. 6-7): the station nearest the base among those
     # touching at s1, refined between stations.
-    joints = forward_kinematics(base, *sweep_shape(finger, s1, config.sweep), length)
-    stations, arc = chain_stations(joints, length, config.per_link(n))
+    joints, stations, arc = _sweep_chain(finger, base, s1, config)
     d = dist(stations)
     vertex, offset = _parabola_vertices(d, _station_spacing(finger, config))
     # Touching regions are local minima of the distance along the finger; of those that touch

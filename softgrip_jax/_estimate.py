@@ -10,12 +10,12 @@ import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
 from softgrip_jax._contact import ContactConfig
-from softgrip_jax._deformation import Estimate, geometric_stage
 from softgrip_jax._estimators import AbstractEstimator, as_estimator
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import FingerModel
 from softgrip_jax._sdf import AbstractSDF
+from softgrip_jax._stage import Estimate, geometric_stage
 
 
 def estimate_in_frame(

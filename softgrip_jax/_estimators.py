@@ -1,7 +1,7 @@
 """The deformation estimators as objects: what turns a finger's predicted contact into its shape.
 
 Every estimate runs the same contact prediction (eqs. 5-8) and the paper's eq. 9 on it (the
-:class:`~softgrip_jax._deformation.Stage` of one finger, in its own frame); an estimator then says
+:class:`~softgrip_jax._stage.Stage` of one finger, in its own frame); an estimator then says
 what the finger's shape is, as solvers do in optimistix and diffrax. It is an ``equinox.Module``
 with only static fields, passed as ``estimator=`` to every estimate, score, refine and calibration
 function and to their jitted internals as a static argument: equal estimators (same class, equal
@@ -30,12 +30,12 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool
 
 from softgrip_jax._contact import ContactConfig
-from softgrip_jax._deformation import Estimate, Stage, finish, mechanics_of, needs_mechanics
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._gather import where_needed
 from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method, closing_start, path_increments
 from softgrip_jax._model import FingerModel
 from softgrip_jax._sdf import AbstractSDF
+from softgrip_jax._stage import Estimate, Stage, finish, mechanics_of, needs_mechanics
 
 #: A chunk's touching candidates are solved for their equilibrium in groups of this many: under
 #: vmap a group iterates until its slowest element is done (the longest closing path, the most
@@ -53,7 +53,7 @@ class AbstractEstimator(eqx.Module):
     functions, and equal estimators share their compiled programs.
 
     Everything is in the finger's frame (mm, rad; base at the origin, hanging toward +y, curling
-    toward +x) until :func:`~softgrip_jax._deformation.finish` places the shape in the image
+    toward +x) until :func:`~softgrip_jax._stage.finish` places the shape in the image
     plane; :meth:`deform` returns what ``finish`` returns.
     """
 
@@ -78,14 +78,14 @@ class AbstractEstimator(eqx.Module):
 
     @abc.abstractmethod
     def deform(self, finger: FingerModel, sdf: AbstractSDF, stage: Stage, config: ContactConfig) -> Estimate:
-        """The :class:`~softgrip_jax._deformation.Estimate` of one finger from its ``stage``.
+        """The :class:`~softgrip_jax._stage.Estimate` of one finger from its ``stage``.
 
         Args:
             finger: the finger model (mm, rad).
             sdf: the object, in image-plane mm.
             stage: the finger's contact prediction (eqs. 5-8) and eq. 9's shape of its case
                 (``stage.psi`` rad, ``stage.turning`` (N,) rad), in the finger's frame
-                ``stage.frame``; see :class:`~softgrip_jax._deformation.Stage`.
+                ``stage.frame``; see :class:`~softgrip_jax._stage.Stage`.
             config: the contact prediction's settings.
 
         Returns:

@@ -14,13 +14,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from softgrip_jax._contact import ContactConfig
-from softgrip_jax._deformation import Estimate
 from softgrip_jax._estimate import estimate_in_frame
 from softgrip_jax._estimators import AbstractEstimator, as_estimator
 from softgrip_jax._frames import FingerFrame, across_direction
 from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import Gripper
 from softgrip_jax._sdf import AbstractSDF
+from softgrip_jax._stage import Estimate
 
 
 class GraspEstimate(eqx.Module):

@@ -8,6 +8,12 @@ its base, ``turning[k]`` is the turning angle at joint k. Link k points at
 and P_{k+1} = P_k + (L/N) (sin alpha_k, cos alpha_k). Piecewise constant curvature with entire
 bending angle Theta is psi = 0, turning = 2 Theta / N, which gives alpha_k = Theta (2k+1)/N (eq. 3)
 and joints on the arc whose chords to the base make the angles Theta k / N (eq. 2).
+
+Every chain in the package is drawn here: :func:`forward_kinematics` (angles -> joints) and
+:func:`chain_points` (angles -> joints and the stations along the links), used by the contact
+sweep, the cases of eq. 9, the mechanics chain and the scores. :func:`pcc_chord_joints` is eq. 2
+in closed form, for a few joints of a PCC shape without the whole chain (the contact root
+finder's window).
 """
 
 import jax.numpy as jnp
@@ -71,6 +77,32 @@ def pcc_turning(theta: Float[Array, ""], n_links: int) -> Float[Array, " n"]:
     return jnp.full((n_links,), 2.0 * theta / n_links)
 
 
+def pcc_chord_joints(
+    theta: Float[Array, ""], index: Float[Array, "*k"], n_links: int, length: Float[Array, ""]
+) -> Float[Array, "*k 2"]:
+    """Joints P_i (mm, base at the origin) of the PCC shape with entire bending angle ``theta``
+    (rad), in closed form (eq. 2): joint i lies at the chord angle theta i / N from the vertical,
+    (L/N) sin(theta i / N) / sin(theta / N) from the base (i L / N as theta -> 0, by its series).
+    ``index``: joint indices i as floats, any shape (*k); ``length`` L mm.
+
+    The same joints as :func:`forward_kinematics` of ``pcc_turning(theta, N)`` to rounding, at the
+    cost of the requested joints only.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> [round(v, 3) for v in pcc_chord_joints(jnp.array(0.0), jnp.array([2.0]), 2, jnp.array(50.0))[0].tolist()]
+        [0.0, 50.0]
+    """
+    n = n_links
+    chord_angle = theta * index / n
+    sin_a, cos_a = jnp.sin(chord_angle), jnp.cos(chord_angle)  # shared by distance and direction
+    small = jnp.abs(theta) < 1e-4
+    theta_safe = jnp.where(small, 1.0, theta)
+    ratio = jnp.where(small, index * (1.0 - (theta**2) * (index**2 - 1.0) / (6.0 * n**2)),
+                      sin_a / jnp.sin(theta_safe / n))
+    return (length / n) * ratio[..., None] * jnp.stack([sin_a, cos_a], axis=-1)
+
+
 def pcc_joints(finger: FingerModel, base: Float[ArrayLike, "2"]) -> Float[Array, "joints 2"]:
     """The N+1 joints in mm of the closed, untouched finger (eqs. 1-3) hanging from ``base``.
 
@@ -106,3 +138,28 @@ def chain_stations(
     points = jnp.concatenate([inner.reshape(n * per_link, 2), joints[-1:]], axis=0)
     arc = jnp.arange(n * per_link + 1, dtype=joints.dtype) * (length / (n * per_link))
     return points, arc
+
+
+def chain_points(
+    base: Float[Array, "2"],
+    psi: Float[Array, ""],
+    turning: Float[Array, " n"],
+    length: Float[Array, ""],
+    per_link: int,
+) -> tuple[Float[Array, "n+1 2"], Float[Array, "m 2"], Float[Array, " m"]]:
+    """The chain and its centreline stations: the one builder of every chain in the package.
+
+    ``(joints, stations, arc)``: :func:`forward_kinematics`' joints (N+1, 2) mm of the shape
+    ``(psi, turning)`` (rad) hanging from ``base`` (2,) mm, and :func:`chain_stations`' ``per_link``
+    (static) stations per link plus the tip, (M, 2) mm with M = N per_link + 1, and their arc
+    lengths (M,) mm from the base.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> joints, stations, arc = chain_points(jnp.zeros(2), jnp.array(0.0), jnp.zeros(1), jnp.array(10.0), 2)
+        >>> joints.tolist(), stations.tolist(), arc.tolist()
+        ([[0.0, 0.0], [0.0, 10.0]], [[0.0, 0.0], [0.0, 5.0], [0.0, 10.0]], [0.0, 5.0, 10.0])
+    """
+    joints = forward_kinematics(base, psi, turning, length)
+    stations, arc = chain_stations(joints, length, per_link)
+    return joints, stations, arc

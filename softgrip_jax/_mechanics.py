@@ -87,7 +87,7 @@ from jaxtyping import Array, Bool, Float, Int
 from softgrip_jax._contact import Contact, ContactCase, ContactConfig, sweep_shape
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
-from softgrip_jax._kinematics import pcc_turning
+from softgrip_jax._kinematics import chain_points, pcc_turning
 from softgrip_jax._model import FingerModel
 from softgrip_jax._sdf import AbstractSDF, surface_point
 
@@ -233,28 +233,11 @@ class _Problem(eqx.Module):
         return jnp.concatenate([(turning - rest) / per_link, (psi / base)[None]])
 
     def stations(self, y):
-        """Joints (N+1, 2) and centreline stations (M, 2), M = N stations_per_link + 1, in mm.
-
-        The chain of :func:`forward_kinematics` with running sums (``jnp.cumsum``): here, where the points
-        feed SDF lookups and their gradients, that compiles to faster code than
-        :func:`forward_kinematics`' triangular product.
-        """
+        """Joints (N+1, 2) and centreline stations (M, 2), M = N stations_per_link + 1, in mm, in
+        the finger's frame: the chain of :func:`~softgrip_jax._kinematics.chain_points`."""
         psi, turning = self.shape(y)
-        f = self.finger
-        alpha = psi + jnp.cumsum(turning) - 0.5 * turning
-        h = f.length / f.n_links
-        zero = jnp.zeros((1,), turning.dtype)
-        jx = jnp.concatenate([zero, jnp.cumsum(h * jnp.sin(alpha))])
-        jy = jnp.concatenate([zero, jnp.cumsum(h * jnp.cos(alpha))])
-        per_link = self.config.stations_per_link
-        t = jnp.arange(per_link, dtype=turning.dtype) / per_link
-
-        def along(c):
-            inner = (c[:-1, None] + t[None, :] * (c[1:] - c[:-1])[:, None]).reshape(-1)
-            return jnp.concatenate([inner, c[-1:]])
-
-        joints = jnp.stack([jx, jy], axis=-1)
-        points = jnp.stack([along(jx), along(jy)], axis=-1)
+        joints, points, _ = chain_points(jnp.zeros(2, turning.dtype), psi, turning, self.finger.length,
+                                         self.config.stations_per_link)
         return joints, points
 
     def residuals(self, y, _args=None):

@@ -32,11 +32,9 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks
+from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks, run_batch
 from softgrip_jax._compile import tuned_jit
-from softgrip_jax._concurrent import run_in_parts
 from softgrip_jax._contact import ContactCase, ContactConfig
-from softgrip_jax._deformation import Estimate, Status
 from softgrip_jax._export import exportable
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
 from softgrip_jax._kinematics import chain_stations
@@ -45,7 +43,7 @@ from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
-from softgrip_jax._sharding import device_mesh, run_sharded
+from softgrip_jax._stage import Estimate, Status
 
 
 class ScoreWeights(eqx.Module):
@@ -241,12 +239,8 @@ def score(
     """
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
-    mesh = device_mesh()
-    if mesh is None:  # one device: on a CPU, concurrent parts over its cores (softgrip_jax._concurrent)
-        return run_in_parts(_score_one_device, (gripper, sdf), poses, (weights, config), workers, chunk_size,
-                            estimator=estimator)
-    return run_sharded(_score_sharded, mesh, (gripper, sdf), poses, (weights, config), chunk_size,
-                       estimator=estimator)
+    return run_batch(_score_one_device, _score_sharded, (gripper, sdf), poses, (weights, config), chunk_size,
+                     workers, estimator)
 
 
 class RefineStatus(enum.IntEnum):

@@ -11,7 +11,7 @@ from jaxtyping import TypeCheckError
 
 from softgrip_jax import (AbstractEstimator, FingerModel, Geometric, Gripper, Mechanics, MechanicsConfig, PolygonSDF,
                           SoftgripError, as_estimator, estimate, estimate_batch, estimate_grasp, pcc_joints, score)
-from softgrip_jax._deformation import finish
+from softgrip_jax._stage import finish
 from softgrip_jax._kinematics import pcc_turning
 
 FINGER = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)

@@ -22,7 +22,7 @@ from softgrip_jax import (CASE_NAMES, METHODS, ContactCase, ContactConfig, Finge
                           estimate_batch, estimate_grasp, estimate_grasp_batch, estimate_in_frame, forward_kinematics,
                           pcc_joints, refine, score, score_pose)
 from softgrip_jax._batch import where_needed
-from softgrip_jax._deformation import finish, geometric_stage, mechanics_of
+from softgrip_jax._stage import finish, geometric_stage, mechanics_of
 from softgrip_jax._mechanics import _Problem, solve_equilibrium
 from softgrip_jax._sdf import AbstractSDF
 from synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
