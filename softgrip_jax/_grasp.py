@@ -9,7 +9,6 @@ computation on the mirrored scene (its frame has handedness -1), never a second 
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 

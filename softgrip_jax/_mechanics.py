@@ -84,7 +84,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from softgrip_jax._contact import Contact, ContactCase, ContactConfig, sweep_shape
+from softgrip_jax._contact import Contact, ContactCase, ContactConfig
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import chain_points, pcc_turning
