@@ -33,7 +33,7 @@ PLANNER = """
 import softgrip_jax
 softgrip_jax.enable_compilation_cache()
 import jax.numpy as jnp
-from softgrip_jax import CASE_NAMES, FingerModel, Gripper, PolygonSDF, refine, score
+from softgrip_jax import CASE_NAMES, FingerModel, Geometric, Gripper, PolygonSDF, refine, score
 
 finger = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=20)  # mm, rad
 gripper = Gripper(left=finger, right=finger, base_separation=56.0)  # mm
@@ -41,9 +41,9 @@ obj = PolygonSDF.regular(center=(0.0, 38.0), radius=15.0, n_vertices=128)  # a 3
 x, y, angle = jnp.meshgrid(jnp.linspace(-10.0, 10.0, 11), jnp.linspace(-10.0, 10.0, 11),
                            jnp.linspace(-0.2, 0.2, 5), indexing="ij")
 poses = jnp.stack([x.ravel(), y.ravel(), angle.ravel()], axis=-1)  # (605, 3)
-result = score(gripper, obj, poses, method="geometric")
+result = score(gripper, obj, poses, estimator=Geometric())
 best = int(jnp.argmax(result.score))
-refined = refine(gripper, obj, poses[best], method="geometric")
+refined = refine(gripper, obj, poses[best], estimator=Geometric())
 f = refined.score.grasp.left
 print(CASE_NAMES[int(f.case)], [round(float(v), 1) for v in f.joints[-1]])
 """

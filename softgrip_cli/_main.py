@@ -105,7 +105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.signal(signal.SIGINT, previous)
     try:
         if uses_jax:
-            _pipeline.QUIET, _pipeline.VERBOSE = bool(args.quiet), bool(args.verbose)
+            _pipeline.configure_output(quiet=bool(args.quiet), verbose=bool(args.verbose))
             _pipeline.enable_compilation_cache()  # compiled programs persist across runs
         return int(args.func(args) or 0)
     except (SoftgripError, OutputRefusedError) as err:

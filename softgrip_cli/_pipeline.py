@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 from pathlib import Path
@@ -25,11 +26,12 @@ from vision.scene import (OPEN_BEND_WARN, SEPARATION_WARN_MM, FrameScene, FrameS
 
 __all__ = [
     "OPEN_BEND_WARN", "SEPARATION_WARN_MM", "SIDES", "FrameScene", "FrameSceneError", "Scene", "add_force_argument",
-    "candidate_json", "caption", "check_output_file", "components_json", "enable_compilation_cache",
+    "candidate_json", "caption", "check_output_file", "components_json", "configure_output",
+    "enable_compilation_cache",
     "ensure_dir", "estimate_grasp_jit", "info", "note", "estimate_scene", "failed_frame_json", "finger_contacts_mm",
     "finger_json", "fingers_json", "frame_inputs", "frame_json", "frame_scene", "gripper_from_profile",
     "grasp_overlay", "load_profile", "number_json", "points_json", "pose_from_bases", "pose_json",
-    "segmentation_settings", "status_name", "take", "to_numpy", "unique_png_names", "warn",
+    "quiet", "segmentation_settings", "status_name", "take", "to_numpy", "unique_png_names", "warn",
 ]
 
 
@@ -48,27 +50,52 @@ def enable_compilation_cache() -> None:
         enable()
 
 
-#: Set by ``-q``: warnings and summaries are not printed. ``VERBOSE`` (``-v``): details are.
-QUIET = False
-VERBOSE = False
+#: The commands' diagnostics on stderr (stdout is reserved for results): :func:`warn`, :func:`note`
+#: and :func:`info` log at WARNING, INFO and DEBUG; ``-q`` / ``-v`` set its level
+#: (:func:`configure_output`).
+LOG = logging.getLogger("softgrip_cli")
+
+
+class _StderrHandler(logging.Handler):
+    """Writes each record to the ``sys.stderr`` of the moment (a stream redirected or captured after
+    the handler was made is honoured), warnings as ``warning: ...``."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        prefix = "warning: " if record.levelno >= logging.WARNING else ""
+        print(prefix + record.getMessage(), file=sys.stderr)
+
+
+def configure_output(quiet: bool = False, verbose: bool = False) -> None:
+    """``-q``: nothing on stderr but errors; ``-v``: details too; neither: warnings and summaries.
+    ``-q`` wins over ``-v``. Called once per command; replaces this logger's handler."""
+    LOG.setLevel(logging.ERROR if quiet else logging.DEBUG if verbose else logging.INFO)
+    LOG.propagate = False  # a caller's own logging set-up does not print these twice
+    for handler in [h for h in LOG.handlers if isinstance(h, _StderrHandler)]:
+        LOG.removeHandler(handler)
+    LOG.addHandler(_StderrHandler())
+
+
+configure_output()  # warnings and summaries, until a command sets -q / -v
+
+
+def quiet() -> bool:
+    """Whether summaries (and progress bars) are silenced (``-q``)."""
+    return not LOG.isEnabledFor(logging.INFO)
 
 
 def note(message: str) -> None:
     """A summary line on stderr (how many, how long); silent with ``-q``."""
-    if not QUIET:
-        print(message, file=sys.stderr)
+    LOG.info(message)
 
 
 def info(message: str) -> None:
     """A detail on stderr, printed with ``-v`` only."""
-    if VERBOSE and not QUIET:
-        print(message, file=sys.stderr)
+    LOG.debug(message)
 
 
 def warn(message: str) -> None:
     """One diagnostic line on stderr (stdout is reserved for results); silent with ``-q``."""
-    if not QUIET:
-        print(f"warning: {message}", file=sys.stderr)
+    LOG.warning(message)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -406,5 +406,5 @@ def _print_frames(profile, start_method: str | None) -> None:
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
     from softgrip_cli import _pipeline
 
-    if not _pipeline.QUIET:
+    if not _pipeline.quiet():
         print(f"softgrip calibrate: warning: {message}", file=sys.stderr)

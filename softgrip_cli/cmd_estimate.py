@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
                 tqdm.write(json.dumps(record, allow_nan=False), file=sys.stdout)
                 sys.stdout.flush()
 
-        with tqdm(total=len(args.frames), desc="estimate", unit="frame", file=sys.stderr, disable=True if pipe.QUIET else None,
+        with tqdm(total=len(args.frames), desc="estimate", unit="frame", file=sys.stderr, disable=True if pipe.quiet() else None,
                   leave=False) as bar:
             for path, name in zip(args.frames, names):
                 try:

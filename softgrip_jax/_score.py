@@ -289,6 +289,11 @@ def _refine_one(gripper, sdf, pose, weights, config, max_steps, angle_scale, est
 
 
 def _refine_poses(gripper, sdf, poses, weights, config, max_steps, angle_scale, estimator):
+    # One pose (3,) is refined without vmap: a batched while_loop carries a select of its whole
+    # state at every step and runs both branches of each cond, a larger program that is slower to
+    # compile and to load from the cache.
+    if poses.ndim == 1:
+        return _refine_one(gripper, sdf, poses, weights, config, max_steps, angle_scale, estimator)
     return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, max_steps, angle_scale, estimator))(poses)
 
 
@@ -329,7 +334,5 @@ def refine(
     """
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(pose, 3, gripper.base_separation.dtype, "refine: pose", single=True)
-    single = poses.ndim == 1
-    out = _refine_batch(gripper, sdf, poses.reshape(-1, 3), weights, config, max_steps,
-                        jnp.asarray(angle_scale, poses.dtype), estimator)
-    return jax.tree_util.tree_map(lambda x: x[0], out) if single else out
+    return _refine_batch(gripper, sdf, poses, weights, config, max_steps, jnp.asarray(angle_scale, poses.dtype),
+                         estimator)

@@ -54,14 +54,14 @@ def test_q_silences_warnings_and_v_prints_details(capsys):
     from softgrip_cli import _pipeline
 
     try:
-        _pipeline.QUIET, _pipeline.VERBOSE = True, True
+        _pipeline.configure_output(quiet=True, verbose=True)
         _pipeline.warn("w"), _pipeline.note("n"), _pipeline.info("i")
-        assert capsys.readouterr().err == ""
-        _pipeline.QUIET = False
+        assert capsys.readouterr().err == "" and _pipeline.quiet()
+        _pipeline.configure_output(quiet=False, verbose=True)
         _pipeline.warn("w"), _pipeline.note("n"), _pipeline.info("i")
         assert capsys.readouterr().err == "warning: w\nn\ni\n"
-        _pipeline.VERBOSE = False
+        _pipeline.configure_output()
         _pipeline.info("i")
-        assert capsys.readouterr().err == ""
+        assert capsys.readouterr().err == "" and not _pipeline.quiet()
     finally:
-        _pipeline.QUIET = _pipeline.VERBOSE = False
+        _pipeline.configure_output()
