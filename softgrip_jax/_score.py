@@ -270,11 +270,13 @@ def _refine_one(gripper, sdf, pose, weights, config, max_steps, angle_scale, est
         # Leaving the valid set costs more than any score can gain.
         return -raw + 10.0 * (1.0 - s.valid.astype(pose.dtype))
 
-    start = score_at(pose)
     solution = optx.minimise(objective, optx.BFGS(rtol=1e-4, atol=1e-4), pose / scale, throw=False,
                              max_steps=max_steps)
     candidate = solution.value * scale
-    refined = score_at(candidate)
+    # The start and the end scored by one traced copy of the score (lax.map), not two: the score
+    # is most of the program, and of its compile time.
+    both = jax.lax.map(score_at, jnp.stack([pose, candidate]))
+    start, refined = (jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
     better = refined.valid & (refined.score > start.score)
     keep = lambda new, old: jnp.where(better, new, old)
     return Refined(
