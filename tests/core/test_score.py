@@ -58,6 +58,21 @@ def test_refine_improves_an_off_centre_pose_and_keeps_it_valid():
     assert float(again.score[0]) == pytest.approx(float(result.score.score), abs=1e-4)
 
 
+
+@pytest.mark.slow
+def test_refine_of_one_pose_equals_its_row_of_a_batch():
+    # One pose (3,) runs without vmap, a batch (B, 3) under it: two programs, one answer.
+    starts = jnp.array([[-6.0, 4.0, 0.05], [3.0, -2.0, -0.1]])
+    batch = refine(GRIPPER, DISC, starts, max_steps=24, method="geometric")
+    for i in range(2):
+        one = refine(GRIPPER, DISC, starts[i], max_steps=24, method="geometric")
+        assert one.pose.shape == (3,) and one.score.score.shape == ()
+        assert int(one.status) == int(batch.status[i]) and int(one.steps) == int(batch.steps[i])
+        np.testing.assert_allclose(one.pose, batch.pose[i], atol=1e-4)
+        assert float(one.score.score) == pytest.approx(float(batch.score.score[i]), abs=1e-4)
+        assert float(one.start_score) == pytest.approx(float(batch.start_score[i]), abs=1e-5)
+
+
 SHARDED = textwrap.dedent("""
     import os, sys
     import jax, jax.numpy as jnp, numpy as np
