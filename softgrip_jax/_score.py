@@ -324,6 +324,11 @@ def refine(
     older ``method`` / ``mechanics``) chooses the deformation estimate, as for :func:`score_pose`;
     the mechanics estimate's gradient in the pose comes from implicit differentiation.
 
+    One pose (3,) and a batch (B, 3) run two compiled programs of the same algorithm (a batch under
+    ``vmap``). Their rounding differs, and where BFGS wanders on a non-smooth score (contact cases
+    changing, the edge of the valid set) a pose refined alone may end elsewhere than the same pose
+    in a batch; each result keeps the guarantee above.
+
     Args:
         pose: (3,) or (B, 3) start poses: gripper centre x, y (mm) and angle (rad).
         max_steps: BFGS iterations at most (static).

@@ -46,19 +46,21 @@ def test_rigid_sweep_first_contact_is_the_tangent_angle(center, radius):
     assert float(c.theta_o1) == pytest.approx(math.atan2(foot[0], foot[1]), abs=2e-3)
 
 
-def dense_pcc_first_contact(theta, n, center, radius, r, n_s=4001, per_link=200):
-    """Independent brute force: chain joints from eq. 2, links sampled densely, exact circle distance."""
+def dense_first_contact(distance, theta, n, length, r, base=(0.0, 0.0), n_s=4001, per_link=200):
+    """Independent brute force: chains of eq. 2 from ``base``, links sampled densely, the object's
+    exact ``distance`` (numpy, points (M, 2) -> (M,) mm). Returns (s1 rad, the first point touching,
+    its arc length from the base mm), or None when nothing touches up to ``theta``."""
     i = np.arange(n + 1)
     t = np.linspace(0, 1, per_link, endpoint=False)
     for s in np.linspace(0, theta, n_s)[1:]:
-        chord = (L / n) * np.sin(s * i / n) / np.sin(s / n)
-        joints = np.stack([chord * np.sin(s * i / n), chord * np.cos(s * i / n)], -1)
+        chord = (length / n) * np.sin(s * i / n) / np.sin(s / n)
+        joints = np.stack([chord * np.sin(s * i / n), chord * np.cos(s * i / n)], -1) + np.asarray(base)
         pts = (joints[:-1, None] + t[None, :, None] * (joints[1:] - joints[:-1])[:, None]).reshape(-1, 2)
         pts = np.concatenate([pts, joints[-1:]])
-        gap = np.linalg.norm(pts - center, axis=1) - radius - r
+        gap = distance(pts) - r
         if gap.min() <= 0:
             k = int(np.argmin(gap))
-            return s, pts[k], k / (per_link * n) * L
+            return s, pts[k], k / (per_link * n) * length
     return None
 
 
@@ -67,7 +69,8 @@ def dense_pcc_first_contact(theta, n, center, radius, r, n_s=4001, per_link=200)
 @pytest.mark.parametrize("center, radius", [((16.0, 32.0), 7.0), ((9.0, 20.0), 4.0), ((36.0, 42.0), 9.0)])
 def test_pcc_sweep_first_contact_matches_dense_sweep(sdf_kind, center, radius, n, tol_s, tol_mm):
     theta = 0.8
-    expected = dense_pcc_first_contact(theta, n, np.array(center), radius, R_FINGER)
+    expected = dense_first_contact(lambda p: np.linalg.norm(p - np.array(center), axis=1) - radius, theta, n, L,
+                                   R_FINGER)
     assert expected is not None
     s1, p_g1, l_g1 = expected
     sdf = circle(center, radius)
@@ -87,19 +90,6 @@ def polygon_distance(points, vertices):
     ap = points[:, None, :] - a[None]
     t = np.clip(np.sum(ap * (b - a), -1) / np.sum((b - a) ** 2, -1), 0.0, 1.0)
     return np.min(np.linalg.norm(ap - t[..., None] * (b - a), axis=-1), axis=1)
-
-
-def dense_first_touch(base, vertices, theta, length, r, n, n_s=14001):
-    """The PCC sweep's first touch (rad) by brute force: chains of eq. 2 from ``base``, links
-    sampled densely, the polygon's exact distance (numpy)."""
-    i, t = np.arange(n + 1), np.linspace(0.0, 1.0, 200, endpoint=False)
-    for s in np.linspace(0.0, theta, n_s)[1:]:
-        chord = (length / n) * np.sin(s * i / n) / np.sin(s / n)
-        joints = np.stack([chord * np.sin(s * i / n), chord * np.cos(s * i / n)], -1) + np.asarray(base)
-        pts = (joints[:-1, None] + t[None, :, None] * (joints[1:] - joints[:-1])[:, None]).reshape(-1, 2)
-        if polygon_distance(pts, vertices).min() <= r:  # outside until then: unsigned = signed
-            return s
-    return None
 
 
 def square_near_the_finger():
@@ -123,8 +113,10 @@ def test_the_first_contact_root_converges_inside_its_bracket(vertices, theta, ba
     finger = FingerModel(length=52.0, theta_entire=theta, half_thickness=4.0, n_links=20)
     c = predict_contact(finger, PolygonSDF(jnp.asarray(vertices, jnp.float32)), jnp.asarray(base, jnp.float32))
     assert bool(c.touches) and bool(c.root_converged)
-    assert float(c.s1) == pytest.approx(dense_first_touch(base, np.asarray(vertices, np.float64), theta, 52.0, 4.0, 20),
-                                        abs=2e-3)
+    # The polygon's unsigned distance: the finger is outside it until the first touch.
+    expected = dense_first_contact(lambda p: polygon_distance(p, np.asarray(vertices, np.float64)), theta, 20, 52.0,
+                                   4.0, base=base, n_s=14001)
+    assert float(c.s1) == pytest.approx(expected[0], abs=2e-3)
 
 
 def test_no_object_in_reach_is_case_a():
