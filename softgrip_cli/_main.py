@@ -103,11 +103,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if previous is not None:  # from here Ctrl-C is a KeyboardInterrupt: writes clean up after it
             signal.signal(signal.SIGINT, previous)
+    import warnings
+
     try:
-        if uses_jax:
-            _pipeline.configure_output(quiet=bool(args.quiet), verbose=bool(args.verbose))
-            _pipeline.enable_compilation_cache()  # compiled programs persist across runs
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            if uses_jax:
+                _pipeline.configure_output(quiet=bool(args.quiet), verbose=bool(args.verbose))
+                # Python warnings (e.g. a cache file ignored) as the command's own: one escaped line.
+                warnings.showwarning = lambda message, *_, **__: _pipeline.warn(one_line(str(message)))
+                _pipeline.enable_compilation_cache()  # compiled programs persist across runs
+            return int(args.func(args) or 0)
     except (SoftgripError, OutputRefusedError) as err:
         if args.debug:
             raise

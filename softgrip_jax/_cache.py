@@ -15,11 +15,16 @@ JAX refuses to store a program that calls back into Python (``jax.debug.callback
   (``valid=False``, a :class:`~softgrip_jax.Status`). The ``softgrip`` command sets it; a library
   user sets it in the shell or at the top of the program (:func:`equinox_errors_cacheable` tells).
 * a progress bar (``calib.fit.fit(progress=True)``).
+
+The cache holds compiled machine code, which JAX loads and runs. A folder that another user can
+write is therefore refused (:func:`untrusted_reason`, :class:`UntrustedCacheWarning`): the cache is
+turned off instead, with one warning, whoever configured it.
 """
 
 from __future__ import annotations
 
 import os
+import stat
 import warnings
 from pathlib import Path
 
@@ -88,9 +93,18 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
     keep = bool(configured) and path is None
     folder = Path(configured) if keep else Path(path) if path is not None else default_cache_dir()
     try:
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     except OSError as err:
         warnings.warn(f"softgrip_jax: compilation cache off, cannot create {folder}: {err}", stacklevel=2)
+        return None
+    reason = untrusted_reason(folder)
+    if reason is not None:
+        # The cache holds compiled machine code that JAX loads and runs: a folder another user can
+        # write is a way into this process. Off, also when someone else configured it.
+        warnings.warn(f"softgrip_jax: compilation cache off: {reason}", UntrustedCacheWarning, stacklevel=2)
+        if keep:
+            jax.config.update("jax_compilation_cache_dir", None)
+            _reset_cache_backend(jax)
         return None
     if not keep:
         jax.config.update("jax_compilation_cache_dir", str(folder))
@@ -109,6 +123,45 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
 
 class CacheWarning(UserWarning):
     """A compiled program that the persistent cache will not hold (see :func:`enable_compilation_cache`)."""
+
+
+class UntrustedCacheWarning(CacheWarning):
+    """A cache folder or file that is not used because someone else could have written it, or a
+    cache file that failed its integrity check (it is ignored and written anew)."""
+
+
+def untrusted_reason(path: Path) -> str | None:
+    """Why the cache folder or file ``path`` may not be trusted with code, or None when it may.
+
+    Trusted: owned by this process's user (or by root), not a symbolic link when a file, and
+    writable by nobody else (no group or world write bit). The compilation cache holds compiled
+    machine code that JAX loads and runs, and the exported programs are compiled from what is read
+    back: whoever can write there runs code in every process that uses the folder. On a system
+    without POSIX owners (Windows) nothing is checked. A folder this package creates is made 0700.
+    """
+    if not hasattr(os, "geteuid"):
+        return None
+    try:
+        info = path.lstat()
+    except OSError as err:
+        return f"cannot read {path}: {err.strerror}"
+    if stat.S_ISLNK(info.st_mode):
+        try:
+            target = path.resolve(strict=True)
+        except OSError as err:
+            return f"{path} is a symbolic link that does not resolve: {err.strerror}"
+        if not path.is_dir():
+            return f"{path} is a symbolic link (a cache file must be a regular file)"
+        return untrusted_reason(target)
+    if not (stat.S_ISDIR(info.st_mode) or stat.S_ISREG(info.st_mode)):
+        return f"{path} is neither a folder nor a regular file"
+    if info.st_uid not in (os.geteuid(), 0):
+        return (f"{path} belongs to another user (uid {info.st_uid}); use a cache folder of your own "
+                f"(JAX_COMPILATION_CACHE_DIR, or softgrip_jax.enable_compilation_cache(path))")
+    if info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return (f"{path} is writable by other users (mode {stat.S_IMODE(info.st_mode):o}), who could put "
+                f"code there; make it yours alone (chmod go-w '{path}') or use another folder")
+    return None
 
 
 def _reset_cache_backend(jax) -> None:

@@ -14,10 +14,16 @@ array arguments, the tree structure of the arguments (which holds every static f
 and configs), the static arguments (an estimator by its class, name and settings:
 :func:`static_ident`), and the versions that decide the program: jax, jaxlib,
 equinox, lineax, optimistix, a hash of this package's source files, ``EQX_ON_ERROR``, the x64 flag
-and the backend. A file that does not match, does not load, or a function that cannot be exported
-(host callbacks, e.g. equinox's runtime errors without ``EQX_ON_ERROR=nan``) falls back to the
-ordinary ``jax.jit`` path, silently. Results are those of the jitted function: the same program,
-compiled with the same options.
+and the backend. A function that cannot be exported (host callbacks, e.g. equinox's runtime errors
+without ``EQX_ON_ERROR=nan``) runs on the ordinary ``jax.jit`` path, silently. Results are those of
+the jitted function: the same program, compiled with the same options.
+
+Nothing read from the folder can run Python code. A file is plain data (see "the file format"
+below: a JSON header and the serialized StableHLO, never a pickle), read only from a folder and a
+file that no other user can write, and checked (size, header, SHA-256, the output structure built
+only from this package's classes) before it is deserialized. A file that fails a check is ignored
+with one :class:`~softgrip_jax._cache.UntrustedCacheWarning` and exported again; a folder others
+can write is not used at all.
 
 "The cache on" is read from JAX's configuration at every call (:func:`active_folder`): exports are
 kept while ``jax.config.jax_compilation_cache_dir`` is set (by
@@ -32,26 +38,33 @@ jitted one, unchanged.
 
 from __future__ import annotations
 
+import dataclasses
+import enum
 import functools
 import hashlib
 import inspect
+import json
 import logging
 import os
-import pickle
+import stat
+import sys
 import tempfile
 import threading
+import warnings
 from pathlib import Path
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 
+from softgrip_jax._cache import UntrustedCacheWarning, untrusted_reason
 from softgrip_jax._compile import compiler_options
 from softgrip_jax._concurrent import is_traced
 
 #: Subfolder of the compilation cache folder that holds the exported programs.
 EXPORT_SUBFOLDER = "softgrip-export"
-#: Bumped when the file layout below changes.
-FORMAT = 1
+#: Bumped when the file layout below changes (1 was a pickle, which ran code on reading: never again).
+FORMAT = 2
 
 _log = logging.getLogger(__name__)
 
@@ -209,22 +222,22 @@ class exportable:  # noqa: N801 - used like jax.jit
         ident = "\n".join([self._fn.__module__ + "." + self._fn.__qualname__, _environment(), _backend_settings(),
                            repr(names), str(treedef), repr([(a.shape, str(a.dtype), a.weak_type) for a in avals]),
                            repr(statics)])
+        for place in (folder.parent, folder):
+            reason = untrusted_reason(place) if place.exists() else None
+            if reason is not None:
+                warnings.warn(f"softgrip_jax: exported programs not used: {reason}", UntrustedCacheWarning,
+                              stacklevel=4)
+                return None
         digest = hashlib.sha256(ident.encode()).hexdigest()
         path = folder / f"{self._fn.__name__.strip('_')}-{digest[:40]}.export"
         exported = out_treedef = None
-        try:
-            if path.is_file():
-                stored = pickle.loads(path.read_bytes())
-                if stored.get("ident") == ident:
-                    exported = export.deserialize(bytearray(stored["exported"]))
-                    out_treedef = jax.tree_util.tree_structure(stored["template"])
-                    if out_treedef.num_leaves != len(exported.out_avals):
-                        exported = None
-                    else:
-                        self._loaded += 1
-        except Exception:  # noqa: BLE001 - an unreadable or stale file: export again
-            _log.debug("softgrip_jax: cannot load %s", path, exc_info=True)
-            exported = None
+        if path.exists() or path.is_symlink():
+            try:
+                exported, out_treedef = _read(path, ident)
+                self._loaded += 1
+            except (OSError, ValueError) as err:  # unreadable, altered, stale or unsafe: exported again
+                warnings.warn(f"softgrip_jax: ignoring the cached program {path}: {err}", UntrustedCacheWarning,
+                              stacklevel=4)
         if exported is None:
             try:
                 flat, out = self._flat(names, static, treedef)
@@ -235,22 +248,184 @@ class exportable:  # noqa: N801 - used like jax.jit
                 _log.debug("softgrip_jax: %s not exported, it runs jitted", self._fn.__name__, exc_info=True)
                 return None
             try:
-                template = jax.tree_util.tree_unflatten(out_treedef, list(range(out_treedef.num_leaves)))
-                payload = pickle.dumps({"ident": ident, "exported": bytes(exported.serialize()), "template": template})
-                if jax.tree_util.tree_structure(pickle.loads(payload)["template"]) == out_treedef:
-                    _write(path, payload)
-                    self._exported += 1
-            except Exception:  # noqa: BLE001 - not kept on disk; this process still uses the export
+                _write(path, _encode_file(ident, bytes(exported.serialize()), out_treedef))
+                self._exported += 1
+            except (OSError, ValueError):  # not kept on disk; this process still uses the export
                 _log.debug("softgrip_jax: cannot write %s", path, exc_info=True)
         options = compiler_options() or None
         call = jax.jit(lambda *leaves: exported.call(*leaves), compiler_options=options)
         return call, out_treedef
 
 
+# -- the file format ----------------------------------------------------------------------------
+#
+# A file is the line MAGIC, one line of JSON (the header), and the bytes of ``Exported.serialize()``
+# (a flatbuffer of StableHLO: data, parsed by jax.export, never run as Python). The header holds the
+# signature's ident, the payload's size and SHA-256, and the output structure in JSON
+# (:func:`_structure_json`). Reading checks the file (a regular file of this user's that nobody else
+# can write, not too large), then the header, then the hash, and only then deserializes; the output
+# structure is rebuilt only from classes of this package.
+
+MAGIC = b"softgrip-export\n"
+#: Larger files are refused unread (the exports of this package are a few MB).
+MAX_FILE_BYTES = 256 * 2**20
+MAX_HEADER_BYTES = 2**20
+
+
+def _encode_file(ident: str, payload: bytes, out_treedef) -> bytes:
+    structure = _structure_json(jax.tree_util.tree_unflatten(out_treedef, [_LEAF] * out_treedef.num_leaves))
+    if jax.tree_util.tree_structure(_structure_from_json(structure)) != out_treedef:
+        raise ValueError("the output structure does not survive its JSON form")
+    header = {"format": FORMAT, "ident": ident, "size": len(payload), "sha256": hashlib.sha256(payload).hexdigest(),
+              "outputs": structure, "treedef": str(out_treedef)}
+    return MAGIC + json.dumps(header, separators=(",", ":")).encode() + b"\n" + payload
+
+
+def _read(path: Path, ident: str):
+    """(Exported, output treedef) from the file at ``path``, or ValueError / OSError saying why not."""
+    from jax import export
+
+    data = _read_private(path)
+    if not data.startswith(MAGIC):
+        raise ValueError("not a softgrip export file (an older format, or altered)")
+    end = data.find(b"\n", len(MAGIC), len(MAGIC) + MAX_HEADER_BYTES)
+    if end < 0:
+        raise ValueError("no header line")
+    try:
+        header = json.loads(data[len(MAGIC):end])
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"header is not JSON ({err})") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT or header.get("ident") != ident:
+        raise ValueError("written for another signature or format")
+    payload = data[end + 1:]
+    if header.get("size") != len(payload) or header.get("sha256") != hashlib.sha256(payload).hexdigest():
+        raise ValueError("its content does not match its SHA-256 (truncated or altered)")
+    out_treedef = jax.tree_util.tree_structure(_structure_from_json(header.get("outputs")))
+    if str(out_treedef) != header.get("treedef"):
+        raise ValueError("its output structure does not match its header")
+    try:
+        exported = export.deserialize(bytearray(payload))
+    except Exception as err:  # noqa: BLE001 - whatever the flatbuffer parser raises
+        raise ValueError(f"jax.export cannot read it ({type(err).__name__})") from None
+    if out_treedef.num_leaves != len(exported.out_avals):
+        raise ValueError("its outputs do not match its program")
+    return exported, out_treedef
+
+
+def _read_private(path: Path) -> bytes:
+    """The bytes of ``path``: a regular file (no symbolic link) that only this user can write,
+    checked on the open file itself, and at most :data:`MAX_FILE_BYTES`."""
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as err:
+        raise OSError(f"cannot open it ({err.strerror}; a symbolic link is refused)") from None
+    with os.fdopen(fd, "rb") as f:
+        info = os.fstat(f.fileno())
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError("not a regular file")
+        if hasattr(os, "geteuid") and (info.st_uid not in (os.geteuid(), 0) or info.st_mode & (stat.S_IWGRP | stat.S_IWOTH)):
+            raise ValueError("it belongs to another user or others can write it")
+        if info.st_size > MAX_FILE_BYTES:
+            raise ValueError(f"larger than {MAX_FILE_BYTES} bytes")
+        return f.read(MAX_FILE_BYTES + 1)
+
+
+class _Leaf:
+    """Stands for an array in an output template."""
+
+
+_LEAF = _Leaf()
+_JSON_SCALARS = (bool, int, float, str, type(None))
+
+
+def _class_path(kind: type) -> str:
+    return f"{kind.__module__}:{kind.__qualname__}"
+
+
+def _package_class(path) -> type:
+    """The class named ``module:QualName`` if it is one of this package's equinox modules, named
+    tuples or enums, already imported; ValueError otherwise (nothing is imported or called)."""
+    if not isinstance(path, str) or ":" not in path:
+        raise ValueError(f"bad class name {path!r} in its output structure")
+    module_name, qualname = path.split(":", 1)
+    module = sys.modules.get(module_name)
+    if module is None or module_name.split(".")[0] != __name__.split(".")[0] or "." in qualname:
+        raise ValueError(f"its output structure names {path!r}, not a class of this package")
+    kind = getattr(module, qualname, None)
+    if not isinstance(kind, type) or not (issubclass(kind, (eqx.Module, enum.Enum))
+                                          or (issubclass(kind, tuple) and hasattr(kind, "_fields"))):
+        raise ValueError(f"its output structure names {path!r}, not a class of this package")
+    return kind
+
+
+def _structure_json(node):
+    """A pytree template (arrays replaced by :data:`_LEAF`) as JSON: containers, this package's
+    equinox modules and named tuples, and their static fields' plain values and enums."""
+    if node is _LEAF:
+        return {"leaf": True}
+    if isinstance(node, enum.Enum):
+        return {"enum": _class_path(type(node)), "value": node.value}
+    if isinstance(node, _JSON_SCALARS):
+        return {"value": node}
+    if isinstance(node, eqx.Module):
+        _package_class(_class_path(type(node)))
+        return {"module": _class_path(type(node)),
+                "fields": {f.name: _structure_json(getattr(node, f.name)) for f in dataclasses.fields(node)}}
+    if isinstance(node, tuple) and hasattr(node, "_fields"):
+        _package_class(_class_path(type(node)))
+        return {"namedtuple": _class_path(type(node)), "items": [_structure_json(v) for v in node]}
+    if type(node) in (tuple, list):
+        return {type(node).__name__: [_structure_json(v) for v in node]}
+    if type(node) is dict and all(isinstance(k, str) for k in node):
+        return {"dict": {k: _structure_json(v) for k, v in node.items()}}
+    raise ValueError(f"{type(node).__name__} has no JSON form")
+
+
+def _structure_from_json(data):
+    """The template :func:`_structure_json` describes; ValueError for anything else."""
+    if not isinstance(data, dict) or len(data) not in (1, 2):
+        raise ValueError("malformed output structure")
+    if data.get("leaf") is True:
+        return _LEAF
+    if "value" in data and "enum" not in data:
+        if not isinstance(data["value"], _JSON_SCALARS):
+            raise ValueError("malformed output structure")
+        return data["value"]
+    if "enum" in data:
+        kind = _package_class(data["enum"])
+        if not issubclass(kind, enum.Enum):
+            raise ValueError(f"{data['enum']} is not an enum")
+        return kind(data["value"])
+    if "module" in data:
+        kind = _package_class(data["module"])
+        fields = data.get("fields")
+        names = [f.name for f in dataclasses.fields(kind)] if issubclass(kind, eqx.Module) else None
+        if names is None or not isinstance(fields, dict) or sorted(fields) != sorted(names):
+            raise ValueError(f"fields of {data['module']} do not match the class")
+        # As equinox's own unflatten does: a new instance with its fields set, no __init__ run.
+        node = object.__new__(kind)
+        for name in names:
+            object.__setattr__(node, name, _structure_from_json(fields[name]))
+        return node
+    if "namedtuple" in data:
+        kind = _package_class(data["namedtuple"])
+        items = data.get("items")
+        if not isinstance(items, list) or len(items) != len(getattr(kind, "_fields", ())):
+            raise ValueError(f"items of {data['namedtuple']} do not match the class")
+        return kind(*map(_structure_from_json, items))
+    for name, container in (("tuple", tuple), ("list", list)):
+        if name in data and isinstance(data[name], list):
+            return container(map(_structure_from_json, data[name]))
+    if "dict" in data and isinstance(data["dict"], dict):
+        return {k: _structure_from_json(v) for k, v in data["dict"].items()}
+    raise ValueError("malformed output structure")
+
+
 def _write(path: Path, payload: bytes) -> None:
     """Write ``payload`` to ``path`` atomically (a temporary file renamed), so that a process
     reading it never sees half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:

@@ -19,7 +19,7 @@ import pytest
 
 import softgrip_jax
 from softgrip_jax import ContactConfig, FingerModel, Geometric, Gripper, Mechanics, MechanicsConfig, PolygonSDF, ScoreWeights
-from softgrip_jax._cache import default_cache_dir
+from softgrip_jax._cache import CacheWarning, UntrustedCacheWarning, default_cache_dir
 
 ROOT = Path(__file__).resolve().parents[2]
 FINGER = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=10)
@@ -52,6 +52,36 @@ def test_enable_compilation_cache_uses_the_given_folder(tmp_path, restore_cache_
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.jit(lambda x: jnp.sin(x) * 3.25 + 17.0)(jnp.arange(7.0)).block_until_ready()
     assert any(folder.iterdir())
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid"), reason="POSIX owners and modes")
+@pytest.mark.parametrize("configured", [False, True], ids=["given", "configured-elsewhere"])
+def test_a_cache_folder_others_can_write_is_refused(tmp_path, restore_cache_config, monkeypatch, configured) -> None:
+    """The cache holds machine code that JAX runs: a folder another user can write is never used,
+    whoever named it, and the program runs without a cache."""
+    monkeypatch.delenv("SOFTGRIP_JAX_CACHE", raising=False)
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    if configured:
+        jax.config.update("jax_compilation_cache_dir", str(shared))
+    with pytest.warns(UntrustedCacheWarning, match="writable by other users"):
+        assert softgrip_jax.enable_compilation_cache(None if configured else shared) is None
+    assert jax.config.jax_compilation_cache_dir in (None, "")
+
+
+def test_a_new_cache_folder_is_made_private(tmp_path, restore_cache_config, monkeypatch) -> None:
+    monkeypatch.delenv("SOFTGRIP_JAX_CACHE", raising=False)
+    old = os.umask(0o002)  # a umask that would make a group-writable folder
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", CacheWarning)
+            warnings.simplefilter("error", UntrustedCacheWarning)
+            folder = softgrip_jax.enable_compilation_cache(tmp_path / "new")
+    finally:
+        os.umask(old)
+    assert folder == tmp_path / "new"
+    assert (folder.stat().st_mode & 0o077) == 0
 
 
 def test_enable_compilation_cache_can_be_turned_off(tmp_path, restore_cache_config, monkeypatch) -> None:

@@ -1,7 +1,9 @@
 """Exported programs kept with the compilation cache (softgrip_jax._export).
 
-What is checked: the exported path gives the same results as the jitted one (bit for bit); a stale
-or broken file falls back silently; a new process with a warm cache traces none of the batch
+What is checked: the exported path gives the same results as the jitted one (bit for bit); a file
+that is broken, altered, planted (a pickle that would run code), foreign (naming classes outside the
+package), writable by others or behind a link is ignored with one warning and exported again, and a
+folder others can write is not used; a new process with a warm cache traces none of the batch
 functions and misses the compilation cache for no program (counted, not timed).
 """
 
@@ -9,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import subprocess
 import sys
 import textwrap
@@ -23,6 +26,7 @@ import pytest
 import softgrip_jax
 from softgrip_jax import ContactConfig, FingerModel, Geometric, Gripper, PolygonSDF, ScoreWeights
 from softgrip_jax import _export
+from softgrip_jax._cache import UntrustedCacheWarning
 from softgrip_jax._batch import _estimate_batch, _estimate_grasp_batch
 from softgrip_jax._score import _refine_batch, _score_one_device
 
@@ -81,20 +85,161 @@ def test_exported_score_equals_the_jitted_one(export_cache) -> None:
     _assert_identical(softgrip_jax.score(GRIPPER, DISC, POSES, method="geometric", chunk_size=8), jitted)
 
 
-def test_a_broken_or_stale_export_falls_back_silently(export_cache) -> None:
+def _ignored_with_one_warning(path, reference, match: str) -> None:
+    """Reading ``path`` again (as a new process would) ignores it with one warning that names it and
+    ``match``, returns the jitted results, and writes a good export in its place."""
+    _score_one_device._calls.clear()  # as a new process: read the file again
+    before = _score_one_device.export_info()
+    with pytest.warns(UntrustedCacheWarning, match=match) as caught:
+        _assert_identical(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
+    assert len([w for w in caught if issubclass(w.category, UntrustedCacheWarning)]) == 1
+    assert str(path) in str(caught[0].message)
+    after = _score_one_device.export_info()
+    assert after.loaded == before.loaded
+    assert after.exported == before.exported + 1  # exported again, over the bad file
+    _score_one_device._calls.clear()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UntrustedCacheWarning)
+        _assert_identical(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
+    assert _score_one_device.export_info().loaded == before.loaded + 1
+
+
+@pytest.fixture
+def written_export(export_cache):
+    """(path of the score's export file, the jitted reference result)."""
     reference = _score_one_device._jitted(*_score_args(), chunk_size=8, estimator=Geometric())
     _score_one_device(*_score_args(), chunk_size=8, estimator=Geometric())
     (path,) = export_cache.glob("score_share-*.export")
-    path.write_bytes(b"not an export")
-    _score_one_device._calls.clear()  # as a new process: read the file again
-    before = _score_one_device.export_info()
-    _assert_identical(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
-    after = _score_one_device.export_info()
-    assert after.loaded == before.loaded
-    assert after.exported == before.exported + 1  # exported again, over the broken file
+    return path, reference
+
+
+class _Planted:
+    """What an attacker writes: a pickle that runs code (here: makes a folder) when unpickled."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.mkdir, (str(self.marker),)
+
+
+def test_a_pickle_planted_in_the_cache_never_runs(written_export, tmp_path) -> None:
+    """The first file format was a pickle: whoever could write the folder ran code in every process
+    that read it. Now the file is data, and a planted pickle is ignored unread."""
+    import pickle
+
+    path, reference = written_export
+    marker = tmp_path / "code-ran"
+    path.write_bytes(pickle.dumps({"ident": "x", "exported": _Planted(marker), "template": _Planted(marker)}))
+    _ignored_with_one_warning(path, reference, "not a softgrip export")
+    assert not marker.exists()
+
+
+def _rewrite_header(path: Path, change) -> None:
+    data = path.read_bytes()
+    end = data.index(b"\n", len(_export.MAGIC))
+    header = json.loads(data[len(_export.MAGIC):end])
+    change(header)
+    path.write_bytes(_export.MAGIC + json.dumps(header).encode() + data[end:])
+
+
+@pytest.fixture(scope="module")
+def good_export(tmp_path_factory):
+    """(bytes of a good export file of the score, its ident), written once for the module."""
+    folder = tmp_path_factory.mktemp("good")
+    saved = jax.config.jax_compilation_cache_dir, os.environ.get("SOFTGRIP_JAX_CACHE")
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    os.environ.pop("SOFTGRIP_JAX_CACHE", None)  # (the tests' conftest turns it off by default)
+    try:
+        _score_one_device._calls.clear()
+        _score_one_device(*_score_args(), chunk_size=8, estimator=Geometric())
+    finally:
+        jax.config.update("jax_compilation_cache_dir", saved[0])
+        if saved[1] is not None:
+            os.environ["SOFTGRIP_JAX_CACHE"] = saved[1]
+        _score_one_device._calls.clear()
+    (path,) = (folder / _export.EXPORT_SUBFOLDER).glob("score_share-*.export")
+    data = path.read_bytes()
+    end = data.index(b"\n", len(_export.MAGIC))
+    return data, json.loads(data[len(_export.MAGIC):end])["ident"]
+
+
+def _with_header(data: bytes, change) -> bytes:
+    end = data.index(b"\n", len(_export.MAGIC))
+    header = json.loads(data[len(_export.MAGIC):end])
+    change(header)
+    return _export.MAGIC + json.dumps(header).encode() + data[end:]
+
+
+def _flip(data: bytes, at: int) -> bytes:
+    out = bytearray(data)
+    out[at] ^= 0xFF
+    return bytes(out)
+
+
+def test_a_good_export_file_reads_back(good_export, tmp_path) -> None:
+    data, ident = good_export
+    (path := tmp_path / "a.export").write_bytes(data)
+    exported, out_treedef = _export._read(path, ident)
+    assert out_treedef.num_leaves == len(exported.out_avals)
+    with pytest.raises(ValueError, match="another signature"):
+        _export._read(path, ident + "x")
+
+
+@pytest.mark.parametrize(("alter", "match"), [
+    (lambda d: _flip(d, -100), "SHA-256"),  # one byte of the serialized program
+    (lambda d: d[:-10], "SHA-256"),  # truncated
+    (lambda d: _with_header(d, lambda h: h["outputs"].update(module="os:system")), "not a class of this package"),
+    (lambda d: _with_header(d, lambda h: h["outputs"].update(module="subprocess:Popen")), "not a class of this package"),
+    (lambda d: _with_header(d, lambda h: h["outputs"].update(module="builtins:eval")), "not a class of this package"),
+    (lambda d: _with_header(d, lambda h: h["outputs"].update(module="softgrip_jax._export:_Leaf")),
+     "not a class of this package"),
+    (lambda d: _with_header(d, lambda h: h["outputs"]["fields"].pop("valid")), "do not match the class"),
+    (lambda d: _with_header(d, lambda h: h.update(treedef="PyTreeDef(*)")), "output structure does not match"),
+    (lambda d: d[:len(_export.MAGIC)] + b"[1, 2\n" + d[len(_export.MAGIC):], "not JSON"),
+    (lambda d: d[:len(_export.MAGIC) + 5], "no header"),
+], ids=["program-byte", "truncated", "os.system", "Popen", "eval", "private-class", "missing-field", "treedef",
+        "bad-json", "no-header"])
+def test_an_altered_export_file_is_refused_before_it_is_deserialized(good_export, tmp_path, alter, match) -> None:
+    """Even with a matching hash, the output structure may only name this package's equinox modules,
+    named tuples and enums; nothing is imported or called to check it."""
+    data, ident = good_export
+    (path := tmp_path / "a.export").write_bytes(alter(data))
+    with pytest.raises(ValueError, match=match):
+        _export._read(path, ident)
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid"), reason="POSIX owners and modes")
+def test_an_export_file_others_can_write_or_behind_a_link_is_refused(good_export, tmp_path) -> None:
+    data, ident = good_export
+    (path := tmp_path / "a.export").write_bytes(data)
+    path.chmod(0o666)
+    with pytest.raises(ValueError, match="others can write it"):
+        _export._read(path, ident)
+    path.chmod(0o600)
+    (link := tmp_path / "b.export").symlink_to(path)
+    with pytest.raises(OSError, match="symbolic link"):
+        _export._read(link, ident)
+    fifo = tmp_path / "c.export"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match="not a regular file"):  # opened without blocking, refused
+        _export._read(fifo, ident)
+    if os.geteuid() == 0:
+        os.chown(path, 4242, 4242)
+        with pytest.raises(ValueError, match="another user"):
+            _export._read(path, ident)
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid"), reason="POSIX owners and modes")
+def test_an_export_folder_others_can_write_is_not_used(written_export) -> None:
+    path, reference = written_export
+    path.parent.chmod(0o777)
     _score_one_device._calls.clear()
-    _assert_identical(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
-    assert _score_one_device.export_info().loaded == before.loaded + 1
+    before = _score_one_device.export_info()
+    with pytest.warns(UntrustedCacheWarning, match="writable by other users"):
+        _assert_identical(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
+    after = _score_one_device.export_info()
+    assert (after.loaded, after.exported, after.fallback) == (before.loaded, before.exported, before.fallback + 1)
 
 
 def test_another_cache_folder_prepares_its_own_exports(export_cache, tmp_path) -> None:
