@@ -591,6 +591,58 @@ def _polish(problem: _Problem, y, newton, gradient, converged) -> Float[Array, "
     return jnp.where(take, newton, 0.0)
 
 
+def contact_forces(
+    finger: FingerModel,
+    joints: Float[Array, "joints 2"],
+    turning: Float[Array, " n"],
+    handedness: Float[Array, ""],
+    points: Float[Array, "k 2"],
+    normals: Float[Array, "k 2"],
+    station: Int[Array, " k"],
+    per_link: int,
+    touching: Bool[Array, " k"],
+) -> Float[Array, " k"]:
+    """Contact force magnitudes (K,) of an equilibrium, in units of EI / L^2 (mean bending stiffness
+    over L^2), at K contact stations, from the springs' moments: frictionless contact pushes each
+    station along the object's outward normal, and at equilibrium each link's spring moment
+    ``k_j N (delta_j - delta0)`` (EI / L) equals the moment of the forces beyond it,
+    ``sum_c lambda_c d(distance_c)/d delta_j``. Solved for lambda >= 0 by least squares over the N
+    links (the contacts' rows as in :func:`_newton_step`), then ``f = lambda L``.
+
+    Independent of the penalty's sink depth (hundredths of a micrometre, which a converged solve
+    does not resolve): the moments are what the solve converges.
+
+    Args:
+        joints: (N+1, 2) mm, image plane; turning: (N,) rad, the finger's own frame; handedness: +1
+            for a finger curling toward its frame's +x (left), -1 mirrored (right).
+        points: (K, 2) mm, the contact stations on the centreline; normals: (K, 2) the object's
+            outward unit normals there; station: (K,) their indices among the ``per_link`` (static)
+            stations per link plus the tip.
+    """
+    n = finger.n_links
+    link = jnp.minimum(station // per_link, n - 1)
+    mids = 0.5 * (joints[:-1] + joints[1:])
+    j = jnp.arange(n)
+    own = 0.5 * _cross(normals, points - joints[link])
+    past = _cross(normals, points)[:, None] - _cross(normals[:, None, :], mids[None, :, :])
+    # d distance / d delta_j: turning link j moves what lies past its middle about the middle (its
+    # own stations about its start, by half); a mirrored finger turns the other way in the image.
+    rows = handedness * jnp.where(j[None, :] < link[:, None], past,
+                                  jnp.where(j[None, :] == link[:, None], own[:, None], 0.0))
+    rows = jnp.where(touching[:, None], rows, 0.0)
+    moments = link_stiffness(finger) * n * (turning - pcc_turning(finger.theta_entire, n))
+    k = points.shape[0]
+    gram = rows @ rows.T + 1e-9 * jnp.trace(rows @ rows.T) * jnp.eye(k, dtype=rows.dtype) + 1e-30 * jnp.eye(k)
+    lam = jnp.linalg.solve(gram, rows @ moments)
+    # A slot that would pull: drop it and solve again (a few contacts: two rounds suffice in practice).
+    for _ in range(2):
+        keep = touching & (lam > 0)
+        r = jnp.where(keep[:, None], rows, 0.0)
+        g = r @ r.T + jnp.diag(jnp.where(keep, 0.0, 1.0)) + 1e-9 * jnp.trace(r @ r.T) * jnp.eye(k, dtype=rows.dtype)
+        lam = jnp.where(keep, jnp.linalg.solve(g, r @ moments), 0.0)
+    return jnp.maximum(lam, 0.0) * finger.length
+
+
 class Equilibrium(eqx.Module):
     """The spring chain at equilibrium, in the finger's frame."""
 

@@ -1,24 +1,31 @@
 """Scoring and refining pre-touch gripper poses (the paper's future work).
 
-A candidate is a gripper pose (x mm, y mm, angle rad). Its score combines what a planner needs to
-rank pre-touch poses from both fingers' estimates:
+A candidate is a gripper pose (x mm, y mm, angle rad). Its score ranks what a grasp engineer
+would: grasps in force closure first, by their quality; then the rest, by how near they come.
 
-* ``touch``: each finger closes onto the object before its closure ends (1), grazes it at the very
-  end (ramps to 0), or misses it (0);
-* ``wrap``: the fraction of each estimated finger that lies along the object surface (centreline
-  within ``contact_band`` mm of the object plus r);
-* ``opposition``: -n_left . n_right for the outward object normals at the two first contacts:
-  1 when the fingers squeeze from opposite sides, 0 when either finger misses;
-* ``tip_only``: a finger landing with its tip only (case b) on an edge, which a planner avoids;
-* ``penetration_mm``: how deep the estimated finger (centreline + r) lies inside the object. The
-  paper's wrapping cases press a soft finger's skin into the object by a millimetre or so; an
-  estimate deeper than ``max_penetration`` times r is flagged ``penetrating`` and ranks last.
+* ``quality``: the Ferrari-Canny L1 epsilon of both fingers' contacts with Coulomb friction
+  (:mod:`softgrip_jax._quality`): the largest planar wrench the grasp resists in every direction
+  per unit of total normal force, torque scaled by the object's size ``rho``. ``force_closure`` is
+  ``quality > 0``. It is comparable across objects and poses, and does not change when object and
+  gripper move, turn or scale together.
+* ``risk`` in [0, 1], the tie-breaker: ``1 - (1 - w_tip tip_only)(1 - w_pen penetration)(1 - w_event
+  event)``, with ``tip_only`` a finger landing with its tip only (case b), ``penetration`` the
+  estimated finger's depth inside the object over the flagged depth (``max_penetration`` r), and
+  ``event`` a slide-off or fold of the mechanics estimate near the pose (its ``Estimate.event``).
+* ``progress`` in [0, 1], for grasps without closure: how much of a grasp there is,
+  ``(w_touch mean(touch) + w_wrap mean(wrap) + w_opposition max(opposition, 0)) / (w_touch + w_wrap
+  + w_opposition)``; ``touch`` (each finger closes onto the object before its closure ends: 1,
+  grazes it at the very end: ramps to 0, misses: 0), ``wrap`` (the fraction of the finger within
+  ``contact_band`` of the object) and ``opposition`` (-n_left . n_right at the first contacts).
 
-score = w_touch mean(touch) + w_wrap mean(wrap) + w_opposition opposition
-        - w_tip_only mean(tip_only) - w_penetration mean(penetration_mm).
+    score = 1 + quality (1 - risk)                 in force closure   (in [1, 2))
+    score = 0.99 progress (1 - risk)               otherwise           (in [0, 0.99])
 
-Every term is a continuous function of the estimate, so the score can be differentiated in the pose
-and refined by an optimistix minimiser.
+so a grasp in force closure always ranks above one without, whatever the weights. An estimate
+deeper in the object than ``max_penetration`` r is flagged ``penetrating``; it and every other
+invalid candidate score -inf. Every setting is an array of :class:`ScoreWeights` (friction ``mu``
+included): changing one never recompiles. Within a tier the score is a continuous function of the
+estimate, so a pose can be refined by gradient (an optimistix minimiser).
 """
 
 from __future__ import annotations
@@ -35,27 +42,58 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks, run_batch
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._contact import ContactCase, ContactConfig
+from softgrip_jax._errors import SoftgripError
 from softgrip_jax._export import exportable
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
 from softgrip_jax._kinematics import chain_stations
-from softgrip_jax._estimators import AbstractEstimator, as_estimator
-from softgrip_jax._mechanics import MechanicsConfig
+from softgrip_jax._estimators import AbstractEstimator, Mechanics, as_estimator
+from softgrip_jax._mechanics import MechanicsConfig, contact_forces
 from softgrip_jax._model import FingerModel, Gripper
+from softgrip_jax._quality import (CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, edge_wrenches, epsilon_l1,
+                                   finger_contacts)
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate, Status
 
+#: The score of the best grasp without force closure is at most this (every grasp in closure scores 1 or more).
+OPEN_TIER_MAX = 0.99
+
 
 class ScoreWeights(eqx.Module):
-    """Weights and thresholds of the score (all static; mm where a length)."""
+    """Settings of the score, all run-time values (array leaves: changing one never recompiles).
 
-    touch: float = eqx.field(static=True, default=1.0)
-    wrap: float = eqx.field(static=True, default=2.0)
-    opposition: float = eqx.field(static=True, default=1.0)
-    tip_only: float = eqx.field(static=True, default=1.5)
-    penetration: float = eqx.field(static=True, default=1.0)  #: per mm
-    contact_band: float = eqx.field(static=True, default=1.0)  #: mm beyond r that counts as "along"
-    max_penetration: float = eqx.field(static=True, default=0.5)  #: fraction of r; deeper is flagged
+    Attributes:
+        mu: Coulomb friction coefficient between finger and object (default: silicone on common
+            dry objects, :data:`~softgrip_jax._quality.DEFAULT_MU`).
+        tip_only, penetration, event: weights in [0, 1] of the risks (see the module docstring).
+        touch, wrap, opposition: weights (>= 0) of the progress of a grasp without closure.
+        contact_band: mm beyond r within which a station counts as touching (quality) or lying
+            along the object (wrap).
+        max_penetration: fraction of r; an estimate deeper inside the object is flagged.
+    """
+
+    mu: float | Array = DEFAULT_MU
+    tip_only: float | Array = 0.5
+    penetration: float | Array = 0.5
+    event: float | Array = 0.5
+    touch: float | Array = 1.0
+    wrap: float | Array = 1.0
+    opposition: float | Array = 1.0
+    contact_band: float | Array = 0.25
+    max_penetration: float | Array = 0.5
+
+    def __check_init__(self):
+        checks = {"mu": (0.0, 10.0), "tip_only": (0.0, 1.0), "penetration": (0.0, 1.0), "event": (0.0, 1.0),
+                  "touch": (0.0, 1e6), "wrap": (0.0, 1e6), "opposition": (0.0, 1e6), "contact_band": (0.0, 100.0),
+                  "max_penetration": (0.0, 10.0)}
+        for name, (low, high) in checks.items():
+            value = getattr(self, name)
+            if isinstance(value, jax.core.Tracer):
+                continue
+            if isinstance(value, bool) or jnp.ndim(value) != 0 or not (low <= float(value) <= high):
+                raise SoftgripError(f"ScoreWeights.{name} must be a number in [{low:g}, {high:g}], got {value!r}")
+        if not isinstance(self.touch, jax.core.Tracer) and float(self.touch) + float(self.wrap) + float(self.opposition) <= 0:
+            raise SoftgripError("ScoreWeights: touch, wrap and opposition must not all be 0")
 
 
 class ScoreComponents(eqx.Module):
@@ -66,10 +104,21 @@ class ScoreComponents(eqx.Module):
     opposition: Float[Array, ""]
     tip_only: Float[Array, "2"]
     penetration_mm: Float[Array, "2"]
+    risk: Float[Array, ""]  #: in [0, 1]
+    progress: Float[Array, ""]  #: in [0, 1]
 
 
 class Score(eqx.Module):
-    """A scored candidate: ``score`` is -inf unless ``valid`` (estimates usable, no flag)."""
+    """A scored candidate: ``score`` is -inf unless ``valid`` (estimates usable, no flag).
+
+    Attributes:
+        quality: the Ferrari-Canny L1 epsilon of both fingers' contacts (0 without force closure).
+        force_closure: ``quality > 0``.
+        contacts: (left, right) :class:`~softgrip_jax._quality.FingerContacts`, leaves with a
+            leading axis 2: the contacts the quality is computed from.
+        centroid: (2,) mm, the object's area centroid (torques are about it); rho: mm, its
+            largest distance from the centroid.
+    """
 
     score: Float[Array, ""]
     components: ScoreComponents
@@ -77,23 +126,40 @@ class Score(eqx.Module):
     penetrating: Bool[Array, ""]
     valid: Bool[Array, ""]
     status: Int[Array, ""]  #: the first failing finger's :class:`Status`, 0 if both are OK
+    quality: Float[Array, ""]
+    force_closure: Bool[Array, ""]
+    contacts: FingerContacts
+    centroid: Float[Array, "2"]
+    rho: Float[Array, ""]
 
 
-def _finger_terms(finger: FingerModel, sdf: AbstractSDF, est: Estimate, weights: ScoreWeights, config):
+def _finger_terms(finger: FingerModel, sdf: AbstractSDF, est: Estimate, weights: ScoreWeights, config, estimator,
+                  handedness: float):
     theta = finger.theta_entire
     touches = est.case != ContactCase.NONE
     # Closing onto the object counts fully when it happens before the last tenth of the closure.
     touch = jnp.where(touches, jnp.clip(safe_divide(theta - est.contact.s1, 0.1 * theta, 1.0), 0.0, 1.0), 0.0)
     joints = jnp.where(est.valid, est.joints, 0.0)
-    stations, _ = chain_stations(joints, finger.length, config.per_link(finger.n_links))
+    per_link = (estimator.config.stations_per_link if isinstance(estimator, Mechanics)
+                else config.per_link(finger.n_links))
+    stations, _ = chain_stations(joints, finger.length, per_link)
     gap = sdf.distance(stations) - finger.half_thickness
-    wrap = jnp.mean(jax.nn.sigmoid((weights.contact_band - gap) / (0.25 * weights.contact_band)))
+    band = jnp.maximum(weights.contact_band, 1e-3)
+    wrap = jnp.mean(jax.nn.sigmoid((band - gap) / (0.25 * band)))
     tip = jax.nn.sigmoid((est.contact.n_g1 - (finger.n_links - config.tip_tolerance)) / 0.1) * touch
     penetration = jnp.maximum(-jnp.min(gap), 0.0)
     # The outward normal at the contact, taken r off the surface at P_g1, where it is well defined
     # (exactly on a polygon's boundary the direction to the nearest point is rounding noise).
     normal = sdf.normal(jnp.where(est.valid, est.contact.p_g1, 0.0))
-    return touch, wrap, tip, penetration, normal
+    contacts, station = finger_contacts(sdf, stations, finger.half_thickness, band)
+    touching = contacts.touching & est.valid & touches
+    forces = contacts.forces
+    if isinstance(estimator, Mechanics):  # the equilibrium's forces, on the object (along -n)
+        size = contact_forces(finger, joints, est.turning, jnp.asarray(handedness, joints.dtype), stations[station],
+                              contacts.normals, station, per_link, touching)
+        forces = -size[:, None] * contacts.normals
+    contacts = FingerContacts(points=contacts.points, normals=contacts.normals, forces=forces, touching=touching)
+    return touch, wrap, tip, penetration, normal, contacts
 
 
 def score_pose(
@@ -128,19 +194,33 @@ def score_pose(
     """
     estimator = as_estimator(estimator, method, mechanics)
     grasp = estimate_grasp(gripper, sdf, pose, config, estimator=estimator)
-    return _score_grasp(gripper, sdf, grasp, weights, config)
+    return _score_grasp(gripper, sdf, grasp, weights, config, estimator)
 
 
-def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weights: ScoreWeights, config) -> Score:
+def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weights: ScoreWeights, config,
+                 estimator) -> Score:
     """The :class:`Score` of both fingers' estimates at one pose."""
-    left = _finger_terms(gripper.left, sdf, grasp.left, weights, config)
-    right = _finger_terms(gripper.right, sdf, grasp.right, weights, config)
+    left = _finger_terms(gripper.left, sdf, grasp.left, weights, config, estimator, 1.0)
+    right = _finger_terms(gripper.right, sdf, grasp.right, weights, config, estimator, -1.0)
     touch, wrap, tip, penetration = (jnp.stack([a, b]) for a, b in zip(left[:4], right[:4]))
     opposition = -jnp.dot(left[4], right[4]) * touch[0] * touch[1]
-    raw = (weights.touch * jnp.mean(touch) + weights.wrap * jnp.mean(wrap) + weights.opposition * opposition
-           - weights.tip_only * jnp.mean(tip) - weights.penetration * jnp.mean(penetration))
+    contacts = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), left[5], right[5])
+    centroid, rho = sdf.mass_properties()
+    wrenches = edge_wrenches(contacts.points.reshape(-1, 2), contacts.normals.reshape(-1, 2),
+                             contacts.touching.reshape(-1), weights.mu, centroid, rho)
+    quality = epsilon_l1(wrenches)
+    closure = quality > CLOSURE_EPSILON
     r = jnp.stack([gripper.left.half_thickness, gripper.right.half_thickness])
-    penetrating = jnp.any(penetration > weights.max_penetration * r)
+    limit = weights.max_penetration * r
+    depth = jnp.max(jnp.clip(safe_divide(penetration, limit, 1.0), 0.0, 1.0))
+    event = (grasp.left.event | grasp.right.event).astype(quality.dtype)
+    risk = 1.0 - (1.0 - weights.tip_only * jnp.max(tip)) * (1.0 - weights.penetration * depth) * (
+        1.0 - weights.event * event)
+    total = weights.touch + weights.wrap + weights.opposition
+    progress = (weights.touch * jnp.mean(touch) + weights.wrap * jnp.mean(wrap)
+                + weights.opposition * jnp.maximum(opposition, 0.0)) / total
+    raw = jnp.where(closure, 1.0 + quality * (1.0 - risk), OPEN_TIER_MAX * progress * (1.0 - risk))
+    penetrating = jnp.any(penetration > limit)
     sound = jnp.isfinite(raw)  # e.g. a NaN the SDF returns near the fingers: never a valid NaN score
     valid = grasp.valid & ~penetrating & sound
     status = jnp.where(grasp.left.status != 0, grasp.left.status, grasp.right.status)
@@ -148,8 +228,10 @@ def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weigh
     return Score(
         score=jnp.where(valid, raw, -jnp.inf),
         components=ScoreComponents(touch=touch, wrap=wrap, opposition=opposition, tip_only=tip,
-                                   penetration_mm=penetration),
+                                   penetration_mm=penetration, risk=risk, progress=progress),
         grasp=grasp, penetrating=penetrating, valid=valid, status=status,
+        quality=jnp.where(valid, quality, 0.0), force_closure=closure & valid, contacts=contacts,
+        centroid=centroid, rho=rho,
     )
 
 
@@ -159,7 +241,7 @@ def _score_share(gripper, sdf, poses, weights, config, chunk_size, estimator):
     :mod:`softgrip_jax._batch`), then the score of each pose."""
     def chunk(share):
         grasps = grasp_chunk(gripper, sdf, share, config, estimator)
-        return jax.vmap(lambda g: _score_grasp(gripper, sdf, g, weights, config))(grasps)
+        return jax.vmap(lambda g: _score_grasp(gripper, sdf, g, weights, config, estimator))(grasps)
 
     return map_chunks(chunk, poses, chunk_size)
 

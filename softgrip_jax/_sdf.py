@@ -60,6 +60,13 @@ class AbstractSDF(eqx.Module):
         """Unit gradient of the distance at one point (outward normal); zero where it vanishes."""
         return unit_gradient(self.distance, _as_array(point))
 
+    def mass_properties(self) -> tuple[Float[Array, "2"], Float[Array, ""]]:
+        """The object's area centroid (2,) mm and its largest distance from it, ``rho`` (mm): where
+        grasp quality takes torques and how it scales them. A new SDF class implements this to be
+        scored (the deformation estimates do not need it)."""
+        raise SoftgripError(f"{type(self).__name__} has no mass_properties(): give it one (area centroid "
+                            f"and largest distance from it, mm) to score grasps on it")
+
 
 def unit_gradient(distance: Callable[[Array], Array], point: Float[Array, "2"]) -> Float[Array, "2"]:
     """Unit gradient of a distance function at ``point``; zero where the gradient vanishes."""
@@ -154,6 +161,23 @@ class SDFGrid(AbstractSDF):
         """Whether every cell is finite (a NaN cell would read as "no contact")."""
         return jnp.all(jnp.isfinite(self.values))
 
+    def mass_properties(self) -> tuple[Float[Array, "2"], Float[Array, ""]]:
+        """Area centroid and ``rho`` of the cells inside (distance < 0), each cell weighted by the
+        fraction of it inside (its distance over the cell size, linearly); rho reaches the boundary
+        beyond the farthest cells (their distance added)."""
+        h, w = self.values.shape
+        rows, cols = jnp.meshgrid(jnp.arange(h), jnp.arange(w), indexing="ij")
+        points = self.origin + jnp.stack([cols, rows], axis=-1).astype(self.values.dtype) * self.spacing
+        cell = jnp.sqrt(self.spacing[0] * self.spacing[1])
+        weight = jnp.clip(0.5 - self.values / cell, 0.0, 1.0)
+        total = jnp.sum(weight)
+        centroid = jnp.sum(points * weight[..., None], axis=(0, 1)) / jnp.maximum(total, 1e-12)
+        # The boundary lies |value| beyond a cell along its distance's gradient: out from the centroid
+        # for the farthest cells.
+        reach = jnp.sqrt(jnp.sum((points - centroid) ** 2, axis=-1)) - self.values
+        rho = jnp.max(jnp.where(weight > 0, reach, 0.0))
+        return centroid, rho
+
     def _grid_coordinates(self, points):
         col = (points[..., 0] - self.origin[0]) / self.spacing[0]
         row = (points[..., 1] - self.origin[1]) / self.spacing[1]
@@ -228,6 +252,23 @@ class PolygonSDF(AbstractSDF):
     def all_finite(self) -> Bool[Array, ""]:
         """Whether every vertex is finite (checked at construction unless traced)."""
         return jnp.all(jnp.isfinite(self.vertices))
+
+    def mass_properties(self) -> tuple[Float[Array, "2"], Float[Array, ""]]:
+        """Area centroid (the shoelace formula, either orientation) and ``rho``, the farthest vertex.
+
+        Example:
+            >>> import jax.numpy as jnp
+            >>> c, rho = PolygonSDF(jnp.array([[0.0, 0.0], [4.0, 0.0], [4.0, 2.0], [0.0, 2.0]])).mass_properties()
+            >>> c.tolist(), round(float(rho), 4)
+            ([2.0, 1.0], 2.2361)
+        """
+        a = self.vertices
+        b = jnp.roll(a, -1, axis=0)
+        cross = a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1]
+        area = 0.5 * jnp.sum(cross)
+        centroid = jnp.sum((a + b) * cross[:, None], axis=0) / (6.0 * area)
+        rho = jnp.max(safe_norm(a - centroid))
+        return centroid, rho
 
     def distance(self, points: Float[ArrayLike, "*batch 2"]) -> Float[Array, "*batch"]:
         points = jnp.asarray(points)

@@ -29,5 +29,9 @@ class DiscSDF(AbstractSDF):
         # the floor keeps the gradient finite at the centre
         return jnp.sqrt(jnp.sum(offset * offset, axis=-1) + 1e-12) - self.radius
 
+    def mass_properties(self):
+        """The disc's centre and radius (mm)."""
+        return self.centre, self.radius
+
 
 __all__ = ["DiscSDF"]
