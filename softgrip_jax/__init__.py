@@ -9,6 +9,8 @@ eqs. 5-8, Figs. 7-8   :mod:`softgrip_jax._contact` (``predict_contact``)
 eq. 9, Figs. 9-11     :mod:`softgrip_jax._deformation` (``case_shapes``)
 spring chain [16]     :mod:`softgrip_jax._mechanics` (``Mechanics(MechanicsConfig(...))``)
 eq. 10                :mod:`softgrip_jax._metrics` (``joint_errors``)
+grasp quality         :mod:`softgrip_jax._quality` (friction-cone wrenches, Ferrari-Canny L1 epsilon),
+                      :mod:`softgrip_jax._robust` (``Uncertainty``: expected quality, P(closure))
 ====================  ===============================================================
 
 One finger's estimate runs these in stages (:mod:`softgrip_jax._stage`: inputs checked, contact,
@@ -25,7 +27,7 @@ rotated or mirrored, see it through a frame (:mod:`softgrip_jax._frames`). The l
 frames and units and the estimators' assumptions are described in the source tree's ``docs/design.md``.
 """
 
-from softgrip_jax._cache import enable_compilation_cache
+from softgrip_jax._cache import CacheWarning, UntrustedCacheWarning, enable_compilation_cache
 from softgrip_jax._batch import estimate_batch, estimate_grasp_batch
 from softgrip_jax._contact import CASE_NAMES, Contact, ContactCase, ContactConfig, predict_contact, predict_contact_local, sweep_shape
 from softgrip_jax._deformation import case_shapes
@@ -38,6 +40,8 @@ from softgrip_jax._kinematics import chain_points, chain_stations, forward_kinem
 from softgrip_jax._mechanics import DEFAULT_METHOD, METHODS, MechanicsConfig, link_stiffness
 from softgrip_jax._metrics import joint_errors
 from softgrip_jax._model import FingerModel, Gripper
+from softgrip_jax._quality import DEFAULT_MU, FingerContacts, edge_wrenches, epsilon_l1
+from softgrip_jax._robust import Uncertainty
 from softgrip_jax._score import (RefineStatus, Refined, Score, ScoreComponents, ScoreWeights, refine, score,
                                  score_pose)
 from softgrip_jax._sdf import FAR_MM, AbstractSDF, PolygonSDF, SDFGrid
@@ -49,5 +53,6 @@ __all__ = [
     "Status", "case_shapes", "chain_points", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
     "enable_compilation_cache", "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",
     "joint_errors", "link_angles", "link_stiffness", "DEFAULT_METHOD", "METHODS", "MechanicsConfig", "RefineStatus", "Refined", "Score", "ScoreComponents", "ScoreWeights",
-    "refine", "score", "score_pose", "pcc_joints", "pcc_turning", "predict_contact", "predict_contact_local", "sweep_shape",
+    "refine", "score", "CacheWarning", "UntrustedCacheWarning", "DEFAULT_MU", "FingerContacts", "edge_wrenches",
+    "epsilon_l1", "Uncertainty", "score_pose", "pcc_joints", "pcc_turning", "predict_contact", "predict_contact_local", "sweep_shape",
 ]

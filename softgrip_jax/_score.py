@@ -51,6 +51,7 @@ from softgrip_jax._mechanics import MechanicsConfig, contact_forces
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._quality import (CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, edge_wrenches, epsilon_l1,
                                    finger_contacts)
+from softgrip_jax._robust import OffsetSDF, Uncertainty, perturbations
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate, Status
@@ -118,6 +119,9 @@ class Score(eqx.Module):
             leading axis 2: the contacts the quality is computed from.
         centroid: (2,) mm, the object's area centroid (torques are about it); rho: mm, its
             largest distance from the centroid.
+        quality_mean, p_closure: with an :class:`~softgrip_jax._robust.Uncertainty`, the expected
+            quality and the probability of force closure over its draws, and the score in closure
+            is ``1 + quality_mean (1 - risk)``; without one, ``quality`` and 0 or 1.
     """
 
     score: Float[Array, ""]
@@ -131,6 +135,8 @@ class Score(eqx.Module):
     contacts: FingerContacts
     centroid: Float[Array, "2"]
     rho: Float[Array, ""]
+    quality_mean: Float[Array, ""]
+    p_closure: Float[Array, ""]
 
 
 def _finger_terms(finger: FingerModel, sdf: AbstractSDF, est: Estimate, weights: ScoreWeights, config, estimator,
@@ -172,8 +178,12 @@ def score_pose(
     estimator: AbstractEstimator | None = None,
     method: str | None = None,
     mechanics: MechanicsConfig | None = None,
+    uncertainty: Uncertainty | None = None,
 ) -> Score:
     """Score one pose (x mm, y mm, angle rad). Pure; jit-, vmap- and grad-compatible.
+
+    With ``uncertainty`` (:class:`~softgrip_jax._robust.Uncertainty`) the quality is also taken over
+    its K draws (``quality_mean``, ``p_closure``), which then rank grasps in force closure.
 
     ``estimator`` chooses the fingers' deformation estimate, ``Mechanics(config)`` (None: the
     default, ``Mechanics()``) or ``Geometric()``, as for :func:`estimate_grasp` (or the older
@@ -194,7 +204,18 @@ def score_pose(
     """
     estimator = as_estimator(estimator, method, mechanics)
     grasp = estimate_grasp(gripper, sdf, pose, config, estimator=estimator)
-    return _score_grasp(gripper, sdf, grasp, weights, config, estimator)
+    nominal = _score_grasp(gripper, sdf, grasp, weights, config, estimator)
+    if uncertainty is None:
+        return nominal
+
+    def one(sample):
+        g, o, w = _draw(gripper, sdf, weights, sample)
+        s = _score_grasp(g, o, estimate_grasp(g, o, pose + sample.pose, config, estimator=estimator), w, config,
+                         estimator)
+        return s.quality, s.force_closure
+
+    quality, closure = jax.vmap(one)(perturbations(gripper, weights.mu, uncertainty))
+    return _with_robust(nominal, quality, closure)
 
 
 def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weights: ScoreWeights, config,
@@ -231,17 +252,46 @@ def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weigh
                                    penetration_mm=penetration, risk=risk, progress=progress),
         grasp=grasp, penetrating=penetrating, valid=valid, status=status,
         quality=jnp.where(valid, quality, 0.0), force_closure=closure & valid, contacts=contacts,
-        centroid=centroid, rho=rho,
+        centroid=centroid, rho=rho, quality_mean=jnp.where(valid, quality, 0.0),
+        p_closure=(closure & valid).astype(quality.dtype),
     )
 
 
-def _score_share(gripper, sdf, poses, weights, config, chunk_size, estimator):
+def _with_robust(nominal: Score, quality: Float[Array, " k"], closure: Bool[Array, " k"]) -> Score:
+    """``nominal`` with the expected quality and probability of closure over K draws (each draw's
+    quality and closure, 0 and False where its estimate is not valid), ranked by them."""
+    mean = jnp.where(nominal.valid, jnp.mean(quality, axis=0), 0.0)
+    p = jnp.where(nominal.valid, jnp.mean(closure.astype(mean.dtype), axis=0), 0.0)
+    score = jnp.where(nominal.valid & nominal.force_closure, 1.0 + mean * (1.0 - nominal.components.risk),
+                      nominal.score)
+    return eqx.tree_at(lambda s: (s.score, s.quality_mean, s.p_closure), nominal, (score, mean, p))
+
+
+def _draw(gripper, sdf, weights, sample):
+    """The gripper, object and weights of one draw of :func:`~softgrip_jax._robust.perturbations`."""
+    return sample.gripper, OffsetSDF(sdf, sample.contour), eqx.tree_at(lambda w: w.mu, weights, sample.mu)
+
+
+def _score_share(gripper, sdf, poses, weights, config, uncertainty, chunk_size, estimator):
     """The :class:`Score` of poses (P, 3) on one device, ``chunk_size`` at a time: in each chunk both
     fingers' estimates (the contact refined and the equilibrium solved only where a finger touches,
-    :mod:`softgrip_jax._batch`), then the score of each pose."""
+    :mod:`softgrip_jax._batch`), then the score of each pose; with ``uncertainty``, the same for
+    each of its K draws (one after another: the chunk's memory, K times the time)."""
+    def scored(g, o, w, share):
+        grasps = grasp_chunk(g, o, share, config, estimator)
+        return jax.vmap(lambda e: _score_grasp(g, o, e, w, config, estimator))(grasps)
+
     def chunk(share):
-        grasps = grasp_chunk(gripper, sdf, share, config, estimator)
-        return jax.vmap(lambda g: _score_grasp(gripper, sdf, g, weights, config, estimator))(grasps)
+        nominal = scored(gripper, sdf, weights, share)
+        if uncertainty is None:
+            return nominal
+
+        def one(sample):
+            s = scored(*_draw(gripper, sdf, weights, sample), share + sample.pose)
+            return s.quality, s.force_closure
+
+        quality, closure = jax.lax.map(one, perturbations(gripper, weights.mu, uncertainty))
+        return jax.vmap(_with_robust, in_axes=(0, 1, 1))(nominal, quality, closure)
 
     return map_chunks(chunk, poses, chunk_size)
 
@@ -251,9 +301,10 @@ _score_one_device = exportable(tuned_jit(_score_share, static_argnames=("chunk_s
 
 
 @partial(tuned_jit, static_argnames=("chunk_size", "estimator"))
-def _score_sharded(gripper, sdf, poses, weights, config, chunk_size, estimator):
+def _score_sharded(gripper, sdf, poses, weights, config, uncertainty, chunk_size, estimator):
     # poses: (devices, per_device, 3); the device axis is vmapped (and sharded across the devices).
-    return jax.vmap(lambda share: _score_share(gripper, sdf, share, weights, config, chunk_size, estimator))(poses)
+    return jax.vmap(lambda share: _score_share(gripper, sdf, share, weights, config, uncertainty, chunk_size,
+                                               estimator))(poses)
 
 
 def score(
@@ -268,6 +319,7 @@ def score(
     method: str | None = None,
     mechanics: MechanicsConfig | None = None,
     workers: int | None = None,
+    uncertainty: Uncertainty | None = None,
 ) -> Score:
     """Score B candidate poses (x mm, y mm, angle rad) in one compiled call.
 
@@ -288,6 +340,10 @@ def score(
             estimators reuse one compiled program.
         workers: on one device, concurrent parts the batch is split into (None: one per CPU core
             on a CPU, one elsewhere), as for :func:`estimate_batch`; results do not depend on it.
+        uncertainty: robust quality (:class:`~softgrip_jax._robust.Uncertainty`): each candidate
+            is also scored for its K draws of the calibration, the pose error, mu and the contour
+            (the same draws for every candidate), giving ``quality_mean`` and ``p_closure``, which
+            then rank the grasps in closure; K times the time. None: the nominal quality only.
 
     Returns:
         :class:`Score` with leading axis B: ``score`` (B,) (-inf where not valid), ``components``,
@@ -321,8 +377,8 @@ def score(
     """
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
-    return run_batch(_score_one_device, _score_sharded, (gripper, sdf), poses, (weights, config), chunk_size,
-                     workers, estimator)
+    return run_batch(_score_one_device, _score_sharded, (gripper, sdf), poses, (weights, config, uncertainty),
+                     chunk_size, workers, estimator)
 
 
 class RefineStatus(enum.IntEnum):
@@ -342,9 +398,10 @@ class Refined(eqx.Module):
     steps: Int[Array, ""]
 
 
-def _refine_one(gripper, sdf, pose, weights, config, max_steps, angle_scale, estimator):
+def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, angle_scale, estimator):
     scale = jnp.array([1.0, 1.0, angle_scale], pose.dtype)
-    score_at = lambda p: score_pose(gripper, sdf, p, weights, config, estimator=estimator)  # noqa: E731
+    score_at = lambda p: score_pose(gripper, sdf, p, weights, config, estimator=estimator,  # noqa: E731
+                                    uncertainty=uncertainty)
 
     def objective(z, _):
         s = score_at(z * scale)
@@ -372,13 +429,14 @@ def _refine_one(gripper, sdf, pose, weights, config, max_steps, angle_scale, est
     )
 
 
-def _refine_poses(gripper, sdf, poses, weights, config, max_steps, angle_scale, estimator):
+def _refine_poses(gripper, sdf, poses, weights, config, uncertainty, max_steps, angle_scale, estimator):
     # One pose (3,) is refined without vmap: a batched while_loop carries a select of its whole
     # state at every step and runs both branches of each cond, a larger program that is slower to
     # compile and to load from the cache.
     if poses.ndim == 1:
-        return _refine_one(gripper, sdf, poses, weights, config, max_steps, angle_scale, estimator)
-    return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, max_steps, angle_scale, estimator))(poses)
+        return _refine_one(gripper, sdf, poses, weights, config, uncertainty, max_steps, angle_scale, estimator)
+    return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, uncertainty, max_steps, angle_scale,
+                                          estimator))(poses)
 
 
 _refine_batch = exportable(tuned_jit(_refine_poses, static_argnames=("max_steps", "estimator")),
@@ -397,8 +455,10 @@ def refine(
     estimator: AbstractEstimator | None = None,
     method: str | None = None,
     mechanics: MechanicsConfig | None = None,
+    uncertainty: Uncertainty | None = None,
 ) -> Refined:
-    """Improve one pose (3,) or a batch (B, 3) by gradient ascent of the score (optimistix BFGS).
+    """Improve one pose (3,) or a batch (B, 3) by gradient ascent of the score (optimistix BFGS):
+    the grasp quality in force closure, robust with ``uncertainty`` (as for :func:`score`).
 
     The result never gets worse: when the minimiser ends at a pose that scores lower or is not
     valid, the start pose is returned with ``status = NO_IMPROVEMENT``. ``angle_scale`` (rad per
@@ -423,5 +483,5 @@ def refine(
     """
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(pose, 3, gripper.base_separation.dtype, "refine: pose", single=True)
-    return _refine_batch(gripper, sdf, poses, weights, config, max_steps, jnp.asarray(angle_scale, poses.dtype),
-                         estimator)
+    return _refine_batch(gripper, sdf, poses, weights, config, uncertainty, max_steps,
+                         jnp.asarray(angle_scale, poses.dtype), estimator)

@@ -111,7 +111,7 @@ def test_score_and_estimate_batch_compile_without_host_callbacks() -> None:
 
     poses = jnp.zeros((4, 3))
     for estimator in (Geometric(), Mechanics(MechanicsConfig())):
-        lowered = _score_one_device.lower(GRIPPER, DISC, poses, ScoreWeights(), ContactConfig(), 4, estimator)
+        lowered = _score_one_device.lower(GRIPPER, DISC, poses, ScoreWeights(), ContactConfig(), None, 4, estimator)
         assert _callbacks(lowered) == 0, estimator.name
     bases = jnp.zeros((4, 2))
     lowered = _estimate_batch.lower(FINGER, DISC, bases, ContactConfig(), 4, Geometric())
@@ -124,7 +124,7 @@ def test_refine_geometric_compiles_without_host_callbacks() -> None:
     from softgrip_jax._score import _refine_batch
 
     lowered = _refine_batch.lower(GRIPPER, DISC, jnp.zeros((1, 3)), ScoreWeights(), ContactConfig(),
-                                  4, jnp.asarray(0.05), Geometric())
+                                  None, 4, jnp.asarray(0.05), Geometric())
     assert _callbacks(lowered) == 0
 
 
@@ -141,7 +141,7 @@ def test_refine_mechanics_compiles_without_host_callbacks_under_eqx_on_error_nan
         f = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=10)
         g = Gripper(left=f, right=f, base_separation=56.0)
         lowered = _refine_batch.lower(g, PolygonSDF.regular((0.0, 38.0), 15.0, 32), jnp.zeros((1, 3)),
-                                      ScoreWeights(), ContactConfig(), 4, jnp.asarray(0.05),
+                                      ScoreWeights(), ContactConfig(), None, 4, jnp.asarray(0.05),
                                       Mechanics(MechanicsConfig()))
         print(equinox_errors_cacheable(), lowered.as_text().count("callback"))
     """)

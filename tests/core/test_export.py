@@ -70,7 +70,7 @@ def _assert_identical(a, b) -> None:
 
 
 def _score_args():
-    return (GRIPPER, DISC, POSES, ScoreWeights(), ContactConfig())
+    return (GRIPPER, DISC, POSES, ScoreWeights(), ContactConfig(), None)
 
 
 def test_exported_score_equals_the_jitted_one(export_cache) -> None:
@@ -269,7 +269,7 @@ def test_without_the_cache_nothing_is_exported(export_cache, monkeypatch, off) -
 
 @pytest.mark.slow
 def test_exported_refine_equals_the_jitted_one(export_cache) -> None:
-    args = (GRIPPER, DISC, POSES[:2], ScoreWeights(), ContactConfig(), 10, jnp.asarray(0.05), Geometric())
+    args = (GRIPPER, DISC, POSES[:2], ScoreWeights(), ContactConfig(), None, 10, jnp.asarray(0.05), Geometric())
     _assert_identical(_refine_batch(*args), _refine_batch._jitted(*args))
     assert len(list(export_cache.glob("refine_poses-*.export"))) == 1
 

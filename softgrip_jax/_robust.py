@@ -1,0 +1,120 @@
+"""Robust grasp quality: what calibration, the arm and vision do not know, sampled (Dex-Net's idea).
+
+A candidate's quality (:mod:`softgrip_jax._quality`) holds for the nominal gripper, pose, friction
+and object. Each of them is uncertain: the calibration's standard errors of each finger's Theta, L,
+stiffness ratio and base compliance (``calibrate --fit`` reports them), the arm's pose error, the
+friction coefficient, and the object contour that vision hands over (an outline grown or shrunk by a
+few tenths of a millimetre). :class:`Uncertainty` says how much; :func:`perturbations` draws K
+perturbations of all of them at once. The same K draws serve every candidate (common random
+numbers, from a fixed ``seed``), so the ranking of two candidates is not decided by noise, and a
+batch's results do not depend on its size or order. The expected quality ``quality_mean`` (0 for a
+draw without force closure) and the probability of force closure ``p_closure`` are the means over
+the K draws.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from softgrip_jax._errors import SoftgripError
+from softgrip_jax._model import FingerModel, Gripper
+from softgrip_jax._sdf import AbstractSDF
+
+
+class Uncertainty(eqx.Module):
+    """How uncertain each input of a grasp is (standard deviations unless noted; all run-time values
+    but ``samples``).
+
+    Attributes:
+        samples: K perturbations per candidate (static: the shape of the computation).
+        pose_mm: the arm's position error along x and y (mm).
+        pose_rad: the arm's in-plane angle error (rad).
+        mu_spread: the friction coefficient is drawn uniformly from ``mu (1 +- mu_spread)``.
+        theta: each finger's Theta (rad), e.g. the fit's standard error ``left.theta_entire``.
+        length: each finger's L (mm).
+        stiffness_ratio: each finger's stiffness ratio (drawn as ``exp(N(0, s))`` times it:
+            stays > 0).
+        base_compliance: each finger's base compliance (kept >= 0).
+        contour_mm: the object outline grown (> 0) or shrunk by this much (mm).
+        seed: the draws' seed; the same seed gives the same draws for every candidate and call.
+    """
+
+    samples: int = eqx.field(static=True, default=16)
+    pose_mm: float | Array = 0.5
+    pose_rad: float | Array = 0.01
+    mu_spread: float | Array = 0.2
+    theta: float | Array = 0.0
+    length: float | Array = 0.0
+    stiffness_ratio: float | Array = 0.0
+    base_compliance: float | Array = 0.0
+    contour_mm: float | Array = 0.0
+    seed: int | Array = 0
+
+    def __check_init__(self):
+        if isinstance(self.samples, bool) or not isinstance(self.samples, int) or not 1 <= self.samples <= 4096:
+            raise SoftgripError(f"Uncertainty.samples must be an integer in [1, 4096], got {self.samples!r}")
+        for name in ("pose_mm", "pose_rad", "mu_spread", "theta", "length", "stiffness_ratio", "base_compliance",
+                     "contour_mm"):
+            value = getattr(self, name)
+            if isinstance(value, jax.core.Tracer):
+                continue
+            if isinstance(value, bool) or jnp.ndim(value) != 0 or not 0.0 <= float(value) < 1e3:
+                raise SoftgripError(f"Uncertainty.{name} must be a number >= 0, got {value!r}")
+        if not isinstance(self.mu_spread, jax.core.Tracer) and float(self.mu_spread) >= 1.0:
+            raise SoftgripError(f"Uncertainty.mu_spread must be below 1, got {self.mu_spread!r}")
+
+
+class OffsetSDF(AbstractSDF):
+    """An object grown by ``offset`` mm (shrunk when negative): its distance minus the offset."""
+
+    base: AbstractSDF
+    offset: Float[Array, ""]
+
+    def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
+        return self.base.distance(points) - self.offset
+
+    def contains(self, points: Float[Array, "*batch 2"]) -> Bool[Array, "*batch"]:
+        return self.base.contains(points)
+
+    def all_finite(self) -> Bool[Array, ""]:
+        return self.base.all_finite() & jnp.isfinite(self.offset)
+
+    def mass_properties(self) -> tuple[Float[Array, "2"], Float[Array, ""]]:
+        centroid, rho = self.base.mass_properties()
+        return centroid, rho + self.offset
+
+
+class Perturbations(eqx.Module):
+    """K draws of everything uncertain: leaves with a leading axis K."""
+
+    gripper: Gripper
+    pose: Float[Array, "k 3"]  #: added to the candidate's pose (mm, mm, rad)
+    mu: Float[Array, " k"]
+    contour: Float[Array, " k"]  #: mm the object is grown by
+
+
+def _finger(finger: FingerModel, u: Uncertainty, noise: Float[Array, "4"]) -> FingerModel:
+    return eqx.tree_at(
+        lambda f: (f.theta_entire, f.length, f.stiffness_ratio, f.base_compliance), finger,
+        (jnp.maximum(finger.theta_entire + u.theta * noise[0], 0.0),
+         jnp.maximum(finger.length + u.length * noise[1], 1e-3),
+         finger.stiffness_ratio * jnp.exp(u.stiffness_ratio * noise[2]),
+         jnp.maximum(finger.base_compliance + u.base_compliance * noise[3], 0.0)))
+
+
+def perturbations(gripper: Gripper, mu: Float[ArrayLike, ""], u: Uncertainty) -> Perturbations:
+    """K = ``u.samples`` draws (common random numbers from ``u.seed``) of the gripper's calibration,
+    the pose error, mu and the contour offset around the nominal ``gripper`` and ``mu``."""
+    dtype = gripper.base_separation.dtype
+    k = u.samples
+    key = jax.random.key(jnp.asarray(u.seed, jnp.uint32))
+    normal = jax.random.normal(key, (k, 12), dtype)
+    uniform = jax.random.uniform(jax.random.fold_in(key, 1), (k,), dtype, -1.0, 1.0)
+    grippers = jax.vmap(lambda z: Gripper(left=_finger(gripper.left, u, z[0:4]), right=_finger(gripper.right, u, z[4:8]),
+                                          base_separation=gripper.base_separation))(normal)
+    pose = normal[:, 8:11] * jnp.stack([jnp.asarray(u.pose_mm, dtype)] * 2 + [jnp.asarray(u.pose_rad, dtype)])
+    return Perturbations(gripper=grippers, pose=pose, mu=jnp.asarray(mu, dtype) * (1.0 + u.mu_spread * uniform),
+                         contour=u.contour_mm * normal[:, 11])

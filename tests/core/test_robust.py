@@ -1,0 +1,86 @@
+"""Robust quality (softgrip_jax._robust): K draws of what is uncertain, common to every candidate.
+
+References: the probability of two-contact force closure under a uniform friction coefficient, by
+hand (Nguyen's condition mu > tan a), and the nominal score itself when nothing is uncertain.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from softgrip_base.errors import SoftgripError
+from softgrip_jax import FingerModel, Geometric, Gripper, PolygonSDF, score
+from softgrip_jax._quality import CLOSURE_EPSILON, edge_wrenches, epsilon_l1
+from softgrip_jax._robust import Uncertainty, perturbations
+
+FINGER = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=8)
+GRIPPER = Gripper(left=FINGER, right=FINGER, base_separation=56.0)
+DISC = PolygonSDF.regular((0.0, 38.0), 15.0, 48)
+POSES = jnp.array([[0.0, -8.0, 0.0], [2.0, -6.0, 0.05], [0.0, 10.0, 0.0], [-3.0, -9.0, -0.1]])
+
+
+def test_the_closure_probability_under_uncertain_friction_by_hand() -> None:
+    """Two contacts whose chord makes the angle a with both normals close iff mu > tan(a). With mu
+    uniform on mu0 (1 +- s), P(closure) = (mu0 (1 + s) - tan a) / (2 s mu0): the draws of
+    ``perturbations`` must give it (1,024 draws: within 4 binomial standard deviations)."""
+    mu0, spread, a = 0.5, 0.4, 0.45
+    draws = perturbations(GRIPPER, mu0, Uncertainty(samples=1024, mu_spread=spread, pose_mm=0.0, pose_rad=0.0))
+    assert float(draws.mu.min()) >= mu0 * (1 - spread) - 1e-6 and float(draws.mu.max()) <= mu0 * (1 + spread) + 1e-6
+    b = math.pi - 2 * a
+    points = 10.0 * jnp.array([[1.0, 0.0], [math.cos(b), math.sin(b)]])
+    closed = jax.vmap(lambda mu: epsilon_l1(edge_wrenches(points, points / 10.0, jnp.array([True, True]), mu,
+                                                          jnp.zeros(2), 10.0)) > CLOSURE_EPSILON)(draws.mu)
+    expected = (mu0 * (1 + spread) - math.tan(a)) / (2 * spread * mu0)
+    sd = math.sqrt(expected * (1 - expected) / 1024)
+    assert float(jnp.mean(closed)) == pytest.approx(expected, abs=4 * sd)
+
+
+def test_draws_have_the_requested_spread_and_are_common() -> None:
+    u = Uncertainty(samples=2000, pose_mm=0.7, pose_rad=0.02, theta=0.03, length=0.5, contour_mm=0.2, seed=5)
+    d = perturbations(GRIPPER, 0.5, u)
+    np.testing.assert_allclose(np.std(np.asarray(d.pose), axis=0), [0.7, 0.7, 0.02], rtol=0.1)
+    assert float(jnp.std(d.gripper.left.theta_entire)) == pytest.approx(0.03, rel=0.1)
+    assert float(jnp.std(d.gripper.right.length)) == pytest.approx(0.5, rel=0.1)
+    assert float(jnp.std(d.contour)) == pytest.approx(0.2, rel=0.1)
+    again = perturbations(GRIPPER, 0.5, u)
+    assert bool(jnp.all(again.pose == d.pose))  # the same seed, the same draws
+    other = perturbations(GRIPPER, 0.5, Uncertainty(samples=2000, pose_mm=0.7, seed=6))
+    assert not bool(jnp.all(other.pose == d.pose))
+
+
+def test_without_uncertainty_the_robust_score_is_the_nominal_one() -> None:
+    nothing = Uncertainty(samples=2, pose_mm=0.0, pose_rad=0.0, mu_spread=0.0)
+    nominal = score(GRIPPER, DISC, POSES, estimator=Geometric())
+    robust = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=nothing)
+    assert bool(jnp.any(nominal.force_closure))
+    np.testing.assert_allclose(np.asarray(robust.quality_mean), np.asarray(nominal.quality), rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(np.asarray(robust.p_closure), np.asarray(nominal.force_closure, np.float32))
+    np.testing.assert_allclose(np.asarray(robust.score), np.asarray(nominal.score), rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_a_candidates_robust_quality_does_not_depend_on_its_batch() -> None:
+    u = Uncertainty(samples=8, pose_mm=1.0, pose_rad=0.02, theta=0.02, contour_mm=0.3)
+    whole = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=u)
+    alone = score(GRIPPER, DISC, POSES[1:2], estimator=Geometric(), uncertainty=u)
+    assert float(alone.quality_mean[0]) == pytest.approx(float(whole.quality_mean[1]), abs=1e-6)
+    assert float(alone.p_closure[0]) == float(whole.p_closure[1])
+    closed = np.asarray(whole.force_closure)
+    assert closed.any()
+    # Expected quality is at most the best draw's; a closure grasp ranks on it.
+    np.testing.assert_allclose(np.asarray(whole.score)[closed],
+                               1 + np.asarray(whole.quality_mean)[closed] * (1 - np.asarray(whole.components.risk)[closed]),
+                               rtol=1e-6)
+
+
+@pytest.mark.parametrize("field", ["pose_mm", "mu_spread", "theta"])
+def test_bad_uncertainty_is_refused_with_its_name(field) -> None:
+    with pytest.raises(SoftgripError, match=f"Uncertainty.{field}"):
+        Uncertainty(**{field: -1.0})
+    with pytest.raises(SoftgripError, match="Uncertainty.samples"):
+        Uncertainty(samples=0)
