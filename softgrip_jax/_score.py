@@ -363,17 +363,22 @@ def score(
         >>> poses = jnp.stack([x.ravel(), y.ravel(), angle.ravel()], axis=-1)  # (605, 3)
         >>> # One compiled call; invalid candidates score -inf. The geometric estimate is the fastest
         >>> # for a coarse grid; without estimator=, score and refine use the mechanics estimate, Mechanics().
+        >>> # Grasps in force closure (friction mu = ScoreWeights().mu = 0.5) rank first, by their quality.
         >>> result = score(gripper, obj, poses, estimator=Geometric())
         >>> best = int(jnp.argmax(result.score))
+        >>> print(int(result.force_closure.sum()), "of", len(poses), "poses in force closure; the best:",
+        ...       [round(float(v), 2) for v in poses[best]], "quality", round(float(result.quality[best]), 3),
+        ...       "risk", round(float(result.components.risk[best]), 2))
+        60 of 605 poses in force closure; the best: [0.0, -10.0, 0.0] quality 0.281 risk 0.5
         >>> refined = refine(gripper, obj, poses[best], estimator=Geometric())  # never worse than its start
         >>> bool(refined.score.score >= result.score[best])
         True
-        >>> for side in ("left", "right"):  # both fingers of the refined pose, each an Estimate
+        >>> for side in ("left", "right"):  # why it won: both fingers of the refined pose, each an Estimate
         ...     f = getattr(refined.score.grasp, side)
         ...     print(side, CASE_NAMES[int(f.case)], "first contact on the object (mm):",
         ...           [round(float(v), 1) for v in f.contact.p_o1], "tip (mm):", [round(float(v), 1) for v in f.joints[-1]])
-        left other first contact on the object (mm): [-10.1, 49.1] tip (mm): [-4.5, 56.6]
-        right other first contact on the object (mm): [13.9, 43.7] tip (mm): [11.5, 53.4]
+        left tip first contact on the object (mm): [-14.8, 40.2] tip (mm): [-19.2, 38.6]
+        right tip first contact on the object (mm): [14.8, 40.2] tip (mm): [19.2, 38.6]
     """
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
