@@ -92,10 +92,10 @@ def estimators() -> dict:
     return {"geometric": Geometric(), "mechanics": Mechanics()}
 
 
-def make_gripper(n_links: int = N_LINKS) -> Gripper:
+def make_gripper(n_links: int = N_LINKS, base_separation_mm: float = BASE_SEPARATION_MM) -> Gripper:
     """The benchmark's gripper: two equal fingers (L 52 mm, Theta 0.55 rad, r 4 mm) 56 mm apart."""
     finger = FingerModel(length=LENGTH_MM, theta_entire=THETA, half_thickness=HALF_THICKNESS_MM, n_links=n_links)
-    return Gripper(left=finger, right=finger, base_separation=BASE_SEPARATION_MM)
+    return Gripper(left=finger, right=finger, base_separation=base_separation_mm)
 
 
 def resample_outline(polygon: np.ndarray, count: int) -> np.ndarray:
@@ -111,14 +111,14 @@ def resample_outline(polygon: np.ndarray, count: int) -> np.ndarray:
     return np.concatenate(parts)
 
 
-def object_outline(name: str) -> np.ndarray:
-    """(V, 2) mm: the named outline (30 mm bounding circle) about :data:`OBJECT_CENTRE_MM`."""
-    return shape(name, OBJECT_SIZE_MM) + np.asarray(OBJECT_CENTRE_MM)
+def object_outline(name: str, centre_mm=OBJECT_CENTRE_MM) -> np.ndarray:
+    """(V, 2) mm: the named outline (30 mm bounding circle) about ``centre_mm``."""
+    return shape(name, OBJECT_SIZE_MM) + np.asarray(centre_mm)
 
 
-def object_sdf(name: str) -> PolygonSDF:
-    """The named object's exact SDF, float32, :data:`VERTICES` vertices."""
-    return PolygonSDF(jnp.asarray(resample_outline(object_outline(name), VERTICES), jnp.float32))
+def object_sdf(name: str, centre_mm=OBJECT_CENTRE_MM) -> PolygonSDF:
+    """The named object's exact SDF about ``centre_mm``, float32, :data:`VERTICES` vertices."""
+    return PolygonSDF(jnp.asarray(resample_outline(object_outline(name, centre_mm), VERTICES), jnp.float32))
 
 
 def centred_pose() -> np.ndarray:
@@ -282,10 +282,31 @@ def vision_scene(setup: RenderedScene, variant: str):
         return frame_scene(open_frame, profile, warn=lambda _: None)
 
 
+#: The variants table's first rows: the rendered set-up's exact outline and gripper, without vision.
+EXACT = "exact outline"
+
+
+def exact_rows(side: int, names: tuple[str, ...]) -> list[dict]:
+    """:func:`ranking_row` per object and estimator for the rendered set-up (:class:`RenderedScene`)
+    on the exact outline and the true gripper (W 68 mm), the grid about the true pose."""
+    rows = []
+    for k, name in enumerate(names):
+        setup = RenderedScene(index=k, object_name=name)
+        gripper = make_gripper(base_separation_mm=setup.base_separation_mm)
+        poses = pose_grid(np.array([*setup.gripper_centre_mm, 0.0]), side)
+        sdf = object_sdf(name, setup.object_centre_mm)
+        for est_name, est in estimators().items():
+            result = jax.tree_util.tree_map(np.asarray, score(gripper, sdf, jnp.asarray(poses), estimator=est))
+            rows.append({"variant": EXACT, "object": name, "estimator": est_name, "pose_error_mm": 0.0,
+                         "vision_s": 0.0, **ranking_row(result, poses)})
+    return rows
+
+
 def variants_part(side: int, variants: tuple[str, ...], names: tuple[str, ...] = PAPER_OBJECTS) -> list[dict]:
     """One :func:`ranking_row` per variant, object and estimator, through vision (mu 0.5); the grid
-    is about the frame's measured pose, and ``pose_error_mm`` says how far that is from the truth."""
-    rows = []
+    is about the frame's measured pose, and ``pose_error_mm`` says how far that is from the truth
+    (in the measured plane's millimetres). First the same set-up on its exact geometry (:func:`exact_rows`)."""
+    rows = exact_rows(side, names)
     for variant in variants:
         for k, name in enumerate(names):
             setup = RenderedScene(index=k, object_name=name)
