@@ -183,3 +183,19 @@ def test_mechanics_contact_force_against_the_linear_cantilever(side) -> None:
     # The geometric estimate has no forces.
     geometric = score(gripper, PolygonSDF(jnp.asarray(wall)), jnp.array([[0.0, 0.0, 0.0]]), estimator=Geometric())
     assert np.all(np.isnan(np.asarray(geometric.contacts.forces)))
+
+
+@pytest.mark.parametrize("direction", [0.1, 0.785, 1.4])
+def test_a_contact_on_a_corner_takes_the_normal_the_finger_pushes_along(direction) -> None:
+    """At a square's corner the object has a range of normals (from one face's to the other's). A
+    finger station r + 0.05 mm off the corner along a direction within that range touches it along
+    that very direction: the contact point is the corner and the normal points at the station."""
+    square = PolygonSDF(jnp.array([[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]]))
+    corner = jnp.array([10.0, 10.0])
+    unit = jnp.array([math.cos(direction), math.sin(direction)])  # between +x (0) and +y (pi/2)
+    station = corner + 3.05 * unit
+    stations = jnp.stack([station + 20.0 * unit + jnp.array([-60.0, 0.0]), station, station + 20.0 * unit])
+    c, _ = finger_contacts(square, stations, jnp.asarray(3.0), jnp.asarray(0.25))
+    assert c.touching.tolist() == [False, True, False]
+    np.testing.assert_allclose(np.asarray(c.normals[1]), np.asarray(unit), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(c.points[1]), np.asarray(corner), atol=1e-3)
