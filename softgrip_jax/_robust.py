@@ -14,6 +14,9 @@ the K draws.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -65,6 +68,39 @@ class Uncertainty(eqx.Module):
                 raise SoftgripError(f"Uncertainty.{name} must be a number >= 0, got {value!r}")
         if not isinstance(self.mu_spread, jax.core.Tracer) and float(self.mu_spread) >= 1.0:
             raise SoftgripError(f"Uncertainty.mu_spread must be below 1, got {self.mu_spread!r}")
+
+
+    @classmethod
+    def from_fit(cls, standard_errors: Mapping[str, float], gripper: Gripper, **settings) -> Uncertainty:
+        """The calibration's part from a fit's standard errors (a profile's ``fit.standard_errors``:
+        ``"left.theta_entire"`` rad, ``"right.stiffness_ratio"``, ``"left.base_compliance"``, ...),
+        the larger of the two fingers' for each; ``settings`` give the other fields (and override).
+
+        Example:
+            >>> from softgrip_jax import FingerModel, Gripper
+            >>> f = FingerModel(length=52.0, theta_entire=0.5, half_thickness=4.0, n_links=10, stiffness_ratio=2.0)
+            >>> u = Uncertainty.from_fit({"left.theta_entire": 0.004, "right.theta_entire": 0.006,
+            ...                           "left.stiffness_ratio": 0.2}, Gripper(f, f, 56.0), pose_mm=1.0)
+            >>> round(u.theta, 4), round(u.stiffness_ratio, 4), u.pose_mm
+            (0.006, 0.1, 1.0)
+        """
+        def largest(name: str, relative: bool = False) -> float:
+            values = []
+            for side in ("left", "right"):
+                se = standard_errors.get(f"{side}.{name}")
+                if se is None:
+                    continue
+                se = float(se)
+                if not math.isfinite(se) or se < 0:
+                    raise SoftgripError(f"standard error of {side}.{name} must be a finite number >= 0, got {se!r}")
+                if relative:  # the ratio is drawn multiplicatively: its relative error
+                    se /= float(getattr(gripper, side).stiffness_ratio)
+                values.append(se)
+            return max(values, default=0.0)
+
+        fields = {"theta": largest("theta_entire"), "stiffness_ratio": largest("stiffness_ratio", relative=True),
+                  "base_compliance": largest("base_compliance")}
+        return cls(**{**fields, **settings})
 
 
 class OffsetSDF(AbstractSDF):
