@@ -313,8 +313,8 @@ class Scene:
 
         weights = ScoreWeights() if weights is None else weights
         if not isinstance(weights, ScoreWeights):
-            raise SoftgripError(f"Scene.score: weights must be a softgrip_jax.ScoreWeights (e.g. ScoreWeights(mu=0.5)), "
-                                f"got {type(weights).__name__}")
+            raise SoftgripError(f"Scene.score: weights must be a softgrip_jax.ScoreWeights (e.g. "
+                                f"ScoreWeights(mu=0.5)), got {type(weights).__name__}")
         batch = _poses(poses, "Scene.score")
         padded = jnp.asarray(_pad(batch), self.gripper.base_separation.dtype)
         result = jax.block_until_ready(score(self.gripper, self.sdf, padded, weights,
