@@ -19,14 +19,17 @@ import numpy as np
 from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_estimator
 from softgrip_jax import SoftgripError, finger_frames
+from softgrip_jax._quality import DEFAULT_MU
 from vision import documents
 from vision import scene as scene_api
+from vision.plots import TOP_GRASPS
 from softgrip_base import user_json
 
 EPILOG = """examples:
   softgrip score data/circle_open --profile data/sample_profile.json --heatmap heat.png
   softgrip score data/circle_open --profile data/sample_profile.json --grid=-20:20:41,-75:-40:36,-0.2:0.2:5 --json
   softgrip score data/circle_open --profile data/sample_profile.json --poses poses.csv --top 5
+  softgrip score data/circle_open --profile data/sample_profile.json --mu 0.8 --grasps grasps.png
 
 A pose is (x mm, y mm, angle rad): the point midway between the finger bases, in the gripper plane's
 millimetres (the frame of `softgrip estimate`'s joints_mm), and the gripper's in-plane rotation
@@ -43,14 +46,24 @@ Poses:
 With --json (or -o FILE), one JSON document (schema: schemas/score.schema.json): {"format":
 "softgrip-score/1", "kind": "score", "units", "conventions" (origin, axes, units, the gripper plane's
 depth_mm, normal and tilt_deg), "profile" (path, sha256, camera, fit, geometry), "frame", "method",
-"n_links", "n_candidates", "n_valid", "frame_pose" (the gripper's pose read from the frame), "candidates": [...]}, the
-candidates ranked best first (--top K of them, 0 for all), each {"pose": {"x_mm", "y_mm",
-"angle_rad"}, "score" (null when not valid), "components", "valid", "status", "fingers": [left,
-right]} with the fingers' fields as in `softgrip estimate --json`.
+"friction": {"mu"}, "n_links", "n_candidates", "n_valid", "frame_pose" (the gripper's pose read from
+the frame), "candidates": [...]}, the candidates ranked best first (--top K of them, 0 for all), each
+{"pose": {"x_mm", "y_mm", "angle_rad"}, "score" (null when not valid), "quality" (Ferrari-Canny L1
+epsilon with friction mu; 0 without force closure, null when not valid), "force_closure",
+"centroid_mm" and "rho_mm" (the object's centroid and size: torques are about the centroid, over rho),
+"components", "valid", "status", "fingers": [left, right]} with the fingers' fields as in `softgrip
+estimate --json`, except that "contacts_mm" (and "contacts_px") are the quality's contacts, with the
+parallel lists "normals" (the object's outward unit normals) and "forces" (on the object, in EI/L^2:
+the finger's mean bending stiffness over its length squared; null for the geometric estimate).
+The score: 1 + quality (1 - risk) in force closure, else 0.99 progress (1 - risk): every grasp in
+force closure ranks above every grasp without.
 The heat map (--heatmap IMAGE; .png, .jpg, .pdf, .svg, ... as the extension says; needs matplotlib:
 pip install softgrip-jax[plots]) shows the frame in the gripper plane's mm, each gripper-centre
-position coloured by its best score over the angles (grey: none valid), a colour bar, the whole grid
-in view, and the best pose's estimate (fingers blue, contacts red, centre and base line black).
+position coloured by its best quality over the angles (light grey: valid but no force closure, dark
+grey: none valid), a colour bar, the whole grid in view, and the best pose's estimate (fingers blue,
+contacts red, centre and base line black). The grasps picture (--grasps IMAGE, as --heatmap) shows
+the top 5 valid candidates' estimated fingers and, at each contact, its friction cone (the two edges
+at atan(mu) about the inward normal) and the contact force (mechanics estimate).
 """
 
 #: Poses of the default grid along x, y and the angle (fixed, so every frame reuses one compilation).
@@ -58,6 +71,8 @@ DEFAULT_GRID_SHAPE = (25, 21, 3)
 DEFAULT_MARGIN_MM = 10.0
 DEFAULT_ANGLES = (-0.2, 0.0, 0.2)
 MAX_POSES = 1_000_000
+#: The range --mu accepts (``softgrip_jax.ScoreWeights.mu``'s).
+MU_RANGE = (0.0, 10.0)
 _GRID_FORMAT = "X0:X1:NX,Y0:Y1:NY,A0:A1:NA (mm, mm, rad; e.g. -20:20:21,-80:-40:21,-0.2:0.2:3)"
 
 
@@ -82,6 +97,13 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--heatmap", metavar="IMAGE",
                         help="write the score heat map over the frame, in mm with a colour bar (matplotlib); the "
                              "format from the extension: .png, .jpg, .pdf, .svg, ...")
+    parser.add_argument("--grasps", metavar="IMAGE",
+                        help=f"write a picture of the top {TOP_GRASPS} valid grasps: their estimated fingers, each "
+                             "contact's friction cone and force (matplotlib); the format from the extension, as "
+                             "--heatmap")
+    parser.add_argument("--mu", metavar="MU", default=None,
+                        help=f"Coulomb friction coefficient between finger and object, from 0 to 10, for the grasp "
+                             f"quality (default {DEFAULT_MU}: silicone on common dry objects)")
     parser.add_argument("-o", "--output", metavar="FILE",
                         help="write the ranked candidates as JSON (as --json prints them) to FILE, atomically: "
                              "a run that is stopped leaves FILE as it was ('-': stdout)")
@@ -99,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.top < 0:
         raise SoftgripError(f"--top must be >= 0 (0 prints every candidate), got {args.top}")
+    mu = parse_mu(args.mu)
     profile = pipe.load_profile(args.profile)
     estimator = resolve_estimator(args.method, profile)
     method = estimator.name  # what the documents record
@@ -111,14 +134,14 @@ def run(args: argparse.Namespace) -> int:
                                                                        (None, "-") else [])
     to_stdout = args.json or args.output == "-"
     output = None if args.output in (None, "-") else args.output
-    if args.heatmap:
-        pipe.ensure_dir(Path(args.heatmap).parent, "heat map's folder")
-        pipe.check_output_file(args.heatmap, "--heatmap", inputs, args.force)
-        plots.figure_format(args.heatmap, "--heatmap")  # matplotlib installed, a format it writes
+    figures = {flag: path for flag, path in (("--heatmap", args.heatmap), ("--grasps", args.grasps)) if path}
+    for flag, path in figures.items():
+        pipe.ensure_dir(Path(path).parent, f"{flag} folder")
+        pipe.check_output_file(path, flag, inputs, args.force)
+        plots.figure_format(path, flag)  # matplotlib installed, a format it writes
     if output:
         pipe.check_output_file(output, "-o", inputs, args.force)
-        if args.heatmap and os.path.realpath(args.heatmap) == os.path.realpath(output):
-            raise SoftgripError(f"-o and --heatmap name the same file {args.output}: give two file names")
+    check_distinct_outputs({**({"-o": output} if output else {}), **figures})
     scene = pipe.frame_scene(args.frame, profile, length_from_frame=args.length_from_frame)
     if not args.poses:
         grid = grid or default_grid(scene)
@@ -126,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
     if not scene.has_object:
         pipe.warn(f"{args.frame}: no object found; every candidate closes on nothing (case none)")
 
-    result, elapsed = score_poses(scene, poses, estimator)
+    result, elapsed = score_poses(scene, poses, estimator, mu=mu)
     order = rank(result)
     n_valid = int(np.sum(result.valid))
     pipe.note(f"scored {len(poses)} candidate poses ({method} estimate) in {elapsed:.1f} s (including compilation "
@@ -134,11 +157,15 @@ def run(args: argparse.Namespace) -> int:
 
     shown = order if args.top == 0 else order[:args.top]
     if args.heatmap:
-        figure = plots.heatmap_figure(scene, poses, result, grid, int(order[0]))
+        figure = plots.heatmap_figure(scene, poses, result, grid, int(order[0]), mu=mu)
         plots.save_figure(figure, args.heatmap, inputs=inputs, force=args.force, what="--heatmap")
+    if args.grasps:
+        figure = plots.grasps_figure(scene, poses, result, order, mu=mu)
+        plots.save_figure(figure, args.grasps, inputs=inputs, force=args.force, what="--grasps", tight=False)
     header = {**documents.document_header("score", documents.profile_identity(profile, args.profile),
                                           scene.conventions),
-              "frame": scene.path, "method": method, "n_links": scene.n_links, "n_candidates": len(poses),
+              "frame": scene.path, "method": method, "friction": documents.friction_json(mu),
+              "n_links": scene.n_links, "n_candidates": len(poses),
               "n_valid": n_valid, "frame_pose": documents.pose_json(scene.pose)}
     if output:
         from softgrip_base.atomic_write import atomic_open
@@ -155,6 +182,32 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(_table(scene, poses, result, shown, n_valid))
     return 0
+
+
+def parse_mu(text: str | None) -> float:
+    """``--mu``: the friction coefficient, a finite number in :data:`MU_RANGE` (None: the default
+    :data:`~softgrip_jax._quality.DEFAULT_MU`); a SoftgripError naming --mu otherwise."""
+    if text is None:
+        return DEFAULT_MU
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    low, high = MU_RANGE
+    if not (math.isfinite(value) and low <= value <= high):
+        raise SoftgripError(f"--mu {text}: expected the friction coefficient, a number from {low:g} to {high:g} "
+                            f"(default {DEFAULT_MU})")
+    return value
+
+
+def check_distinct_outputs(outputs: dict[str, str]) -> None:
+    """Refuse two output options (``{flag: path}``) that name the same file."""
+    seen: dict[str, str] = {}
+    for flag, path in outputs.items():
+        real = os.path.realpath(path)
+        if real in seen:
+            raise SoftgripError(f"{seen[real]} and {flag} name the same file {path}: give two file names")
+        seen[real] = flag
 
 
 def write_json_stream(write, header: dict, scene: pipe.FrameScene, poses: np.ndarray, result,
@@ -426,16 +479,20 @@ def _show(value) -> str:
 MIN_BATCH = scene_api.MIN_BATCH
 
 
-def score_poses(scene: pipe.FrameScene, poses: np.ndarray, estimator=None):
+def score_poses(scene: pipe.FrameScene, poses: np.ndarray, estimator=None, mu: float = DEFAULT_MU):
     """Score (B, 3) poses on ``scene`` in one compiled call (``vision.scene.Scene.score``), with the
-    deformation ``estimator`` (``softgrip_jax.Geometric()`` or ``Mechanics(config)``; None: the default).
+    deformation ``estimator`` (``softgrip_jax.Geometric()`` or ``Mechanics(config)``; None: the default)
+    and the friction coefficient ``mu`` (``softgrip_jax.ScoreWeights(mu=...)``; a run-time value: no
+    recompilation when it changes).
 
     Returns:
         The ``Score`` with numpy leaves of leading axis B, and the seconds it took (compilation
         included the first time a batch size is seen).
     """
+    from softgrip_jax import ScoreWeights
+
     start = time.perf_counter()
-    result = scene.score(poses, estimator=estimator)
+    result = scene.score(poses, estimator=estimator, weights=ScoreWeights(mu=mu))
     return result, time.perf_counter() - start
 
 
@@ -462,16 +519,26 @@ def _table(scene: pipe.FrameScene, poses: np.ndarray, result, shown: np.ndarray,
     return "\n".join(lines)
 
 
-def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best: int) -> np.ndarray:
+#: RGB of a position with valid candidates but none in force closure, and of one with none valid.
+_NO_CLOSURE_RGB = (220, 220, 220)
+_NO_VALID_RGB = (128, 128, 128)
+
+
+def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best: int,
+                  mu: float = DEFAULT_MU) -> np.ndarray:
     """The heat map drawn with OpenCV on the frame's pixels (the demo's picture when matplotlib is
-    not installed; ``vision.plots.heatmap_figure`` is the plot with mm axes): the frame with the best score over the angles at each gripper-centre position (viridis:
-    yellow best, purple worst among the valid; grey where no angle is valid), the best candidate's
-    estimate (joints blue, contacts red) and its centre and base line, a colour bar and a caption."""
+    not installed; ``vision.plots.heatmap_figure`` is the plot with mm axes): the frame with the
+    best grasp quality over the angles at each gripper-centre position (viridis from 0 to the
+    highest; light grey where valid candidates have no force closure, grey where no angle is valid),
+    the best candidate's estimate (joints blue, contacts red) and its centre and base line, a colour
+    bar and a caption. ``mu``: the friction the scores were computed with (for the caption)."""
+    from vision.plots import closure_quality, quality_cells, quality_label
+
     rgb = scene.frame.color
     h, w = rgb.shape[:2]
-    scores = np.where(np.asarray(result.valid), np.asarray(result.score, np.float64), np.nan)
-    finite = scores[np.isfinite(scores)]
-    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    quality, valid_all = closure_quality(result)
+    finite = quality[np.isfinite(quality)]
+    lo, hi = 0.0, (float(finite.max()) if finite.size and finite.max() > 0 else 1.0)
 
     def colours(values: np.ndarray) -> np.ndarray:
         level = np.clip((values - lo) / (hi - lo) if hi > lo else np.ones_like(values), 0.0, 1.0)
@@ -483,11 +550,7 @@ def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best:
     alpha = np.zeros((h, w), np.float32)
     if grid is not None:
         xs, ys, angles = grid
-        best_xy = np.full((len(xs), len(ys)), np.nan)
-        per_angle = scores.reshape(len(xs), len(ys), len(angles))
-        has_valid = np.isfinite(per_angle).any(axis=2)
-        best_xy[has_valid] = np.nanmax(per_angle[has_valid], axis=1)
-        cells = best_xy.T  # rows: y, columns: x
+        cells, any_valid = quality_cells(result, grid)  # rows: y, columns: x
         step_x = (xs[-1] - xs[0]) / (len(xs) - 1) if len(xs) > 1 else 2.0
         step_y = (ys[-1] - ys[0]) / (len(ys) - 1) if len(ys) > 1 else 2.0
         (u0, v0), (u1, v1) = scene.camera.mm_to_px([[xs[0] - step_x / 2, ys[0] - step_y / 2],
@@ -498,19 +561,22 @@ def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best:
         if us.size and vs.size:
             block = cells[np.ix_(row[vs], col[us])]
             coloured = colours(block)
-            coloured[~np.isfinite(block)] = (128, 128, 128)
+            coloured[~np.isfinite(block)] = _NO_CLOSURE_RGB
+            coloured[~any_valid[np.ix_(row[vs], col[us])]] = _NO_VALID_RGB
             layer[np.ix_(vs, us)] = coloured
             alpha[np.ix_(vs, us)] = np.where(np.isfinite(block), 0.65, 0.35)
     else:
-        order = np.argsort(np.nan_to_num(scores, nan=-np.inf), kind="stable")  # best drawn last, on top
+        scores = np.where(valid_all, np.asarray(result.score, np.float64), -np.inf)
+        order = np.argsort(scores, kind="stable")  # best drawn last, on top
         centres = scene.camera.mm_to_px(poses[order, :2])
-        for (u, v), value in zip(centres, scores[order]):
+        for (u, v), value, ok in zip(centres, quality[order], valid_all[order]):
             if not (np.isfinite(u) and np.isfinite(v)) or not (-10 <= u < w + 10 and -10 <= v < h + 10):
                 continue
-            colour = (128, 128, 128) if not np.isfinite(value) else tuple(int(c) for c in colours(np.array([value]))[0])
+            colour = (_NO_VALID_RGB if not ok else _NO_CLOSURE_RGB if not np.isfinite(value)
+                      else tuple(int(c) for c in colours(np.array([value]))[0]))
             centre = (int(round(u)), int(round(v)))
             cv2.circle(layer, centre, 5, colour, -1)
-            cv2.circle(alpha, centre, 5, 0.8 if np.isfinite(value) else 0.4, -1)
+            cv2.circle(alpha, centre, 5, 0.8 if ok else 0.4, -1)
     blended = (rgb * (1.0 - alpha[..., None]) + layer * alpha[..., None]).round().astype(np.uint8)
 
     chosen = pipe.take(result, best)
@@ -529,24 +595,25 @@ def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best:
     _colour_bar(image, lo, hi, colours, finite.size > 0)
     if valid:
         x, y, angle = poses[best]
-        best_text = f"best: x {x:.1f} mm, y {y:.1f} mm, angle {angle:.2f} rad, score {float(chosen.score):.2f}"
+        best_text = (f"best: x {x:.1f} mm, y {y:.1f} mm, angle {angle:.2f} rad, score {float(chosen.score):.2f}, "
+                     f"quality {float(chosen.quality):.3f}")
     else:
         best_text = "no valid candidate"
     pipe.caption(image, "\n".join([
-        f"{scene.name}: score of each gripper-centre position (best over {len(grid[2]) if grid else 'the'} angles)",
-        "grey: no valid grasp there; cross: best pose's centre, bar: its finger bases",
+        f"{scene.name}: {quality_label(mu)}, best over {len(grid[2]) if grid else 'the'} angles at each position",
+        "light grey: no force closure; grey: no valid grasp; cross: best pose's centre, bar: its finger bases",
         "blue: best pose's estimated fingers, red: contacts", best_text]), (8, image.shape[0] - 8), bottom=True)
     return image
 
 
 def _colour_bar(image: np.ndarray, lo: float, hi: float, colours, any_valid: bool) -> None:
-    """A vertical viridis bar at the right edge, labelled with the highest and lowest valid score."""
+    """A vertical viridis bar at the right edge, labelled with the highest and lowest quality."""
     h, w = image.shape[:2]
     height, width = min(160, h // 2), 14
     x0, y0 = w - width - 56, 30
     if x0 < 0:
         return
-    pipe.caption(image, "score", (x0 - 6, 6), scale=0.4)
+    pipe.caption(image, "quality", (x0 - 6, 6), scale=0.4)
     values = lo + (hi - lo) * np.linspace(1.0, 0.0, height)[:, None] * np.ones((1, width))
     image[y0:y0 + height, x0:x0 + width] = colours(values) if any_valid else 128
     cv2.rectangle(image, (x0 - 1, y0 - 1), (x0 + width, y0 + height), (255, 255, 255), 1)

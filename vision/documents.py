@@ -13,6 +13,17 @@ candidate pose (score). Every enum is written by name (cases ``"none"``, ``"tip"
      "contacts_px": [[u, v], ...], "contacts_mm": [[x, y], ...],  # P_o1, and P_o2 for tip_and_other
      "event": bool, "sensitivity": mm/mm}  # mechanics: near a jump of the closing path; tip / base motion
 
+A scored candidate's fingers (:func:`candidate_json`) hold the contacts the grasp quality is computed
+from instead (up to ``CONTACTS_PER_FINGER`` a finger, base to tip), with two lists parallel to them::
+
+     "contacts_px": [...], "contacts_mm": [...],  # the quality's contacts on the object
+     "normals": [[nx, ny], ...],                  # the object's outward unit normals there
+     "forces": [[fx, fy], ...] | null,            # force on the object, EI / L^2; null: geometric estimate
+
+and the candidate has ``quality`` (Ferrari-Canny L1 epsilon; null when not valid), ``force_closure``,
+``centroid_mm`` and ``rho_mm`` (the object's area centroid, and its largest distance from it: torques
+are about the centroid, over rho).
+
 Coordinates that are not finite (an invalid candidate outside the image) are written as null.
 """
 
@@ -79,11 +90,27 @@ def finger_contacts_mm(estimate) -> np.ndarray:
     return np.stack(points)
 
 
-def finger_json(side: str, estimate, finger, camera) -> dict:
-    """One finger's fields (see the module docstring) from a numpy ``Estimate``."""
+def quality_contacts(contacts, index: int) -> dict[str, np.ndarray | None]:
+    """One finger's contacts of a scored candidate: ``contacts`` is the numpy
+    :class:`softgrip_jax._quality.FingerContacts` of a ``Score`` (leaves of leading axis 2: left,
+    right), ``index`` 0 (left) or 1 (right). Returns the slots that touch, in order, as parallel
+    arrays: ``points`` (P, 2) mm on the object, ``normals`` (P, 2) the object's outward unit normals,
+    ``forces`` (P, 2) the contact forces on the object in EI / L^2 (the finger's mean bending
+    stiffness over its length squared), or None when the estimate gives no forces (the geometric
+    one: every slot NaN)."""
+    touching = np.asarray(contacts.touching[index], bool)
+    forces = np.asarray(contacts.forces[index], np.float64)
+    return {"points": np.asarray(contacts.points[index], np.float64)[touching],
+            "normals": np.asarray(contacts.normals[index], np.float64)[touching],
+            "forces": None if np.isnan(forces).all() else forces[touching]}
+
+
+def finger_json(side: str, estimate, finger, camera, contacts: dict | None = None) -> dict:
+    """One finger's fields (see the module docstring) from a numpy ``Estimate``; with ``contacts``
+    (:func:`quality_contacts`), a scored candidate's: those contacts, their normals and forces."""
     joints_mm = np.asarray(estimate.joints, np.float64)
-    contacts_mm = finger_contacts_mm(estimate)
-    return {
+    contacts_mm = finger_contacts_mm(estimate) if contacts is None else contacts["points"]
+    fields = {
         "side": side,
         "valid": bool(estimate.valid),
         "status": status_name(estimate.status),
@@ -93,14 +120,20 @@ def finger_json(side: str, estimate, finger, camera) -> dict:
         "joints_mm": points_json(joints_mm, 4),
         "contacts_px": points_json(camera.mm_to_px(contacts_mm), 3),
         "contacts_mm": points_json(contacts_mm, 4),
-        "event": bool(estimate.event),
-        "sensitivity": number_json(estimate.sensitivity, 3),
     }
+    if contacts is not None:
+        fields["normals"] = points_json(contacts["normals"], 6)
+        fields["forces"] = None if contacts["forces"] is None else points_json(contacts["forces"], 6)
+    fields["event"] = bool(estimate.event)
+    fields["sensitivity"] = number_json(estimate.sensitivity, 3)
+    return fields
 
 
-def fingers_json(grasp, gripper, camera) -> list[dict]:
-    """[left, right] finger fields of a numpy ``GraspEstimate``."""
-    return [finger_json(side, getattr(grasp, side), getattr(gripper, side), camera) for side in SIDES]
+def fingers_json(grasp, gripper, camera, contacts=None) -> list[dict]:
+    """[left, right] finger fields of a numpy ``GraspEstimate``; with ``contacts`` (a numpy
+    ``FingerContacts`` of leading axis 2, a ``Score``'s), those of a scored candidate."""
+    return [finger_json(side, getattr(grasp, side), getattr(gripper, side), camera,
+                        None if contacts is None else quality_contacts(contacts, k)) for k, side in enumerate(SIDES)]
 
 
 def pose_json(pose: np.ndarray) -> dict:
@@ -136,16 +169,29 @@ def components_json(components) -> dict:
 
 
 def candidate_json(pose: np.ndarray, scored, gripper, camera) -> dict:
-    """One scored candidate (a numpy ``Score`` of one pose) as ``softgrip score`` writes it."""
+    """One scored candidate (a numpy ``Score`` of one pose) as ``softgrip score`` writes it: the
+    score, ``quality`` (the Ferrari-Canny L1 epsilon: 0 without force closure, null when not valid),
+    ``force_closure``, the object's ``centroid_mm`` and ``rho_mm``, and each finger with the
+    quality's contacts (:func:`finger_json`)."""
     valid = bool(scored.valid)
+    closure = valid and bool(scored.force_closure)
     return {
         "pose": pose_json(pose),
         "score": number_json(scored.score) if valid else None,
+        "quality": (number_json(scored.quality) if closure else 0.0) if valid else None,
+        "force_closure": closure,
+        "centroid_mm": [number_json(v, 4) for v in np.asarray(scored.centroid).ravel()],
+        "rho_mm": number_json(scored.rho, 4),
         "components": components_json(scored.components),
         "valid": valid,
         "status": status_name(scored.status, bool(scored.penetrating)),
-        "fingers": fingers_json(scored.grasp, gripper, camera),
+        "fingers": fingers_json(scored.grasp, gripper, camera, scored.contacts),
     }
+
+
+def friction_json(mu: float) -> dict:
+    """The document-level ``"friction"`` of ``softgrip score``: ``{"mu": Coulomb coefficient}``."""
+    return {"mu": number_json(mu)}
 
 
 def profile_identity(profile, path: str | os.PathLike[str] | None = None) -> dict:

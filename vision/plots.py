@@ -1,4 +1,5 @@
-"""Plots people read, drawn with matplotlib: the score heat map over the frame, in millimetres.
+"""Plots people read, drawn with matplotlib: the grasp-quality heat map and the top grasps with their
+friction cones over the frame, in millimetres.
 
 matplotlib is optional (``pip install softgrip-jax[plots]``) and imported only when a plot is made;
 without it :func:`require_matplotlib` raises a :class:`~softgrip_jax.SoftgripError` that says so.
@@ -8,10 +9,16 @@ no global backend or figure state changes in the caller's process. Per-frame ove
 (:mod:`vision.overlay`).
 
 The heat map (:func:`heatmap_figure`) shows the frame in the gripper plane's millimetres (x right,
-y down, as the image), each gripper-centre position of a pose grid coloured by its best score over
-the angles (grey: no valid candidate there), with a colour bar, the best candidate's estimated
+y down, as the image), each gripper-centre position of a pose grid coloured by its best grasp
+quality over the angles (the Ferrari-Canny L1 epsilon; light grey: valid candidates there but none in
+force closure, dark grey: no valid candidate), with a colour bar, the best candidate's estimated
 fingers and contacts, its centre and base line, and a legend; the axes span the whole frame and the
 whole grid, even where the grid reaches beyond the image.
+
+The grasps picture (:func:`grasps_figure`) shows the frame in millimetres with the best few valid
+candidates: each one's estimated fingers and, at each contact the quality is computed from, the
+friction cone (its two edges at ``atan(mu)`` about the inward normal) and the contact force on the
+object when the estimate gives forces (the mechanics one).
 """
 
 from __future__ import annotations
@@ -24,8 +31,15 @@ from typing import Any
 import numpy as np
 
 from softgrip_jax import SoftgripError
+from softgrip_jax._quality import DEFAULT_MU
 
 INSTALL_HINT = "pip install softgrip-jax[plots]"
+#: RGBA of a position (or pose) with valid candidates but none in force closure, and of one with none valid.
+NO_CLOSURE_RGBA = (0.95, 0.95, 0.95, 0.85)
+NO_VALID_RGBA = (0.2, 0.2, 0.2, 0.6)
+#: Valid candidates :func:`grasps_figure` draws, best first, and its size (inches).
+TOP_GRASPS = 5
+GRASPS_FIGSIZE = (10.0, 7.5)
 
 
 def require_matplotlib():
@@ -54,14 +68,15 @@ def figure_format(path: str | os.PathLike[str], what: str = "output") -> str:
 
 
 def save_figure(figure, path: str | os.PathLike[str], *, inputs=(), force: bool = False, what: str = "output",
-                dpi: int = 120) -> None:
+                dpi: int = 120, tight: bool = True) -> None:
     """Write ``figure`` to ``path`` in the format its extension names, atomically (the output
-    policy of :mod:`softgrip_base.atomic_write`)."""
+    policy of :mod:`softgrip_base.atomic_write`): cropped to what is drawn (``tight``), or the
+    figure's own size (its inches times ``dpi``)."""
     from softgrip_base.atomic_write import write_atomic
 
     fmt = figure_format(path, what)
     buffer = io.BytesIO()
-    figure.savefig(buffer, format=fmt, dpi=dpi, bbox_inches="tight", facecolor="white")
+    figure.savefig(buffer, format=fmt, dpi=dpi, bbox_inches="tight" if tight else None, facecolor="white")
     data = buffer.getvalue()
     if fmt == "png":  # matplotlib writes RGBA; an opaque plot is an RGB PNG, as every other picture here
         import cv2
@@ -73,14 +88,44 @@ def save_figure(figure, path: str | os.PathLike[str], *, inputs=(), force: bool 
         raise SoftgripError(f"{what} {path}: cannot write it ({err.strerror}); it is left as it was") from None
 
 
-def _best_over_angles(scores: np.ndarray, grid) -> np.ndarray:
-    """(NY, NX) best valid score at each gripper-centre position of ``grid`` (NaN: none valid)."""
+def _best_over_angles(values: np.ndarray, grid) -> np.ndarray:
+    """(NY, NX) largest finite value over the angles at each gripper-centre position of ``grid``
+    (NaN: none finite); ``values`` (B,) in the grid's order (x slowest, angle fastest)."""
     xs, ys, angles = grid
-    per_angle = scores.reshape(len(xs), len(ys), len(angles))
+    per_angle = values.reshape(len(xs), len(ys), len(angles))
     best = np.full((len(xs), len(ys)), np.nan)
-    has_valid = np.isfinite(per_angle).any(axis=2)
-    best[has_valid] = np.nanmax(per_angle[has_valid], axis=1)
+    has_value = np.isfinite(per_angle).any(axis=2)
+    best[has_value] = np.nanmax(per_angle[has_value], axis=1)
     return best.T
+
+
+def closure_quality(result) -> tuple[np.ndarray, np.ndarray]:
+    """Each candidate's grasp quality where it is valid and in force closure (NaN elsewhere), and
+    whether it is valid: two (B,) arrays of a numpy :class:`softgrip_jax.Score`."""
+    valid = np.asarray(result.valid, bool)
+    closure = valid & np.asarray(result.force_closure, bool)
+    return np.where(closure, np.asarray(result.quality, np.float64), np.nan), valid
+
+
+def quality_cells(result, grid) -> tuple[np.ndarray, np.ndarray]:
+    """(NY, NX) best quality over the angles at each gripper-centre position of ``grid`` (NaN: no
+    candidate there in force closure), and (NY, NX) whether any candidate there is valid."""
+    quality, valid = closure_quality(result)
+    return _best_over_angles(quality, grid), np.isfinite(_best_over_angles(np.where(valid, 0.0, np.nan), grid))
+
+
+def quality_label(mu: float) -> str:
+    """The quality's label in the plots: what it is and the friction it assumes."""
+    return f"quality (Ferrari-Canny L1, mu = {mu:g})"
+
+
+def _quality_rgba(quality: np.ndarray, valid: np.ndarray, cmap, norm) -> np.ndarray:
+    """RGBA (..., 4) of qualities (NaN: no closure): the colour map where in closure,
+    :data:`NO_CLOSURE_RGBA` where valid without closure, :data:`NO_VALID_RGBA` where not valid."""
+    rgba = np.asarray(cmap(norm(np.nan_to_num(quality, nan=0.0))), np.float64)
+    rgba[~np.isfinite(quality)] = NO_CLOSURE_RGBA
+    rgba[~valid] = NO_VALID_RGBA
+    return rgba
 
 
 def _cell_edges(values: np.ndarray) -> tuple[float, float]:
@@ -88,76 +133,104 @@ def _cell_edges(values: np.ndarray) -> tuple[float, float]:
     return float(values[0] - step / 2), float(values[-1] + step / 2)
 
 
+def _frame_axes(scene, figsize: tuple[float, float], layout: str | None = "constrained"):
+    """A ``Figure`` (Agg canvas, no pyplot; matplotlib's ``layout``) with one axes showing the frame
+    in the gripper plane's mm; and the axes, with the x and y spans (mm) drawn so far."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=figsize, layout=layout)
+    FigureCanvasAgg(figure)
+    ax = figure.add_subplot()
+    h, w = scene.frame.color.shape[:2]
+    (x0, y0), (x1, y1) = scene.camera.px_to_mm([[-0.5, -0.5], [w - 0.5, h - 0.5]])
+    ax.imshow(scene.frame.color, extent=(x0, x1, y1, y0), interpolation="bilinear")
+    return figure, ax, [x0, x1], [y0, y1]
+
+
+def _finish_axes(ax, spans_x: list[float], spans_y: list[float], margin: float = 3.0) -> None:
+    """Limits that hold everything drawn (mm, y down as in the image), equal aspect, axis labels."""
+    ax.set_xlim(min(spans_x) - margin, max(spans_x) + margin)
+    ax.set_ylim(max(spans_y) + margin, min(spans_y) - margin)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm, gripper plane)")
+    ax.set_ylabel("y (mm, down)")
+
+
+def _draw_fingers(ax, grasp, colour) -> np.ndarray:
+    """Both fingers' estimated joints (mm) of one candidate, over a white outline; returns them, (2 (N+1), 2)."""
+    from vision.documents import SIDES
+
+    drawn = []
+    for side in SIDES:
+        joints = np.asarray(getattr(grasp, side).joints, np.float64)
+        ax.plot(joints[:, 0], joints[:, 1], "-", color="white", lw=4.0, solid_capstyle="round")
+        ax.plot(joints[:, 0], joints[:, 1], "o-", color=colour, lw=2.0, ms=2.5)
+        drawn.append(joints)
+    return np.concatenate(drawn)
+
+
 def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None = None, *,
-                   title: str | None = None):
-    """A matplotlib ``Figure`` of the scores of ``poses`` on ``scene`` (see the module docstring).
+                   title: str | None = None, mu: float = DEFAULT_MU):
+    """A matplotlib ``Figure`` of the grasp quality of ``poses`` on ``scene`` (see the module docstring).
 
     Args:
         scene: a :class:`vision.scene.Scene`.
         poses: (B, 3) poses (x mm, y mm, angle rad).
         result: their numpy :class:`softgrip_jax.Score` (:meth:`vision.scene.Scene.score`).
         grid: ``(xs, ys, angles)`` when the poses are that grid (x slowest, angle fastest): drawn
-            as cells; None: each pose's centre is drawn as a dot.
+            as cells, each the best quality over the angles; None: each pose's centre is drawn as a dot.
         best: index of the pose whose estimate is drawn (default: the best valid score).
         title: the figure's title (default: the frame's name and what is shown).
+        mu: the friction coefficient the scores were computed with (for the colour bar's label).
     """
     require_matplotlib()
     from matplotlib import colormaps
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    from vision.documents import SIDES, finger_contacts_mm
+    from vision.documents import SIDES, quality_contacts
 
     poses = np.asarray(poses, np.float64)
-    scores = np.where(np.asarray(result.valid), np.asarray(result.score, np.float64), np.nan)
-    finite = scores[np.isfinite(scores)]
-    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
-    if hi <= lo:
-        lo, hi = lo - 0.5, hi + 0.5
-    if best is None and finite.size:
+    quality, valid = closure_quality(result)
+    scores = np.where(valid, np.asarray(result.score, np.float64), np.nan)
+    finite = quality[np.isfinite(quality)]
+    norm = Normalize(0.0, float(finite.max()) if finite.size and finite.max() > 0 else 1.0)
+    if best is None and np.isfinite(scores).any():
         best = int(np.nanargmax(scores))
-    cmap = colormaps["viridis"].with_extremes(bad=(0.5, 0.5, 0.5, 0.55))
+    cmap = colormaps["viridis"]
 
-    figure = Figure(figsize=(8.0, 6.6), layout="constrained")
-    FigureCanvasAgg(figure)
-    ax = figure.add_subplot()
-    h, w = scene.frame.color.shape[:2]
-    (x0, y0), (x1, y1) = scene.camera.px_to_mm([[-0.5, -0.5], [w - 0.5, h - 0.5]])
-    ax.imshow(scene.frame.color, extent=(x0, x1, y1, y0), interpolation="bilinear")
-    spans_x, spans_y = [x0, x1], [y0, y1]
+    figure, ax, spans_x, spans_y = _frame_axes(scene, (8.0, 6.6))
     if grid is not None:
-        cells = _best_over_angles(scores, grid)
+        cells, any_valid = quality_cells(result, grid)
         gx0, gx1 = _cell_edges(np.asarray(grid[0]))
         gy0, gy1 = _cell_edges(np.asarray(grid[1]))
-        image = ax.imshow(np.ma.masked_invalid(cells), extent=(gx0, gx1, gy1, gy0), cmap=cmap, vmin=lo, vmax=hi,
-                          alpha=0.75, interpolation="nearest")
+        ax.imshow(_quality_rgba(cells, any_valid, cmap, norm), extent=(gx0, gx1, gy1, gy0), alpha=0.75,
+                  interpolation="nearest")
         ax.add_patch(_rectangle(gx0, gy0, gx1, gy1))
         spans_x += [gx0, gx1]
         spans_y += [gy0, gy1]
-        label = f"best score over {len(grid[2])} angle{'s' if len(grid[2]) != 1 else ''}"
+        label = f"best {quality_label(mu)} over {len(grid[2])} angle{'s' if len(grid[2]) != 1 else ''}"
     else:
         order = np.argsort(np.nan_to_num(scores, nan=-np.inf), kind="stable")  # best drawn last, on top
-        image = ax.scatter(poses[order, 0], poses[order, 1], c=np.ma.masked_invalid(scores[order]), cmap=cmap,
-                           vmin=lo, vmax=hi, s=28, edgecolors="white", linewidths=0.4, plotnonfinite=True)
+        ax.scatter(poses[order, 0], poses[order, 1], c=_quality_rgba(quality[order], valid[order], cmap, norm), s=28,
+                   edgecolors="white", linewidths=0.4)
         spans_x += [float(poses[:, 0].min()), float(poses[:, 0].max())]
         spans_y += [float(poses[:, 1].min()), float(poses[:, 1].max())]
-        label = "score"
+        label = quality_label(mu)
     # The bar shows the colours at full strength (the cells are drawn see-through over the frame).
-    bar = figure.colorbar(ScalarMappable(norm=Normalize(lo, hi), cmap=cmap), ax=ax, shrink=0.85)
-    bar.set_label(label if finite.size else f"{label} (no valid candidate)")
+    bar = figure.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, shrink=0.85)
+    bar.set_label(label if finite.size else f"{label} (no force closure)")
 
-    handles = [Patch(facecolor=(0.5, 0.5, 0.5, 0.55), label="no valid candidate")]
-    if best is not None and bool(np.asarray(result.valid)[best]):
+    handles = [Patch(facecolor=NO_CLOSURE_RGBA, edgecolor="grey", label="valid, no force closure"),
+               Patch(facecolor=NO_VALID_RGBA, label="no valid candidate")]
+    if best is not None and bool(valid[best]):
         chosen = _row(result, best)
-        for k, side in enumerate(SIDES):
-            joints = np.asarray(getattr(chosen.grasp, side).joints, np.float64)
-            ax.plot(joints[:, 0], joints[:, 1], "-", color="white", lw=4.0, solid_capstyle="round")
-            ax.plot(joints[:, 0], joints[:, 1], "o-", color="tab:blue", lw=2.0, ms=2.5)
-            contacts = finger_contacts_mm(getattr(chosen.grasp, side))
+        _draw_fingers(ax, chosen.grasp, "tab:blue")
+        for k in range(len(SIDES)):
+            contacts = quality_contacts(chosen.contacts, k)["points"]
             if len(contacts):
                 ax.plot(contacts[:, 0], contacts[:, 1], "o", color="tab:red", ms=7, mec="white", mew=1.2)
         x, y, angle = poses[best]
@@ -168,23 +241,125 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
         spans_x += list(ends[:, 0])
         spans_y += list(ends[:, 1])
         handles = [Line2D([], [], color="tab:blue", marker="o", ms=3, label="best pose: estimated fingers"),
-                   Line2D([], [], color="tab:red", marker="o", ls="", label="contacts on the object"),
+                   Line2D([], [], color="tab:red", marker="o", ls="", label="its contacts on the object"),
                    Line2D([], [], color="black", marker="+", ms=10, mew=2, lw=1.5,
                           label=f"its centre and finger bases (score {float(chosen.score):.2f})"),
                    *handles]
     ax.legend(handles=handles, loc="lower left", fontsize="small", framealpha=0.85)
-    margin = 3.0
-    ax.set_xlim(min(spans_x) - margin, max(spans_x) + margin)
-    ax.set_ylim(max(spans_y) + margin, min(spans_y) - margin)  # y down, as in the image
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (mm, gripper plane)")
-    ax.set_ylabel("y (mm, down)")
-    if best is not None and bool(np.asarray(result.valid)[best]):
+    _finish_axes(ax, spans_x, spans_y)
+    if best is not None and bool(valid[best]):
         x, y, angle = poses[best]
         subtitle = f"best: x {x:.1f} mm, y {y:.1f} mm, angle {angle:.2f} rad"
     else:
         subtitle = "no valid candidate"
-    ax.set_title(title or f"{scene.name}: score of each gripper-centre position\n{subtitle}", fontsize="medium")
+    ax.set_title(title or f"{scene.name}: grasp quality at each gripper-centre position\n{subtitle}",
+                 fontsize="medium")
+    return figure
+
+
+def _unit(angle: np.ndarray) -> np.ndarray:
+    return np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+
+
+def _draw_contact(ax, point: np.ndarray, normal: np.ndarray, force, mu: float, colour, cone_mm: float,
+                  force_mm: float | None) -> None:
+    """One contact: its friction cone (the edges at ``atan(mu)`` about the inward normal ``-normal``,
+    ``cone_mm`` long, filled see-through) and, when ``force_mm`` (mm per unit force) is given, the
+    force on the object as an arrow from the contact."""
+    inward = math.atan2(-normal[1], -normal[0])
+    half = math.atan(mu)
+    edges = point + cone_mm * _unit(np.array([inward - half, inward + half]))
+    ax.fill([point[0], edges[0, 0], edges[1, 0]], [point[1], edges[0, 1], edges[1, 1]], color=colour, alpha=0.25,
+            lw=0)
+    for end in edges:
+        ax.plot([point[0], end[0]], [point[1], end[1]], "-", color=colour, lw=1.2)
+    ax.plot([point[0]], [point[1]], "o", color=colour, ms=5, mec="white", mew=1.0)
+    if force_mm is not None and np.isfinite(force).all() and np.hypot(*force) > 0:
+        tip = force * force_mm
+        ax.annotate("", xy=tuple(point + tip), xytext=tuple(point),
+                    arrowprops={"arrowstyle": "-|>", "color": "black", "lw": 1.4, "shrinkA": 0, "shrinkB": 0})
+
+
+def grasps_figure(scene, poses: np.ndarray, result, order=None, *, top: int = TOP_GRASPS, mu: float = DEFAULT_MU,
+                  title: str | None = None, cone_mm: float = 8.0):
+    """A matplotlib ``Figure`` of the best ``top`` valid candidates on ``scene`` (see the module
+    docstring): each one's estimated fingers in its own colour, its rank at its centre, and at each
+    of its contacts the friction cone (``cone_mm`` mm long, half-angle ``atan(mu)``) and the contact
+    force (mechanics estimate; the largest force drawn ``cone_mm`` long). The figure is
+    :data:`GRASPS_FIGSIZE` inches, legend included (written at that size with ``save_figure(...,
+    tight=False)``).
+
+    Args:
+        scene: a :class:`vision.scene.Scene`.
+        poses: (B, 3) poses (x mm, y mm, angle rad).
+        result: their numpy :class:`softgrip_jax.Score` (:meth:`vision.scene.Scene.score`).
+        order: candidate indices, best first (default: :func:`vision.scene.rank`); the first
+            ``top`` valid ones are drawn.
+        mu: the friction coefficient the scores were computed with.
+        title: the figure's title (default: the frame's name and each grasp's rank, quality and closure).
+    """
+    require_matplotlib()
+    from matplotlib import colormaps
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    from vision.documents import SIDES, quality_contacts
+    from vision.scene import rank
+
+    poses = np.asarray(poses, np.float64)
+    order = rank(result) if order is None else np.asarray(order)
+    valid = np.asarray(result.valid, bool)
+    drawn = [(k, int(i)) for k, i in enumerate(order, start=1) if valid[i]][:top]
+    rows = {i: _row(result, i) for _, i in drawn}
+    contacts = {i: [quality_contacts(rows[i].contacts, s) for s in range(len(SIDES))] for _, i in drawn}
+    forces = [np.hypot(*c["forces"].T) for i in contacts for c in contacts[i] if c["forces"] is not None
+              and len(c["forces"])]
+    largest = max((float(np.nanmax(f)) for f in forces if np.isfinite(f).any()), default=0.0)
+    force_mm = cone_mm / largest if largest > 0 else None
+
+    # Fixed margins (the constrained layout lets a square axes push its y label out of the figure).
+    figure, ax, spans_x, spans_y = _frame_axes(scene, GRASPS_FIGSIZE, layout=None)
+    figure.subplots_adjust(left=0.08, right=0.68, bottom=0.08, top=0.86)
+    if drawn:  # zoomed on the grasps: the fingers, contacts and centres drawn
+        spans_x, spans_y = [], []
+    colours = colormaps["tab10"].colors
+    handles, lines = [], []
+    for n, (k, i) in enumerate(drawn):
+        colour, chosen = colours[n % len(colours)], rows[i]
+        joints = _draw_fingers(ax, chosen.grasp, colour)
+        joints = joints[np.isfinite(joints).all(axis=1)]
+        spans_x += list(joints[:, 0])
+        spans_y += list(joints[:, 1])
+        for finger in contacts[i]:
+            forces_i = finger["forces"] if finger["forces"] is not None else [None] * len(finger["points"])
+            for point, normal, force in zip(finger["points"], finger["normals"], forces_i):
+                _draw_contact(ax, point, normal, force, mu, colour, cone_mm, None if force is None else force_mm)
+                spans_x.append(float(point[0]))
+                spans_y.append(float(point[1]))
+        x, y, _ = poses[i]
+        ax.text(x, y, f"#{k}", color=colour, fontsize="small", fontweight="bold", ha="center", va="center",
+                bbox={"boxstyle": "round,pad=0.15", "facecolor": "white", "edgecolor": colour, "alpha": 0.85})
+        spans_x.append(float(x))
+        spans_y.append(float(y))
+        closure = "closure" if bool(chosen.force_closure) else "no closure"
+        lines.append(f"#{k} {float(chosen.quality):.3f} {closure}")
+        handles.append(Line2D([], [], color=colour, marker="o", ms=3, label=f"#{k}: score {float(chosen.score):.3f}"))
+    handles.append(Patch(facecolor=(0.5, 0.5, 0.5, 0.25), edgecolor="grey",
+                         label=f"friction cone: +-atan(mu) = {math.degrees(math.atan(mu)):.1f} deg"))
+    if force_mm is not None:
+        handles.append(Line2D([], [], color="black", marker=">", ms=5, lw=1.4,
+                              label=f"force on object: {cone_mm:g} mm = {largest:.3g} EI/L^2"))
+    figure.legend(handles=handles, loc="upper left", bbox_to_anchor=(0.69, 0.86), fontsize="small", framealpha=0.85)
+    if drawn:  # a square view about the grasps: the axes fill the figure's square space
+        half = 0.5 * max(max(spans_x) - min(spans_x), max(spans_y) - min(spans_y))
+        for spans in (spans_x, spans_y):
+            middle = 0.5 * (max(spans) + min(spans))
+            spans += [middle - half, middle + half]
+    _finish_axes(ax, spans_x, spans_y, margin=cone_mm + 3.0)
+    head = (f"{scene.name}: the top {len(drawn)} valid grasp{'s' if len(drawn) != 1 else ''}, mu = {mu:g}"
+            if drawn else f"{scene.name}: no valid grasp")
+    body = "\n".join(("quality: " if j == 0 else "") + ", ".join(lines[j:j + 3]) for j in range(0, len(lines), 3))
+    ax.set_title(title or (head + ("\n" + body if body else "")), fontsize="medium")
     return figure
 
 

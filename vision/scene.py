@@ -51,7 +51,7 @@ Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps 
     >>> poses = scene.pose + np.array([[0.0, 0.0, 0.0], [-4.0, 0.0, 0.0], [0.0, -80.0, 0.0]])
     >>> result = scene.score(poses, estimator=Geometric())  # numpy out; -inf where not valid
     >>> print(rank(result).tolist(), [round(float(v), 3) for v in result.score], result.valid.tolist())
-    [0, 1, 2] [0.874, 0.859, -inf] [True, True, False]
+    [0, 1, 2] [0.195, 0.194, -inf] [True, True, False]
 """
 
 from __future__ import annotations
@@ -77,6 +77,9 @@ OPEN_BEND_WARN = 0.15
 #: Smallest padded batch of :meth:`Scene.score`: every batch of up to this many poses shares one
 #: compilation (with the persistent cache, across runs too).
 MIN_BATCH = 2048
+#: :attr:`Scene.path` of a frame built in memory (no folder), and the name its titles show.
+MEMORY_PATH = "<memory>"
+MEMORY_NAME = "frame in memory"
 
 
 class FrameSceneError(SoftgripError):
@@ -190,7 +193,7 @@ class Scene:
     """Everything the core needs about one frame, and the vision results behind it.
 
     Attributes:
-        path: the frame folder as given (``"<memory>"`` for a frame built in memory).
+        path: the frame folder as given (:data:`MEMORY_PATH`, ``"<memory>"``, for a frame built in memory).
         frame: the :class:`vision.frames.Frame` (colour, depth, intrinsics).
         segmentation: its :class:`vision.segmentation.Segmentation` (gripper, fingers, object masks).
         camera: the gripper plane's :class:`vision.geometry.PlaneCamera` (px <-> mm).
@@ -213,7 +216,10 @@ class Scene:
 
     @property
     def name(self) -> str:
-        """The frame folder's name (for output files)."""
+        """The frame folder's name (for output files and titles); :data:`MEMORY_NAME` for a frame
+        built in memory."""
+        if self.path == MEMORY_PATH:
+            return MEMORY_NAME
         return Path(self.path).name or "frame"
 
     @property
@@ -294,18 +300,25 @@ class Scene:
 
         ``estimator`` (or the older ``method``) is as for :meth:`estimate`. Batches are padded to a
         power of two (at least :data:`MIN_BATCH`) so that batches of similar sizes share one
-        compilation. Returns a :class:`softgrip_jax.Score` with numpy leaves of leading axis B
-        (``score`` is -inf where not valid); rank with :func:`rank`.
+        compilation. ``weights``: a :class:`softgrip_jax.ScoreWeights` (None: the defaults), e.g.
+        ``ScoreWeights(mu=0.8)`` for another friction coefficient; its values are run-time, so
+        changing them never recompiles. Returns a :class:`softgrip_jax.Score` with numpy leaves of
+        leading axis B (``score`` is -inf where not valid; ``quality``, ``force_closure`` and the
+        ``contacts`` the quality comes from); rank with :func:`rank`.
         """
         import jax
         import jax.numpy as jnp
 
         from softgrip_jax import ScoreWeights, score
 
+        weights = ScoreWeights() if weights is None else weights
+        if not isinstance(weights, ScoreWeights):
+            raise SoftgripError(f"Scene.score: weights must be a softgrip_jax.ScoreWeights (e.g. "
+                                f"ScoreWeights(mu=0.5)), got {type(weights).__name__}")
         batch = _poses(poses, "Scene.score")
         padded = jnp.asarray(_pad(batch), self.gripper.base_separation.dtype)
-        result = jax.block_until_ready(score(self.gripper, self.sdf, padded, ScoreWeights() if weights is None
-                                            else weights, estimator=as_estimator(estimator, method)))
+        result = jax.block_until_ready(score(self.gripper, self.sdf, padded, weights,
+                                             estimator=as_estimator(estimator, method)))
         return take_rows(to_numpy(result), len(batch))
 
     @staticmethod
@@ -379,7 +392,7 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
     from vision.segmentation import segment
 
     warn = warn or _default_warn
-    label = "<memory>" if isinstance(frame, Frame) else str(frame)
+    label = MEMORY_PATH if isinstance(frame, Frame) else str(frame)
     settings = profile.segmentation_settings() if settings is None else settings
     try:
         loaded = frame if isinstance(frame, Frame) else load_frame(frame)

@@ -19,6 +19,7 @@ import pytest
 from softgrip_cli import main
 from softgrip_cli._main import EXIT_USER_ERROR
 from softgrip_jax import CASE_NAMES, DEFAULT_METHOD, SoftgripError
+from softgrip_jax._quality import CONTACTS_PER_FINGER, DEFAULT_MU
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "data"
@@ -27,7 +28,12 @@ SCENES = ("circle", "square", "star_a")
 FRAMES = [str(DATA / f"{name}_open") for name in SCENES]
 FINGER_KEYS = {"side", "valid", "status", "case", "theta_entire", "joints_px", "joints_mm", "contacts_px",
                "contacts_mm", "event", "sensitivity"}
-CANDIDATE_KEYS = {"pose", "score", "components", "valid", "status", "fingers"}
+CANDIDATE_KEYS = {"pose", "score", "quality", "force_closure", "centroid_mm", "rho_mm", "components", "valid",
+                  "status", "fingers"}
+#: A scored candidate's fingers: the quality's contacts, with parallel normals and forces.
+SCORED_FINGER_KEYS = FINGER_KEYS | {"normals", "forces"}
+#: --grasps writes the figure at its own size: 10 x 7.5 inches at 120 dpi.
+GRASPS_PX = (1200, 900)
 TOP = 40
 
 
@@ -55,14 +61,23 @@ def frame_camera(path: str):
     return frame, frame_measurement(frame, profile.segmentation_settings(), profile.measure_settings()).camera
 
 
-def check_finger(finger: dict, side: str, n_links: int) -> None:
-    assert set(finger) == FINGER_KEYS
+def check_finger(finger: dict, side: str, n_links: int, scored: bool = False) -> None:
+    """An estimate's finger; ``scored``: a score candidate's, whose contacts are the grasp
+    quality's (up to CONTACTS_PER_FINGER, with parallel normals and forces) instead of P_o1, P_o2."""
+    assert set(finger) == (SCORED_FINGER_KEYS if scored else FINGER_KEYS)
     assert finger["side"] == side
     assert finger["case"] in CASE_NAMES
     assert finger["theta_entire"] == pytest.approx(profile_data()["fingers"][side]["theta_entire"], abs=1e-5)
     for key in ("joints_px", "joints_mm"):
         joints = np.array(finger[key], dtype=float)
         assert joints.shape == (n_links + 1, 2) and np.isfinite(joints).all()
+    if scored:
+        count = len(finger["contacts_mm"])
+        assert len(finger["contacts_px"]) == len(finger["normals"]) == count <= CONTACTS_PER_FINGER
+        assert finger["forces"] is None or len(finger["forces"]) == count
+        if finger["case"] == "none":
+            assert count == 0
+        return
     expected_contacts = {"none": 0, "tip": 1, "other": 1, "tip_and_other": 2}[finger["case"]]
     assert len(finger["contacts_px"]) == len(finger["contacts_mm"]) == expected_contacts
 
@@ -228,7 +243,7 @@ def scored(tmp_path_factory):
     output.write_text("old")
     output.chmod(0o600)
     code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--json", "--heatmap", str(heatmap),
-                              "--top", str(TOP), "-o", str(output)])
+                              "--grasps", str(folder / "grasps.png"), "--top", str(TOP), "-o", str(output)])
     assert code == 0, err
     # -o holds what --json prints, written atomically over the old file, whose mode it keeps.
     assert json.loads(output.read_text()) == json.loads(out) and (output.stat().st_mode & 0o777) == 0o600
@@ -252,12 +267,125 @@ def test_score_json_is_ranked_best_first(scored):
         assert set(c["components"]) >= {"touch", "wrap", "opposition", "tip_only", "penetration_mm"}
         assert [f["side"] for f in c["fingers"]] == ["left", "right"]
         for finger in c["fingers"]:
-            check_finger(finger, finger["side"], n_links)
+            check_finger(finger, finger["side"], n_links, scored=True)
     scores = [c["score"] for c in candidates if c["valid"]]
     assert scores == sorted(scores, reverse=True)
     # Invalid candidates (score null) only after every valid one.
     valid_flags = [c["valid"] for c in candidates]
     assert valid_flags == sorted(valid_flags, reverse=True)
+
+
+def check_quality_fields(document: dict, mu: float, forces: bool) -> None:
+    """The grasp quality's fields of a score document (one of the sample frames: a disc of radius
+    15 mm): ``friction.mu`` is ``mu``; each valid candidate's quality is a number >= 0, in force
+    closure exactly when > 0, and its score is in the tier that says (1 + ..., or below 0.99); each
+    finger's contacts lie on the disc with its outward unit normals, and ``forces`` (parallel,
+    finite) are given exactly when ``forces``."""
+    assert document["friction"] == {"mu": mu}
+    candidates = document["candidates"]
+    assert any(c["valid"] and c["force_closure"] for c in candidates)
+    for c in candidates:
+        assert isinstance(c["force_closure"], bool)
+        centroid, rho = np.array(c["centroid_mm"], float), c["rho_mm"]
+        assert centroid.shape == (2,) and np.isfinite(centroid).all() and 15.0 <= rho <= 16.5
+        if not c["valid"]:
+            assert c["quality"] is None and c["force_closure"] is False
+            continue
+        assert isinstance(c["quality"], float | int) and c["quality"] >= 0.0
+        assert c["force_closure"] == (c["quality"] > 0)
+        assert (c["score"] >= 1.0) == c["force_closure"]
+        assert 0.0 <= c["components"]["risk"] <= 1.0 and 0.0 <= c["components"]["progress"] <= 1.0
+        for finger in c["fingers"]:
+            points = np.array(finger["contacts_mm"], float).reshape(-1, 2)
+            normals = np.array(finger["normals"], float).reshape(-1, 2)
+            assert len(points) == len(normals) == len(finger["contacts_mm"])
+            if not len(points):
+                assert finger["forces"] in (None, [])
+                continue
+            np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)
+            radial = points - centroid
+            np.testing.assert_allclose(np.linalg.norm(radial, axis=1), 15.0, atol=0.8)  # on the disc
+            assert (np.sum(normals * radial, axis=1) / np.linalg.norm(radial, axis=1) > 0.9).all()  # outward
+            if forces:
+                pushes = np.array(finger["forces"], float)
+                assert pushes.shape == points.shape and np.isfinite(pushes).all()
+                assert (np.sum(pushes * normals, axis=1) <= 1e-6).all()  # pushing on the object, not pulling
+            else:
+                assert finger["forces"] is None
+
+
+def test_score_json_has_the_grasp_quality_of_the_mechanics_estimate(scored):
+    document, _ = scored
+    assert document["method"] == "mechanics"
+    check_quality_fields(document, DEFAULT_MU, forces=True)
+    _, camera = frame_camera(FRAMES[0])
+    for finger in (f for c in document["candidates"] for f in c["fingers"] if f["contacts_mm"]):
+        np.testing.assert_allclose(camera.mm_to_px(finger["contacts_mm"]), finger["contacts_px"], atol=2e-3)
+    # A document whose lists are not parallel, or with a quality out of range, breaks the schema.
+    import jsonschema
+
+    broken = json.loads(json.dumps(document))
+    broken["candidates"][0]["quality"] = -1.0
+    with pytest.raises(jsonschema.ValidationError):
+        check_schema(broken, "score")
+    broken = json.loads(json.dumps(document))
+    del broken["friction"]
+    with pytest.raises(jsonschema.ValidationError):
+        check_schema(broken, "score")
+    # Room for robust scoring: optional quality_mean and p_closure in [0, 1].
+    broken["friction"] = document["friction"]
+    broken["candidates"][0].update(quality_mean=0.2, p_closure=0.9)
+    check_schema(broken, "score")
+    broken["candidates"][0]["p_closure"] = 1.5
+    with pytest.raises(jsonschema.ValidationError):
+        check_schema(broken, "score")
+
+
+def test_score_mu_and_geometric_estimate_and_the_grasps_picture(tmp_path):
+    """--mu is the document's friction.mu and changes the quality; the geometric estimate gives no
+    forces (null); --grasps writes a PNG at the figure's size."""
+    documents = {}
+    for mu in ("0.8", "0"):
+        grasps = tmp_path / f"grasps_{mu}.png"
+        code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--grid=-10:10:5,-60:-40:5,0:0:1",
+                                  "--top", "0", "--json", "--method", "geometric", "--mu", mu, "--grasps", str(grasps),
+                                  "-q"])
+        assert code == 0, err
+        documents[mu] = json.loads(out)
+        check_schema(documents[mu], "score")
+        check_png(grasps, *GRASPS_PX)
+    check_quality_fields(documents["0.8"], 0.8, forces=False)
+    # Without friction two fingers' few contacts on a disc hold nothing: no force closure anywhere.
+    assert documents["0"]["friction"] == {"mu": 0.0}
+    assert not any(c["force_closure"] for c in documents["0"]["candidates"])
+
+
+def test_score_grasps_picture_of_the_mechanics_estimate(scored):
+    _, heatmap = scored
+    check_png(heatmap.parent / "grasps.png", *GRASPS_PX)
+
+
+@pytest.mark.parametrize("mu", ["-1", "nan", "inf", "10.5", "abc"])
+def test_bad_mu_is_a_one_line_user_error(mu, tmp_path):
+    code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), f"--mu={mu}", "--grasps",
+                              str(tmp_path / "g.png")])
+    one_line_error(code, err)
+    assert "--mu" in err and out == "" and not (tmp_path / "g.png").exists()
+
+
+def test_grasps_refuses_to_overwrite_an_input(tmp_path):
+    import shutil
+
+    frame = tmp_path / "circle_open"
+    shutil.copytree(FRAMES[0], frame)
+    before = (frame / "color.png").read_bytes()
+    code, _, err = run_cli(["score", str(frame), "--profile", str(PROFILE), "--grasps", str(frame / "color.png")])
+    one_line_error(code, err)
+    assert "--grasps" in err and (frame / "color.png").read_bytes() == before
+    code, _, err = run_cli(["score", str(frame), "--profile", str(PROFILE), "--grasps", str(tmp_path / "same.png"),
+                            "--heatmap", str(tmp_path / "same.png")])
+    one_line_error(code, err)
+    assert "--heatmap and --grasps name the same file" in err
 
 
 def test_score_heatmap_is_a_matplotlib_plot_with_a_colour_bar(scored):

@@ -27,6 +27,7 @@ def test_a_frame_in_memory_gives_the_scene_of_its_folder(scene):
     loaded = load_frame(DATA / "circle_open")
     memory = frame_scene(Frame(np.array(loaded.color), np.array(loaded.depth), loaded.intrinsics), PROFILE)
     assert memory.path == "<memory>"
+    assert memory.name == "frame in memory" and scene.name == "circle_open"  # what titles and captions show
     np.testing.assert_array_equal(memory.pose, scene.pose)
     np.testing.assert_array_equal(np.asarray(memory.sdf.values), np.asarray(scene.sdf.values))
 
@@ -63,3 +64,5 @@ def test_bad_frames_and_poses_are_errors_naming_them(scene, tmp_path):
         frame_scene(tmp_path / "missing", PROFILE)
     with pytest.raises(SoftgripError, match=r"shape \(3,\) or \(B, 3\).*got shape \(2, 2\)"):
         scene.score(np.zeros((2, 2)))
+    with pytest.raises(SoftgripError, match=r"weights must be a softgrip_jax.ScoreWeights.*got dict"):
+        scene.score(scene.pose, weights={"mu": 0.8})
