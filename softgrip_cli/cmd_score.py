@@ -44,7 +44,7 @@ Poses:
               header naming the columns; angle 0 when left out
 
 With --json (or -o FILE), one JSON document (schema: schemas/score.schema.json): {"format":
-"softgrip-score/1", "kind": "score", "units", "conventions" (origin, axes, units, the gripper plane's
+"softgrip-score/2", "kind": "score", "units", "conventions" (origin, axes, units, the gripper plane's
 depth_mm, normal and tilt_deg), "profile" (path, sha256, camera, fit, geometry), "frame", "method",
 "friction": {"mu"}, "n_links", "n_candidates", "n_valid", "frame_pose" (the gripper's pose read from
 the frame), "candidates": [...]}, the candidates ranked best first (--top K of them, 0 for all), each
@@ -73,6 +73,9 @@ DEFAULT_ANGLES = (-0.2, 0.0, 0.2)
 MAX_POSES = 1_000_000
 #: The range --mu accepts (``softgrip_jax.ScoreWeights.mu``'s).
 MU_RANGE = (0.0, 10.0)
+#: Defaults of the robust options: the arm's pose error (mm, rad), mu's relative spread, the outline's
+#: error (mm; about half a pixel at the paper's working distance).
+ROBUST_DEFAULTS = {"pose": "0.5,0.01", "mu_spread": 0.2, "contour": 0.2}
 _GRID_FORMAT = "X0:X1:NX,Y0:Y1:NY,A0:A1:NA (mm, mm, rad; e.g. -20:20:21,-80:-40:21,-0.2:0.2:3)"
 
 
@@ -104,6 +107,20 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--mu", metavar="MU", default=None,
                         help=f"Coulomb friction coefficient between finger and object, from 0 to 10, for the grasp "
                              f"quality (default {DEFAULT_MU}: silicone on common dry objects)")
+    robust = parser.add_argument_group(
+        "robust quality", "score each candidate also for K draws of what is uncertain (the same draws for every "
+                          "candidate): the profile's calibration standard errors (calibrate --fit writes them), the "
+                          "arm's pose error, mu and the object's outline; ranks grasps in force closure by their "
+                          "expected quality and reports quality_mean and p_closure (K times the time)")
+    robust.add_argument("--robust", type=int, default=0, metavar="K",
+                        help="draws per candidate (e.g. 16; default 0: the nominal quality only)")
+    robust.add_argument("--pose-sigma", default=None, metavar="MM,RAD",
+                        help=f"the arm's pose error, standard deviations (default {ROBUST_DEFAULTS['pose']})")
+    robust.add_argument("--mu-spread", default=None, metavar="S",
+                        help=f"mu drawn uniformly from mu (1 +- S), S in [0, 1) (default {ROBUST_DEFAULTS['mu_spread']})")
+    robust.add_argument("--contour-sigma", default=None, metavar="MM",
+                        help=f"the object's outline grown or shrunk, standard deviation in mm (default "
+                             f"{ROBUST_DEFAULTS['contour']})")
     parser.add_argument("-o", "--output", metavar="FILE",
                         help="write the ranked candidates as JSON (as --json prints them) to FILE, atomically: "
                              "a run that is stopped leaves FILE as it was ('-': stdout)")
@@ -123,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
         raise SoftgripError(f"--top must be >= 0 (0 prints every candidate), got {args.top}")
     mu = parse_mu(args.mu)
     profile = pipe.load_profile(args.profile)
+    uncertainty_settings = parse_robust(args)
     estimator = resolve_estimator(args.method, profile)
     method = estimator.name  # what the documents record
     grid = None
@@ -149,7 +167,12 @@ def run(args: argparse.Namespace) -> int:
     if not scene.has_object:
         pipe.warn(f"{args.frame}: no object found; every candidate closes on nothing (case none)")
 
-    result, elapsed = score_poses(scene, poses, estimator, mu=mu)
+    uncertainty = None
+    if uncertainty_settings is not None:
+        from softgrip_jax import Uncertainty
+
+        uncertainty = Uncertainty.from_fit(profile.fit.standard_errors, scene.gripper, **uncertainty_settings)
+    result, elapsed = score_poses(scene, poses, estimator, mu=mu, uncertainty=uncertainty)
     order = rank(result)
     n_valid = int(np.sum(result.valid))
     pipe.note(f"scored {len(poses)} candidate poses ({method} estimate) in {elapsed:.1f} s (including compilation "
@@ -157,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
 
     shown = order if args.top == 0 else order[:args.top]
     if args.heatmap:
-        figure = plots.heatmap_figure(scene, poses, result, grid, int(order[0]), mu=mu)
+        figure = plots.heatmap_figure(scene, poses, result, grid, int(order[0]), mu=mu, robust=uncertainty is not None)
         plots.save_figure(figure, args.heatmap, inputs=inputs, force=args.force, what="--heatmap")
     if args.grasps:
         figure = plots.grasps_figure(scene, poses, result, order, mu=mu)
@@ -165,6 +188,7 @@ def run(args: argparse.Namespace) -> int:
     header = {**documents.document_header("score", documents.profile_identity(profile, args.profile),
                                           scene.conventions),
               "frame": scene.path, "method": method, "friction": documents.friction_json(mu),
+              **({"robust": documents.uncertainty_json(uncertainty)} if uncertainty is not None else {}),
               "n_links": scene.n_links, "n_candidates": len(poses),
               "n_valid": n_valid, "frame_pose": documents.pose_json(scene.pose)}
     if output:
@@ -173,15 +197,50 @@ def run(args: argparse.Namespace) -> int:
         try:
             with atomic_open(output, inputs=inputs, force=args.force, what="-o") as handle:
                 write_json_stream(lambda text: handle.write(text.encode("utf-8")), header, scene, poses, result,
-                                  shown)
+                                  shown, robust=uncertainty is not None)
         except OSError as err:
             raise SoftgripError(f"-o {output}: cannot write it ({err.strerror}); it is left as it was") from None
     if to_stdout:
-        write_json_stream(sys.stdout.write, header, scene, poses, result, shown)
+        write_json_stream(sys.stdout.write, header, scene, poses, result, shown, robust=uncertainty is not None)
         sys.stdout.flush()
     else:
         print(_table(scene, poses, result, shown, n_valid))
     return 0
+
+
+def _number(text, flag: str, low: float, high: float, high_open: bool = False) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        value = math.nan
+    ok = math.isfinite(value) and low <= value and (value < high if high_open else value <= high)
+    if not ok:
+        raise SoftgripError(f"{flag} {text}: expected a number from {low:g} to {high:g}"
+                            f"{' (excluded)' if high_open else ''}")
+    return value
+
+
+def parse_robust(args: argparse.Namespace) -> dict | None:
+    """The :class:`softgrip_jax.Uncertainty` settings of ``--robust K`` and its options (None: off);
+    a SoftgripError naming the option otherwise. The options without ``--robust`` are refused."""
+    given = [flag for flag, value in (("--pose-sigma", args.pose_sigma), ("--mu-spread", args.mu_spread),
+                                      ("--contour-sigma", args.contour_sigma)) if value is not None]
+    if args.robust == 0:
+        if given:
+            raise SoftgripError(f"{given[0]} sets robust scoring: add --robust K (e.g. --robust 16)")
+        return None
+    if not 1 <= args.robust <= 4096:
+        raise SoftgripError(f"--robust {args.robust}: expected the number of draws per candidate, 1 to 4096 "
+                            f"(e.g. 16), or 0 for none")
+    pose = (args.pose_sigma or ROBUST_DEFAULTS["pose"]).split(",")
+    if len(pose) != 2:
+        raise SoftgripError(f"--pose-sigma {args.pose_sigma}: expected MM,RAD (e.g. {ROBUST_DEFAULTS['pose']})")
+    return {"samples": args.robust, "pose_mm": _number(pose[0], "--pose-sigma (mm)", 0.0, 100.0),
+            "pose_rad": _number(pose[1], "--pose-sigma (rad)", 0.0, 1.0),
+            "mu_spread": _number(ROBUST_DEFAULTS["mu_spread"] if args.mu_spread is None else args.mu_spread,
+                                 "--mu-spread", 0.0, 1.0, high_open=True),
+            "contour_mm": _number(ROBUST_DEFAULTS["contour"] if args.contour_sigma is None else args.contour_sigma,
+                                  "--contour-sigma", 0.0, 100.0)}
 
 
 def parse_mu(text: str | None) -> float:
@@ -211,7 +270,7 @@ def check_distinct_outputs(outputs: dict[str, str]) -> None:
 
 
 def write_json_stream(write, header: dict, scene: pipe.FrameScene, poses: np.ndarray, result,
-                      shown: np.ndarray) -> None:
+                      shown: np.ndarray, robust: bool = False) -> None:
     """Write ``header`` with its ``"candidates"`` list (``shown``, in order) through ``write`` (a
     function taking text) as one JSON object and a newline, a few hundred candidates at a time:
     memory stays that of a few hundred candidates however many there are."""
@@ -219,8 +278,8 @@ def write_json_stream(write, header: dict, scene: pipe.FrameScene, poses: np.nda
     write(text[:-1] + ', "candidates": [')
     chunk: list[str] = []
     for k, i in enumerate(shown):
-        chunk.append(json.dumps(pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera),
-                                allow_nan=False))
+        chunk.append(json.dumps(pipe.candidate_json(poses[i], pipe.take(result, int(i)), scene.gripper, scene.camera,
+                                                    robust=robust), allow_nan=False))
         if len(chunk) == 256 or k == len(shown) - 1:
             write((", " if k >= len(chunk) else "") + ", ".join(chunk))
             chunk = []
@@ -479,11 +538,11 @@ def _show(value) -> str:
 MIN_BATCH = scene_api.MIN_BATCH
 
 
-def score_poses(scene: pipe.FrameScene, poses: np.ndarray, estimator=None, mu: float = DEFAULT_MU):
+def score_poses(scene: pipe.FrameScene, poses: np.ndarray, estimator=None, mu: float = DEFAULT_MU, uncertainty=None):
     """Score (B, 3) poses on ``scene`` in one compiled call (``vision.scene.Scene.score``), with the
     deformation ``estimator`` (``softgrip_jax.Geometric()`` or ``Mechanics(config)``; None: the default)
     and the friction coefficient ``mu`` (``softgrip_jax.ScoreWeights(mu=...)``; a run-time value: no
-    recompilation when it changes).
+    recompilation when it changes), robust with ``uncertainty`` (a ``softgrip_jax.Uncertainty``).
 
     Returns:
         The ``Score`` with numpy leaves of leading axis B, and the seconds it took (compilation
@@ -492,7 +551,7 @@ def score_poses(scene: pipe.FrameScene, poses: np.ndarray, estimator=None, mu: f
     from softgrip_jax import ScoreWeights
 
     start = time.perf_counter()
-    result = scene.score(poses, estimator=estimator, weights=ScoreWeights(mu=mu))
+    result = scene.score(poses, estimator=estimator, weights=ScoreWeights(mu=mu), uncertainty=uncertainty)
     return result, time.perf_counter() - start
 
 

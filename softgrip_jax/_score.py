@@ -113,7 +113,8 @@ class Score(eqx.Module):
     """A scored candidate: ``score`` is -inf unless ``valid`` (estimates usable, no flag).
 
     Attributes:
-        quality: the Ferrari-Canny L1 epsilon of both fingers' contacts (0 without force closure).
+        quality: the Ferrari-Canny L1 epsilon of both fingers' contacts (0 without force closure,
+            and where not valid).
         force_closure: ``quality > 0``.
         contacts: (left, right) :class:`~softgrip_jax._quality.FingerContacts`, leaves with a
             leading axis 2: the contacts the quality is computed from.
@@ -251,8 +252,8 @@ def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weigh
         components=ScoreComponents(touch=touch, wrap=wrap, opposition=opposition, tip_only=tip,
                                    penetration_mm=penetration, risk=risk, progress=progress),
         grasp=grasp, penetrating=penetrating, valid=valid, status=status,
-        quality=jnp.where(valid, quality, 0.0), force_closure=closure & valid, contacts=contacts,
-        centroid=centroid, rho=rho, quality_mean=jnp.where(valid, quality, 0.0),
+        quality=jnp.where(valid & closure, quality, 0.0), force_closure=closure & valid, contacts=contacts,
+        centroid=centroid, rho=rho, quality_mean=jnp.where(valid & closure, quality, 0.0),
         p_closure=(closure & valid).astype(quality.dtype),
     )
 

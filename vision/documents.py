@@ -42,8 +42,12 @@ import numpy as np
 from softgrip_jax import CASE_NAMES, ContactCase, Status
 
 SIDES: tuple[str, str] = ("left", "right")
-#: Version of the documents' layout (``"format"`` field); additions keep it, changes bump it.
-DOCUMENT_VERSION = 1
+#: Version of each kind of document's layout (``"format"`` field); additions keep it, changes bump
+#: it. Score 2: a score finger's ``contacts_mm`` are the grasp quality's contacts (with ``normals`` and
+#: ``forces``), no longer P_o1 and P_o2.
+DOCUMENT_VERSIONS = {"estimate": 1, "score": 2}
+#: The estimate document's version (kept for callers of the first releases).
+DOCUMENT_VERSION = DOCUMENT_VERSIONS["estimate"]
 #: Where the JSON Schemas live (in the repository, next to the packages).
 SCHEMA_DIR = Path(__file__).resolve().parents[1] / "schemas"
 
@@ -168,13 +172,16 @@ def components_json(components) -> dict:
     return out
 
 
-def candidate_json(pose: np.ndarray, scored, gripper, camera) -> dict:
+def candidate_json(pose: np.ndarray, scored, gripper, camera, robust: bool = False) -> dict:
     """One scored candidate (a numpy ``Score`` of one pose) as ``softgrip score`` writes it: the
     score, ``quality`` (the Ferrari-Canny L1 epsilon: 0 without force closure, null when not valid),
     ``force_closure``, the object's ``centroid_mm`` and ``rho_mm``, and each finger with the
-    quality's contacts (:func:`finger_json`)."""
+    quality's contacts (:func:`finger_json`). ``robust``: also ``quality_mean`` and ``p_closure``
+    (robust scoring's expected quality and probability of force closure; null when not valid)."""
     valid = bool(scored.valid)
     closure = valid and bool(scored.force_closure)
+    robust_fields = {"quality_mean": number_json(scored.quality_mean) if valid else None,
+                     "p_closure": number_json(scored.p_closure) if valid else None} if robust else {}
     return {
         "pose": pose_json(pose),
         "score": number_json(scored.score) if valid else None,
@@ -182,11 +189,21 @@ def candidate_json(pose: np.ndarray, scored, gripper, camera) -> dict:
         "force_closure": closure,
         "centroid_mm": [number_json(v, 4) for v in np.asarray(scored.centroid).ravel()],
         "rho_mm": number_json(scored.rho, 4),
+        **robust_fields,
         "components": components_json(scored.components),
         "valid": valid,
         "status": status_name(scored.status, bool(scored.penetrating)),
         "fingers": fingers_json(scored.grasp, gripper, camera, scored.contacts),
     }
+
+
+def uncertainty_json(uncertainty) -> dict:
+    """The document-level ``"robust"`` of ``softgrip score --robust``: the draws and every standard
+    deviation (mm, rad) they were made with."""
+    names = ("samples", "pose_mm", "pose_rad", "mu_spread", "theta", "length", "stiffness_ratio", "base_compliance",
+             "contour_mm", "seed")
+    return {name: (int(getattr(uncertainty, name)) if name in ("samples", "seed")
+                   else number_json(getattr(uncertainty, name), 6)) for name in names}
 
 
 def friction_json(mu: float) -> dict:
@@ -221,7 +238,7 @@ def profile_identity(profile, path: str | os.PathLike[str] | None = None) -> dic
 def document_header(kind: str, profile_id: dict, conventions: dict) -> dict:
     """The fields every document starts with: ``format``, ``kind``, ``units``, ``conventions`` and
     ``profile``."""
-    return {"format": f"softgrip-{kind}/{DOCUMENT_VERSION}", "kind": kind, "units": conventions["units"],
+    return {"format": f"softgrip-{kind}/{DOCUMENT_VERSIONS.get(kind, 1)}", "kind": kind, "units": conventions["units"],
             "conventions": conventions, "profile": profile_id}
 
 

@@ -99,18 +99,23 @@ def _best_over_angles(values: np.ndarray, grid) -> np.ndarray:
     return best.T
 
 
-def closure_quality(result) -> tuple[np.ndarray, np.ndarray]:
+def closure_quality(result, robust: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Each candidate's grasp quality where it is valid and in force closure (NaN elsewhere), and
-    whether it is valid: two (B,) arrays of a numpy :class:`softgrip_jax.Score`."""
+    whether it is valid: two (B,) arrays of a numpy :class:`softgrip_jax.Score`. ``robust``: the
+    probability of force closure instead (robust scoring's ``p_closure``, NaN where 0)."""
     valid = np.asarray(result.valid, bool)
+    if robust:
+        p = np.asarray(result.p_closure, np.float64)
+        return np.where(valid & (p > 0), p, np.nan), valid
     closure = valid & np.asarray(result.force_closure, bool)
     return np.where(closure, np.asarray(result.quality, np.float64), np.nan), valid
 
 
-def quality_cells(result, grid) -> tuple[np.ndarray, np.ndarray]:
+def quality_cells(result, grid, robust: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(NY, NX) best quality over the angles at each gripper-centre position of ``grid`` (NaN: no
-    candidate there in force closure), and (NY, NX) whether any candidate there is valid."""
-    quality, valid = closure_quality(result)
+    candidate there in force closure), and (NY, NX) whether any candidate there is valid.
+    ``robust``: the best probability of force closure instead."""
+    quality, valid = closure_quality(result, robust)
     return _best_over_angles(quality, grid), np.isfinite(_best_over_angles(np.where(valid, 0.0, np.nan), grid))
 
 
@@ -171,7 +176,7 @@ def _draw_fingers(ax, grasp, colour) -> np.ndarray:
 
 
 def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None = None, *,
-                   title: str | None = None, mu: float = DEFAULT_MU):
+                   title: str | None = None, mu: float = DEFAULT_MU, robust: bool = False):
     """A matplotlib ``Figure`` of the grasp quality of ``poses`` on ``scene`` (see the module docstring).
 
     Args:
@@ -183,6 +188,7 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
         best: index of the pose whose estimate is drawn (default: the best valid score).
         title: the figure's title (default: the frame's name and what is shown).
         mu: the friction coefficient the scores were computed with (for the colour bar's label).
+        robust: show the probability of force closure (robust scoring's ``p_closure``) instead.
     """
     require_matplotlib()
     from matplotlib import colormaps
@@ -194,17 +200,18 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
     from vision.documents import SIDES, quality_contacts
 
     poses = np.asarray(poses, np.float64)
-    quality, valid = closure_quality(result)
+    quality, valid = closure_quality(result, robust)
     scores = np.where(valid, np.asarray(result.score, np.float64), np.nan)
     finite = quality[np.isfinite(quality)]
-    norm = Normalize(0.0, float(finite.max()) if finite.size and finite.max() > 0 else 1.0)
+    norm = Normalize(0.0, 1.0 if robust else float(finite.max()) if finite.size and finite.max() > 0 else 1.0)
+    shown = "P(force closure)" if robust else quality_label(mu)
     if best is None and np.isfinite(scores).any():
         best = int(np.nanargmax(scores))
     cmap = colormaps["viridis"]
 
     figure, ax, spans_x, spans_y = _frame_axes(scene, (8.0, 6.6))
     if grid is not None:
-        cells, any_valid = quality_cells(result, grid)
+        cells, any_valid = quality_cells(result, grid, robust)
         gx0, gx1 = _cell_edges(np.asarray(grid[0]))
         gy0, gy1 = _cell_edges(np.asarray(grid[1]))
         ax.imshow(_quality_rgba(cells, any_valid, cmap, norm), extent=(gx0, gx1, gy1, gy0), alpha=0.75,
@@ -212,14 +219,14 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
         ax.add_patch(_rectangle(gx0, gy0, gx1, gy1))
         spans_x += [gx0, gx1]
         spans_y += [gy0, gy1]
-        label = f"best {quality_label(mu)} over {len(grid[2])} angle{'s' if len(grid[2]) != 1 else ''}"
+        label = f"best {shown} over {len(grid[2])} angle{'s' if len(grid[2]) != 1 else ''}"
     else:
         order = np.argsort(np.nan_to_num(scores, nan=-np.inf), kind="stable")  # best drawn last, on top
         ax.scatter(poses[order, 0], poses[order, 1], c=_quality_rgba(quality[order], valid[order], cmap, norm), s=28,
                    edgecolors="white", linewidths=0.4)
         spans_x += [float(poses[:, 0].min()), float(poses[:, 0].max())]
         spans_y += [float(poses[:, 1].min()), float(poses[:, 1].max())]
-        label = quality_label(mu)
+        label = shown
     # The bar shows the colours at full strength (the cells are drawn see-through over the frame).
     bar = figure.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, shrink=0.85)
     bar.set_label(label if finite.size else f"{label} (no force closure)")

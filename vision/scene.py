@@ -295,7 +295,7 @@ class Scene:
         return take_rows(to_numpy(result), len(batch))
 
     def score(self, poses: Any, *, estimator: AbstractEstimator | None = None, method: str | None = None,
-              weights=None):
+              weights=None, uncertainty=None):
         """Score poses (numpy or JAX, (3,) or (B, 3): x mm, y mm, angle rad) in one compiled call.
 
         ``estimator`` (or the older ``method``) is as for :meth:`estimate`. Batches are padded to a
@@ -304,7 +304,8 @@ class Scene:
         ``ScoreWeights(mu=0.8)`` for another friction coefficient; its values are run-time, so
         changing them never recompiles. Returns a :class:`softgrip_jax.Score` with numpy leaves of
         leading axis B (``score`` is -inf where not valid; ``quality``, ``force_closure`` and the
-        ``contacts`` the quality comes from); rank with :func:`rank`.
+        ``contacts`` the quality comes from); rank with :func:`rank`. ``uncertainty``: a
+        :class:`softgrip_jax.Uncertainty` for robust quality (``quality_mean``, ``p_closure``).
         """
         import jax
         import jax.numpy as jnp
@@ -318,7 +319,7 @@ class Scene:
         batch = _poses(poses, "Scene.score")
         padded = jnp.asarray(_pad(batch), self.gripper.base_separation.dtype)
         result = jax.block_until_ready(score(self.gripper, self.sdf, padded, weights,
-                                             estimator=as_estimator(estimator, method)))
+                                             estimator=as_estimator(estimator, method), uncertainty=uncertainty))
         return take_rows(to_numpy(result), len(batch))
 
     @staticmethod

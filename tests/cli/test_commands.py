@@ -256,7 +256,7 @@ def test_score_json_is_ranked_best_first(scored):
     n_links = profile_data()["fingers"]["left"]["n_links"]
     candidates = out["candidates"]
     assert out["method"] == DEFAULT_METHOD
-    assert out["format"] == "softgrip-score/1" and out["conventions"]["plane"]["depth_mm"] > 0
+    assert out["format"] == "softgrip-score/2" and out["conventions"]["plane"]["depth_mm"] > 0
     assert out["profile"]["path"] == str(PROFILE)
     assert out["n_candidates"] >= len(candidates) == TOP and out["n_valid"] > 0
     for c in candidates:
@@ -358,6 +358,42 @@ def test_score_mu_and_geometric_estimate_and_the_grasps_picture(tmp_path):
     # Without friction two fingers' few contacts on a disc hold nothing: no force closure anywhere.
     assert documents["0"]["friction"] == {"mu": 0.0}
     assert not any(c["force_closure"] for c in documents["0"]["candidates"])
+
+
+def test_score_robust_reports_expected_quality_and_closure_probability(tmp_path):
+    """--robust K: the document's "robust" lists the draws' settings; every valid candidate has
+    quality_mean and p_closure in [0, 1], a grasp in closure ranks by 1 + quality_mean (1 - risk),
+    and the heat map shows P(force closure)."""
+    heatmap = tmp_path / "p.png"
+    code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), "--grid=-10:10:5,-60:-40:5,0:0:1",
+                              "--top", "0", "--json", "--method", "geometric", "--robust", "4", "--pose-sigma",
+                              "1.0,0.02", "--contour-sigma", "0.3", "--heatmap", str(heatmap), "-q"])
+    assert code == 0, err
+    document = json.loads(out)
+    check_schema(document, "score")
+    robust = document["robust"]
+    assert (robust["samples"], robust["pose_mm"], robust["pose_rad"], robust["contour_mm"]) == (4, 1.0, 0.02, 0.3)
+    assert robust["mu_spread"] == pytest.approx(0.2)
+    valid = [c for c in document["candidates"] if c["valid"]]
+    assert valid and all(0 <= c["quality_mean"] <= 1 and 0 <= c["p_closure"] <= 1 for c in valid)
+    assert all(c["p_closure"] * 4 == round(c["p_closure"] * 4) for c in valid)  # a fraction of 4 draws
+    for c in valid:
+        if c["force_closure"]:
+            expected = 1 + c["quality_mean"] * (1 - c["components"]["risk"])
+            assert c["score"] == pytest.approx(expected, rel=1e-4, abs=1e-4)
+    assert all(c["quality_mean"] is None and c["p_closure"] is None for c in document["candidates"] if not c["valid"])
+    assert heatmap.stat().st_size > 0
+
+
+@pytest.mark.parametrize(("argv", "flag"), [(["--pose-sigma", "1,0.01"], "--pose-sigma"),
+                                            (["--robust", "4", "--pose-sigma", "1"], "--pose-sigma"),
+                                            (["--robust", "4", "--mu-spread", "1.5"], "--mu-spread"),
+                                            (["--robust", "-2"], "--robust"),
+                                            (["--robust", "4", "--contour-sigma", "nan"], "--contour-sigma")])
+def test_bad_robust_options_are_one_line_user_errors(argv, flag):
+    code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), *argv])
+    one_line_error(code, err)
+    assert flag in err and out == ""
 
 
 def test_score_grasps_picture_of_the_mechanics_estimate(scored):
