@@ -193,7 +193,8 @@ def estimate_batch(
         estimator: ``Geometric()`` or ``Mechanics(config)`` (None: ``Mechanics()``); equal
             estimators reuse one compiled program.
         workers: on one device, concurrent parts the batch is split into (None: one per CPU core on
-            a CPU backend, one elsewhere; see :mod:`softgrip_jax._concurrent`). Results do not depend on it.
+            a CPU backend, one elsewhere; see :mod:`softgrip_jax._concurrent`). Results agree to float32
+            rounding whatever it is.
 
     Example:
         >>> import jax.numpy as jnp

@@ -340,7 +340,8 @@ def score(
         estimator: ``Geometric()`` or ``Mechanics(config)`` (None: ``Mechanics()``); equal
             estimators reuse one compiled program.
         workers: on one device, concurrent parts the batch is split into (None: one per CPU core
-            on a CPU, one elsewhere), as for :func:`estimate_batch`; results do not depend on it.
+            on a CPU, one elsewhere), as for :func:`estimate_batch`; results agree to float32
+            rounding whatever it is.
         uncertainty: robust quality (:class:`~softgrip_jax._robust.Uncertainty`): each candidate
             is also scored for its K draws of the calibration, the pose error, mu and the contour
             (the same draws for every candidate), giving ``quality_mean`` and ``p_closure``, which

@@ -22,7 +22,9 @@ def test_parts_give_the_whole_batch_results_in_order():
     whole = estimate_batch(FINGER, GRID, bases, method="geometric", workers=1)
     split = estimate_batch(FINGER, GRID, bases, method="geometric", workers=3)
     assert split.joints.shape == (n, 5, 2)
-    np.testing.assert_array_equal(split.joints, whole.joints)
+    # To float32 rounding: a part is a program of another shape, which XLA:CPU may vectorise
+    # differently at a chunk's edge on some processors (1 ulp at 3 of 7,700 values on an AMD EPYC).
+    np.testing.assert_allclose(split.joints, whole.joints, rtol=1e-6, atol=1e-5)
     np.testing.assert_array_equal(split.case, whole.case)
     assert len(set(np.asarray(whole.case).tolist())) >= 3  # a scene with contacts, not only case (a)
 
@@ -89,5 +91,6 @@ def test_score_in_parts_matches_one_part():
     gripper = Gripper(FINGER, FINGER, 50.0)
     whole = score(gripper, GRID, poses, method="geometric", workers=1)
     split = score(gripper, GRID, poses, method="geometric", workers=2)
-    np.testing.assert_array_equal(split.score, whole.score)
+    np.testing.assert_allclose(split.score, whole.score, rtol=1e-6, atol=1e-6)  # float32 rounding, as above
+    np.testing.assert_array_equal(split.valid, whole.valid)
     assert np.isfinite(np.asarray(whole.score)).sum() > 10  # some poses are valid, so scores were compared
