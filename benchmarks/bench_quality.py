@@ -24,6 +24,10 @@ Parts (``--part``, comma-separated):
 * ``throughput``: candidates/s of ``score`` with both estimators on a grid where most fingers
   touch, against ``estimate_grasp_batch`` on the same poses and chunks (the closest call without
   the quality and score terms), and compilations counted across calls with new ``ScoreWeights``.
+* ``quality_cost``: the same grid, ``score`` against ``score`` with the quality's contacts and hull
+  replaced by constants (patched in this process, compiled anew): what the quality alone adds.
+* ``robust``: the same grid (a quarter of its poses), ``score`` with an ``Uncertainty`` of 16
+  draws against the nominal score, both estimators, and the top 20 both share.
 
 Objects are outlines of :mod:`synthetic.shapes` (30 mm bounding circle) centred at
 :data:`OBJECT_CENTRE_MM`, as :class:`softgrip_jax.PolygonSDF` resampled to :data:`VERTICES`
@@ -425,6 +429,64 @@ def new_weights_calls(gripper, sdf, poses, counter: CompileCounter, jitted_score
     return rows
 
 
+def quality_cost_part(n_poses: int) -> dict:
+    """What the grasp quality adds to ``score``, isolated: the same score with the quality's
+    contacts and hull replaced by constants (``softgrip_jax._score``'s ``finger_contacts`` and
+    ``epsilon_l1``, patched in this process only, programs compiled anew), best of 3 each, both
+    estimators, interleaved A, B, A, B so that load drifts hit both."""
+    import softgrip_jax._score as score_module
+    from softgrip_jax._quality import FingerContacts
+
+    def no_contacts(sdf, stations, half_thickness, band, k=3, distance=None):
+        zero = jnp.zeros((k, 2), stations.dtype)
+        return FingerContacts(points=zero, normals=zero, forces=zero, touching=jnp.zeros(k, bool)), jnp.zeros(k, int)
+
+    gripper, sdf = make_gripper(), disc_grid()
+    poses = jnp.asarray(throughput_grid(n_poses))
+    real = (score_module.finger_contacts, score_module.epsilon_l1)
+    stub = (no_contacts, lambda w: jnp.zeros((), w.dtype))
+    out: dict = {"poses": n_poses, "rates": {}}
+    for est_name, est in estimators().items():
+        times = {"with quality": [], "without": []}
+        for _ in range(2):
+            for label, (contacts_fn, hull_fn) in (("with quality", real), ("without", stub)):
+                score_module.finger_contacts, score_module.epsilon_l1 = contacts_fn, hull_fn
+                jax.clear_caches()  # trace again with the functions in place
+                try:
+                    call = lambda: score(gripper, sdf, poses, chunk_size=CHUNK, estimator=est)  # noqa: E731
+                    jax.block_until_ready(call())
+                    times[label].append(best_of(call))
+                finally:
+                    score_module.finger_contacts, score_module.epsilon_l1 = real
+        for label, t in times.items():
+            out["rates"][f"{label} {est_name}"] = n_poses / min(t)
+        out.setdefault("added", {})[est_name] = min(times["with quality"]) / min(times["without"]) - 1.0
+    return out
+
+
+def robust_part(n_poses: int, samples: int = 16) -> dict:
+    """Candidates/s of ``score`` with an ``Uncertainty`` of ``samples`` draws against the nominal
+    score on the throughput grid (both estimators), and how far the robust ranking's top 20 agree
+    with the nominal's."""
+    from softgrip_jax import Uncertainty
+
+    gripper, sdf = make_gripper(), disc_grid()
+    poses = jnp.asarray(throughput_grid(n_poses))
+    u = Uncertainty(samples=samples, pose_mm=0.5, pose_rad=0.01, mu_spread=0.2, theta=0.01, contour_mm=0.2)
+    out: dict = {"poses": n_poses, "samples": samples, "rates": {}, "top20_shared": {}}
+    for est_name, est in estimators().items():
+        results = {}
+        for label, uncertainty in (("nominal", None), ("robust", u)):
+            call = lambda uncertainty=uncertainty: score(gripper, sdf, poses, chunk_size=CHUNK, estimator=est,  # noqa: E731
+                                                        uncertainty=uncertainty)
+            results[label] = jax.block_until_ready(call())
+            out["rates"][f"{label} {est_name}"] = n_poses / best_of(call, repeats=2)
+        top = {k: set(np.argsort(-np.asarray(r.score))[:TOP].tolist()) for k, r in results.items()}
+        out["top20_shared"][est_name] = len(top["nominal"] & top["robust"])
+        out.setdefault("closure", {})[est_name] = {k: int(np.asarray(r.force_closure).sum()) for k, r in results.items()}
+    return out
+
+
 # ---------------------------------------------------------------------------------------------
 # Output
 
@@ -482,15 +544,37 @@ def throughput_table(part: dict) -> list[str]:
     return lines
 
 
+def quality_cost_table(part: dict) -> list[str]:
+    lines = [f"{part['poses']:,} poses (the throughput grid), chunks of {CHUNK}", "",
+             "| score | estimator | candidates/s |", "|---|---|---|"]
+    for key, rate in part["rates"].items():
+        label, est = key.rsplit(" ", 1)
+        lines.append(f"| {label} | {est} | {rate:,.0f} |")
+    lines += ["", "the quality adds: " + ", ".join(f"{k} {100 * v:+.1f} %" for k, v in part["added"].items())]
+    return lines
+
+
+def robust_table(part: dict) -> list[str]:
+    lines = [f"{part['poses']:,} poses (the throughput grid), K = {part['samples']} draws", "",
+             "| score | estimator | candidates/s | poses in closure | top 20 shared with the nominal |",
+             "|---|---|---|---|---|"]
+    for key, rate in part["rates"].items():
+        label, est = key.split(" ")
+        lines.append(f"| {label} | {est} | {rate:,.0f} | {part['closure'][est][label]} | "
+                     f"{part['top20_shared'][est] if label == 'robust' else ''} |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--part", default="hull,ranking,variants,throughput",
-                        help="comma-separated parts: hull, ranking, variants, throughput (default: all)")
+    parser.add_argument("--part", default="hull,ranking,variants,throughput,quality_cost,robust",
+                        help="comma-separated parts: hull, ranking, variants, throughput, quality_cost, robust "
+                             "(default: all)")
     parser.add_argument("--size", choices=sorted(SIZES), default="full", help="full (default) or quick")
     parser.add_argument("--json", action="store_true", help="print the results as one JSON document")
     args = parser.parse_args(argv)
     parts = [p.strip() for p in args.part.split(",") if p.strip()]
-    unknown = set(parts) - {"hull", "ranking", "variants", "throughput"}
+    unknown = set(parts) - {"hull", "ranking", "variants", "throughput", "quality_cost", "robust"}
     if unknown:
         parser.error(f"unknown part(s): {', '.join(sorted(unknown))}")
     size = SIZES[args.size]
@@ -500,9 +584,11 @@ def main(argv: list[str] | None = None) -> None:
     say(f"`{results['command']}` on {results['machine']}\n")
     runners = {"hull": lambda: hull_part(size["hull"]), "ranking": lambda: ranking_part(size["side"]),
                "variants": lambda: variants_part(size["variant_side"], size["variants"]),
-               "throughput": lambda: throughput_part(size["throughput"])}
+               "throughput": lambda: throughput_part(size["throughput"]),
+               "quality_cost": lambda: quality_cost_part(size["throughput"]),
+               "robust": lambda: robust_part(size["throughput"] // 4)}
     tables = {"hull": hull_table, "ranking": ranking_table, "variants": lambda r: ranking_table(r, True),
-              "throughput": throughput_table}
+              "throughput": throughput_table, "quality_cost": quality_cost_table, "robust": robust_table}
     for part in parts:
         t0 = time.perf_counter()
         results[part] = runners[part]()

@@ -86,9 +86,11 @@ def finger_contacts(
     half_thickness: Float[Array, ""],
     band: Float[Array, ""],
     k: int = CONTACTS_PER_FINGER,
+    distance: Float[Array, " m"] | None = None,
 ) -> tuple[FingerContacts, Int[Array, " k"]]:
     """The contacts of one finger from its centreline ``stations`` (M, 2) mm, base to tip, and the
-    index (k,) of the station each comes from.
+    index (k,) of the station each comes from; ``distance`` (M,): the stations' signed distances
+    when the caller has them already (else looked up).
 
     A station touches when its distance to the object is at most ``half_thickness + band`` mm. The
     stations are cut into ``k`` runs of consecutive stations; each run's contact is its least
@@ -96,7 +98,7 @@ def finger_contacts(
     :func:`softgrip_jax._mechanics.contact_forces` for the mechanics estimate's).
     """
     m = stations.shape[0]
-    distance = sdf.distance(stations)
+    distance = sdf.distance(stations) if distance is None else distance
     run = (np.arange(m) * k) // m  # static: which run each station is in
     member = jnp.asarray(run[None, :] == np.arange(k)[:, None])  # (k, m)
     chosen = jnp.argmin(jnp.where(member, distance[None, :], jnp.inf), axis=1)  # (k,)

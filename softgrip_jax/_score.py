@@ -150,7 +150,8 @@ def _finger_terms(finger: FingerModel, sdf: AbstractSDF, est: Estimate, weights:
     per_link = (estimator.config.stations_per_link if isinstance(estimator, Mechanics)
                 else config.per_link(finger.n_links))
     stations, _ = chain_stations(joints, finger.length, per_link)
-    gap = sdf.distance(stations) - finger.half_thickness
+    distance = sdf.distance(stations)
+    gap = distance - finger.half_thickness
     band = jnp.maximum(weights.contact_band, 1e-3)
     wrap = jnp.mean(jax.nn.sigmoid((band - gap) / (0.25 * band)))
     tip = jax.nn.sigmoid((est.contact.n_g1 - (finger.n_links - config.tip_tolerance)) / 0.1) * touch
@@ -158,7 +159,7 @@ def _finger_terms(finger: FingerModel, sdf: AbstractSDF, est: Estimate, weights:
     # The outward normal at the contact, taken r off the surface at P_g1, where it is well defined
     # (exactly on a polygon's boundary the direction to the nearest point is rounding noise).
     normal = sdf.normal(jnp.where(est.valid, est.contact.p_g1, 0.0))
-    contacts, station = finger_contacts(sdf, stations, finger.half_thickness, band)
+    contacts, station = finger_contacts(sdf, stations, finger.half_thickness, band, distance=distance)
     touching = contacts.touching & est.valid & touches
     forces = contacts.forces
     if isinstance(estimator, Mechanics):  # the equilibrium's forces, on the object (along -n)
