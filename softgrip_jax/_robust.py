@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from softgrip_jax._errors import SoftgripError
+from softgrip_jax._errors import SoftgripError, check_number_fields
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 
@@ -59,15 +59,9 @@ class Uncertainty(eqx.Module):
     def __check_init__(self):
         if isinstance(self.samples, bool) or not isinstance(self.samples, int) or not 1 <= self.samples <= 4096:
             raise SoftgripError(f"Uncertainty.samples must be an integer in [1, 4096], got {self.samples!r}")
-        for name in ("pose_mm", "pose_rad", "mu_spread", "theta", "length", "stiffness_ratio", "base_compliance",
-                     "contour_mm"):
-            value = getattr(self, name)
-            if isinstance(value, jax.core.Tracer):
-                continue
-            if isinstance(value, bool) or jnp.ndim(value) != 0 or not 0.0 <= float(value) < 1e3:
-                raise SoftgripError(f"Uncertainty.{name} must be a number >= 0, got {value!r}")
-        if not isinstance(self.mu_spread, jax.core.Tracer) and float(self.mu_spread) >= 1.0:
-            raise SoftgripError(f"Uncertainty.mu_spread must be below 1, got {self.mu_spread!r}")
+        check_number_fields(self, {"pose_mm": (0.0, 1e3), "pose_rad": (0.0, 1.0), "mu_spread": (0.0, 0.999),
+                                   "theta": (0.0, 1.0), "length": (0.0, 1e3), "stiffness_ratio": (0.0, 10.0),
+                                   "base_compliance": (0.0, 1e3), "contour_mm": (0.0, 1e3)})
 
 
     @classmethod

@@ -42,7 +42,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks, run_batch
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._contact import ContactCase, ContactConfig
-from softgrip_jax._errors import SoftgripError
+from softgrip_jax._errors import SoftgripError, check_number_fields
 from softgrip_jax._export import exportable
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
 from softgrip_jax._kinematics import chain_stations
@@ -87,12 +87,7 @@ class ScoreWeights(eqx.Module):
         checks = {"mu": (0.0, 10.0), "tip_only": (0.0, 1.0), "penetration": (0.0, 1.0), "event": (0.0, 1.0),
                   "touch": (0.0, 1e6), "wrap": (0.0, 1e6), "opposition": (0.0, 1e6), "contact_band": (0.0, 100.0),
                   "max_penetration": (0.0, 10.0)}
-        for name, (low, high) in checks.items():
-            value = getattr(self, name)
-            if isinstance(value, jax.core.Tracer):
-                continue
-            if isinstance(value, bool) or jnp.ndim(value) != 0 or not (low <= float(value) <= high):
-                raise SoftgripError(f"ScoreWeights.{name} must be a number in [{low:g}, {high:g}], got {value!r}")
+        check_number_fields(self, checks)
         if not isinstance(self.touch, jax.core.Tracer) and float(self.touch) + float(self.wrap) + float(self.opposition) <= 0:
             raise SoftgripError("ScoreWeights: touch, wrap and opposition must not all be 0")
 
