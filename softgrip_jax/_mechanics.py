@@ -332,11 +332,16 @@ def _newton_step(problem: _Problem, y, previous):
     # would hold it there by a pull, which stops the chain short of the true equilibrium (a tip
     # on a face it meets nearly parallel ended 0.2 mm along the face from it). So drop until no
     # multiplier is negative: at most K rounds, as each drops at least one row or changes nothing.
-    def drop_pulling(_, rows_on):
+    # A round that drops nothing is a fixed point, so the loop stops there (usually after one or
+    # two rounds) with the rows K rounds would give.
+    def drop_pulling(carry):
+        rounds, rows_on, _ = carry
         _, lam = solve(rows_on)
-        return rows_on & (lam >= 0)
+        kept = rows_on & (lam >= 0)
+        return rounds + 1, kept, jnp.any(kept != rows_on)
 
-    modelled = jax.lax.fori_loop(0, k, drop_pulling, depth > -_GLUE_MM)
+    _, modelled, _ = jax.lax.while_loop(lambda c: (c[0] < k) & c[2], drop_pulling,
+                                        (jnp.array(0, jnp.int32), depth > -_GLUE_MM, jnp.array(True)))
     step, lam = solve(modelled)
     # The stations that carry contact force after the step (the model's residuals, positive: pushed
     # by the object), for the contact case (see solve_equilibrium).
@@ -509,6 +514,80 @@ def tip_sensitivity(problem: _Problem, y: Float[Array, " n1"]) -> Float[Array, "
     return _second_order(problem, y)[0]
 
 
+def _angle_map(problem: _Problem, dtype) -> Float[Array, "n n1"]:
+    """(N, N+1) d phi_i / d y_j: how each link's direction phi_i (psi + sum_{j<i} delta_j +
+    delta_i / 2) turns with the scaled variables y (turning j < i fully, link i's own by half, psi
+    all of them). Constant: the chain's angles are linear in y."""
+    n = problem.finger.n_links
+    per_link, base = problem.scales()
+    i, j = jnp.arange(n)[:, None], jnp.arange(n)[None, :]
+    share = jnp.where(j < i, 1.0, jnp.where(j == i, 0.5, 0.0)).astype(dtype)
+    return jnp.concatenate([share * per_link[None, :], jnp.broadcast_to(base, (n, 1)).astype(dtype)], axis=1)
+
+
+class _Curvature(eqx.Module):
+    """The energy's first and second derivatives at a shape (see :func:`_derivatives`)."""
+
+    gradient: Float[Array, " n1"]  #: dE/dy
+    hessian: Float[Array, "n1 n1"]  #: d2E/dy2
+    mixed: Float[Array, "n1 2"]  #: d2E/dy d(base), the base moved in the image plane (mm)
+    tip: Float[Array, "2 n1"]  #: d(tip)/dy in the image plane (mm)
+
+
+def _station_jacobians(problem: _Problem, joints, index: Int[Array, " k"]):
+    """For the stations ``index`` (K,): the link vectors V (K, N, 2) mm up to each (the own link's
+    by the station's fraction of it; zero beyond), and dP_k/dy (K, 2, N+1) mm.
+
+    A station is the sum of the link vectors before it; turning link i's direction phi_i by a
+    small angle turns V_i by 90 degrees (and twice, negates it). With alpha = d phi / d y
+    (:func:`_angle_map`), V alpha is dP/dy turned back by 90 degrees.
+    """
+    n, per_link = problem.finger.n_links, problem.config.stations_per_link
+    dtype = joints.dtype
+    link = jnp.minimum(index // per_link, n - 1)
+    fraction = (index - link * per_link).astype(dtype) / per_link  # the tip: link N-1, fraction 1
+    i = jnp.arange(n)[None, :]
+    covered = jnp.where(i < link[:, None], 1.0, jnp.where(i == link[:, None], fraction[:, None], 0.0))
+    vectors = covered[:, :, None] * (joints[1:] - joints[:-1])[None]
+    turned = jnp.einsum("kni,nj->kij", vectors, _angle_map(problem, dtype))
+    return vectors, jnp.stack([turned[:, 1], -turned[:, 0]], axis=1)
+
+
+def _derivatives(problem: _Problem, y: Float[Array, " n1"], index: Int[Array, " k"]) -> _Curvature:
+    """The energy's derivatives at y with the contact terms of the stations ``index`` (the others
+    must lie outside r), in closed form (what nested ``jax.jacfwd`` / ``jax.grad`` of the energy
+    give, at a fraction of their cost).
+
+    The penalty c_k = w max(0, r - d(P_k)) of a station inside r (d < r) adds c_k a_k to the
+    gradient, with a_k = -w J_k^T g (J_k = dP_k/dy, g and Hd the distance's gradient and Hessian at
+    P_k, finger frame), and a_k a_k^T + c_k w (alpha^T diag(g . V) alpha - J_k^T Hd J_k) to the
+    Hessian (g . d2P_k/dy2 = -alpha^T diag(g . V) alpha, see :func:`_station_jacobians`). Moving the
+    base by b in the image plane moves the object by -R^T b in the finger frame (R: the frame's
+    axes), hence the mixed term -w (a_k g^T + c_k J_k^T Hd) R^T.
+    """
+    f = problem.finger
+    dtype = y.dtype
+    joints, points = problem.stations(y)
+    vectors, jac = _station_jacobians(problem, joints, index)
+    p = points[index]
+    grad_d = jax.vmap(jax.grad(problem.distance))(p)
+    hess_d = jax.vmap(jax.hessian(problem.distance))(p)
+    weight = jnp.sqrt(jnp.asarray(problem.config.penalty, dtype)) / f.length
+    sink = f.half_thickness - problem.distance(p)
+    inside = sink > 0
+    c = jnp.where(inside, weight * sink, 0.0)  # (K,)
+    a = jnp.where(inside[:, None], -weight * jnp.einsum("kij,ki->kj", jac, grad_d), 0.0)  # (K, N+1)
+    alpha = _angle_map(problem, dtype)
+    bend = jnp.einsum("k,kni,ki->n", weight * c, vectors, grad_d)  # (N,)
+    stretch = jnp.einsum("k,kia,kib,kbc->ac", weight * c, jac, hess_d, jac)
+    hessian = jnp.eye(y.shape[0], dtype=dtype) + a.T @ a + alpha.T @ (bend[:, None] * alpha) - stretch
+    axes = jax.jacfwd(problem.frame.to_world)(joints[-1])  # (2, 2): R, finger frame to image plane
+    hd_jac = jnp.einsum("kij,kja->kia", hess_d, jac)  # (K, 2, N+1)
+    mixed = -weight * (a.T @ grad_d + jnp.einsum("k,kia->ai", c, hd_jac)) @ axes.T
+    tip = axes @ _station_jacobians(problem, joints, jnp.array([problem.n_stations - 1]))[1][0]
+    return _Curvature(gradient=y + a.T @ c, hessian=hessian, mixed=mixed, tip=tip)
+
+
 def _second_order(
     problem: _Problem, y: Float[Array, " n1"]
 ) -> tuple[Float[Array, ""], Float[Array, " n1"], Float[Array, " n1"]]:
@@ -517,41 +596,21 @@ def _second_order(
     No derivatives."""
     problem, y = jax.lax.stop_gradient((problem, y))
     f = problem.finger
-    weight = jnp.sqrt(jnp.asarray(problem.config.penalty, y.dtype)) / f.length
-    # Only stations inside r add to the energy and its derivatives: the K least clear ones (the
-    # Newton step's rows) hold them all wherever the step is exact, and cost K SDF lookups per
-    # Hessian column instead of M.
+    # Only stations inside r add to the energy and its derivatives: the K least clear stations (the
+    # Newton step's rows) hold them all wherever the step is exact.
     _, index = jax.lax.top_k(f.half_thickness - problem.distance(problem.stations(y)[1]),
                              min(problem.config.active_rows, problem.n_stations))
-
-    def energy_gradient(y, origin):
-        moved = eqx.tree_at(lambda p: p.frame.origin, problem, origin)
-
-        def energy(v):
-            points = moved.stations(v)[1][index]
-            contact = weight * jnp.maximum(f.half_thickness - moved.distance(points), 0.0)
-            return 0.5 * (jnp.sum(v**2) + jnp.sum(contact**2))
-
-        return jax.grad(energy)(y)
-
-    def tip(y, origin):
-        moved = eqx.tree_at(lambda p: p.frame.origin, problem, origin)
-        return moved.frame.to_world(moved.stations(y)[0][-1])
-
-    origin = problem.frame.origin
-    hessian = jax.jacfwd(energy_gradient, 0)(y, origin)  # (N+1, N+1)
-    mixed = jax.jacfwd(energy_gradient, 1)(y, origin)  # (N+1, 2)
-    gradient = energy_gradient(y, origin)
-    solved = -_gauss_jordan(hessian, jnp.concatenate([mixed, gradient[:, None]], axis=1))
+    d = _derivatives(problem, y, index)
+    solved = -_gauss_jordan(d.hessian, jnp.concatenate([d.mixed, d.gradient[:, None]], axis=1))
     dy, newton = solved[:, :2], solved[:, 2]
-    d_tip = jax.jacfwd(tip, 1)(y, origin) + jax.jacfwd(tip, 0)(y, origin) @ dy  # (2, 2)
+    d_tip = jnp.eye(2, dtype=y.dtype) + d.tip @ dy  # (2, 2): the base carries the tip along
     # largest singular value of the 2 x 2 matrix, closed form
     gram = d_tip.T @ d_tip
     half_trace = 0.5 * jnp.trace(gram)
     det = gram[0, 0] * gram[1, 1] - gram[0, 1] * gram[1, 0]  # (not jnp.linalg.det: an LU custom call)
     gap = jnp.sqrt(jnp.maximum(half_trace**2 - det, 0.0))
     value = jnp.sqrt(half_trace + gap)
-    return jnp.where(jnp.isfinite(value), value, jnp.inf), newton, gradient
+    return jnp.where(jnp.isfinite(value), value, jnp.inf), newton, d.gradient
 
 
 def _gauss_jordan(a: Float[Array, "n n"], b: Float[Array, "n k"]) -> Float[Array, "n k"]:

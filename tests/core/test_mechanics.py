@@ -22,8 +22,9 @@ from softgrip_jax import (CASE_NAMES, METHODS, ContactCase, ContactConfig, Finge
                           estimate_batch, estimate_grasp, estimate_grasp_batch, estimate_in_frame, forward_kinematics,
                           pcc_joints, refine, score, score_pose)
 from softgrip_jax._batch import where_needed
+from softgrip_jax._grasp import finger_frames
 from softgrip_jax._stage import finish, geometric_stage, mechanics_of
-from softgrip_jax._mechanics import _Problem, solve_equilibrium
+from softgrip_jax._mechanics import _derivatives, _Problem, solve_equilibrium
 from softgrip_jax._sdf import AbstractSDF
 from synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
 
@@ -391,6 +392,47 @@ def batch_bases():
     good = rng.uniform([-40.0, -25.0], [-10.0, 5.0], (64, 2))
     bases = np.concatenate([good[:10], [[np.nan, 0.0]], good[10:40], [[500.0, 0.0]], good[40:]])
     return jnp.asarray(bases, jnp.float32), np.r_[np.arange(10), np.arange(11, 41), np.arange(42, 66)]
+
+
+@pytest.mark.parametrize("kind", ["polygon", "grid"])
+@pytest.mark.parametrize("handedness", [1.0, -1.0])
+def test_closed_form_derivatives_match_autodiff(kind, handedness):
+    """The energy's gradient, Hessian, mixed derivative in the base and tip Jacobian in closed form
+    (_derivatives) against nested jax.grad / jax.jacfwd of the energy, at an equilibrium pressed
+    into a disc (stiffness ratio 2, a compliant base, a turned and mirrored frame)."""
+    disc = PolygonSDF.regular((0.0, 38.0), 15.0, 64)
+    sdf = disc if kind == "polygon" else SDFGrid.sample(disc, (-60.0, -20.0), (0.3, 0.3), (334, 400))
+    finger = FingerModel(LENGTH, 0.7, HALF_THICKNESS, N, stiffness_ratio=2.0, base_compliance=0.2)
+    left, right = finger_frames(Gripper(finger, finger, 56.0), jnp.array([2.0, 3.0, 0.15]))
+    frame = left if handedness > 0 else right
+    @jax.jit  # (eagerly, the solve takes minutes)
+    def both(sdf, frame):
+        eq = solve_equilibrium(finger, sdf, frame, jnp.array(0.0), jnp.full(N, 2 * 0.7 / N), MechanicsConfig())
+        problem = _Problem(finger=finger, sdf=sdf, frame=frame, config=MechanicsConfig())
+        y = problem.variables(eq.psi, eq.turning)
+        weight = jnp.sqrt(1e4) / LENGTH
+        _, index = jax.lax.top_k(HALF_THICKNESS - problem.distance(problem.stations(y)[1]), 6)
+
+        def gradient(y, origin):
+            moved = eqx.tree_at(lambda p: p.frame.origin, problem, origin)
+
+            def energy(v):
+                c = weight * jnp.maximum(HALF_THICKNESS - moved.distance(moved.stations(v)[1][index]), 0.0)
+                return 0.5 * (jnp.sum(v**2) + jnp.sum(c**2))
+
+            return jax.grad(energy)(y)
+
+        origin = frame.origin
+        tip = jax.jacfwd(lambda v: frame.to_world(problem.stations(v)[0][-1]))(y)
+        references = (jax.jacfwd(gradient, 0)(y, origin), jax.jacfwd(gradient, 1)(y, origin), tip,
+                      gradient(y, origin))
+        return eq.penetration, _derivatives(problem, y, index), references
+
+    penetration, d, (hessian, mixed, tip, gradient) = both(sdf, frame)
+    assert float(penetration) > 0  # stations inside r: the contact terms are exercised
+    for ours, reference in [(d.hessian, hessian), (d.mixed, mixed), (d.tip, tip)]:
+        np.testing.assert_allclose(ours, reference, atol=1e-5 * float(jnp.max(jnp.abs(reference))))
+    np.testing.assert_allclose(d.gradient, gradient, atol=1e-4)
 
 
 def test_batch_marks_bad_bases_invalid_and_leaves_the_others_unchanged():
