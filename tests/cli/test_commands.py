@@ -360,6 +360,7 @@ def test_score_mu_and_geometric_estimate_and_the_grasps_picture(tmp_path):
     assert not any(c["force_closure"] for c in documents["0"]["candidates"])
 
 
+@pytest.mark.slow  # compiles the robust score of the sample profile (N = 20): a minute or more
 def test_score_robust_reports_expected_quality_and_closure_probability(tmp_path):
     """--robust K: the document's "robust" lists the draws' settings; every valid candidate has
     quality_mean and p_closure in [0, 1], a grasp in closure ranks by 1 + quality_mean (1 - risk),
