@@ -277,6 +277,21 @@ def _spd_solve(s: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " 
     return jnp.stack(x)
 
 
+def _turning_rows(g: Float[Array, "k 2"], p: Float[Array, "k 2"], joints: Float[Array, "joints 2"],
+                  station: Int[Array, " k"], per_link: int) -> Float[Array, "k n"]:
+    """d distance / d delta_j (K, N) of K stations ``p`` (mm; indices ``station`` among ``per_link``
+    per link plus the tip) whose distance has the gradient ``g``: turning link j moves everything
+    past its middle M_j about M_j (its own stations about its start, by half), so a point moves by
+    (p - centre) turned by 90 degrees and its distance by the cross product of g with that."""
+    n = joints.shape[0] - 1
+    link = jnp.minimum(station // per_link, n - 1)
+    mids = 0.5 * (joints[:-1] + joints[1:])
+    j = jnp.arange(n)
+    own = 0.5 * _cross(g, p - joints[link])
+    past = _cross(g, p)[:, None] - _cross(g[:, None, :], mids[None, :, :])
+    return jnp.where(j[None, :] < link[:, None], past, jnp.where(j[None, :] == link[:, None], own[:, None], 0.0))
+
+
 def _newton_step(problem: _Problem, y, previous):
     """The Gauss-Newton step at y and diagnostics (see the module docstring).
 
@@ -302,12 +317,8 @@ def _newton_step(problem: _Problem, y, previous):
     depth, index = jax.lax.top_k(violation, k)
     p = points[index]
     g = jax.vmap(jax.grad(problem.distance))(p)
-    link = jnp.minimum(index // per_link, n - 1)
     mids = 0.5 * (joints[:-1] + joints[1:])
-    j = jnp.arange(n)
-    own = 0.5 * _cross(g, p - joints[link])
-    past = _cross(g, p)[:, None] - _cross(g[:, None, :], mids[None, :, :])
-    rows = jnp.where(j[None, :] < link[:, None], past, jnp.where(j[None, :] == link[:, None], own[:, None], 0.0))
+    rows = _turning_rows(g, p, joints, index, per_link)
     per_link_scale, base_scale = problem.scales()
     a_k = -weight * jnp.concatenate([rows * per_link_scale[None, :], (_cross(g, p) * base_scale)[:, None]], axis=1)
 
@@ -679,15 +690,8 @@ def contact_forces(
             stations per link plus the tip.
     """
     n = finger.n_links
-    link = jnp.minimum(station // per_link, n - 1)
-    mids = 0.5 * (joints[:-1] + joints[1:])
-    j = jnp.arange(n)
-    own = 0.5 * _cross(normals, points - joints[link])
-    past = _cross(normals, points)[:, None] - _cross(normals[:, None, :], mids[None, :, :])
-    # d distance / d delta_j: turning link j moves what lies past its middle about the middle (its
-    # own stations about its start, by half); a mirrored finger turns the other way in the image.
-    rows = handedness * jnp.where(j[None, :] < link[:, None], past,
-                                  jnp.where(j[None, :] == link[:, None], own[:, None], 0.0))
+    # A mirrored finger turns the other way in the image.
+    rows = handedness * _turning_rows(normals, points, joints, station, per_link)
     rows = jnp.where(touching[:, None], rows, 0.0)
     moments = link_stiffness(finger) * n * (turning - pcc_turning(finger.theta_entire, n))
     k = points.shape[0]
