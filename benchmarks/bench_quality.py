@@ -27,7 +27,8 @@ Parts (``--part``, comma-separated):
 * ``quality_cost``: the same grid, ``score`` against ``score`` with the quality's contacts and hull
   replaced by constants (patched in this process, compiled anew): what the quality alone adds.
 * ``robust``: the same grid (a quarter of its poses), ``score`` with an ``Uncertainty`` of 16
-  draws against the nominal score, both estimators, and the top 20 both share.
+  draws and linearised (``linear=True``) against the nominal score, both estimators, each ranked
+  against 256 draws of the same uncertainty.
 
 Objects are outlines of :mod:`synthetic.shapes` (30 mm bounding circle) centred at
 :data:`OBJECT_CENTRE_MM`, as :class:`softgrip_jax.PolygonSDF` resampled to :data:`VERTICES`
@@ -464,26 +465,48 @@ def quality_cost_part(n_poses: int) -> dict:
     return out
 
 
-def robust_part(n_poses: int, samples: int = 16) -> dict:
-    """Candidates/s of ``score`` with an ``Uncertainty`` of ``samples`` draws against the nominal
-    score on the throughput grid (both estimators), and how far the robust ranking's top 20 agree
-    with the nominal's."""
+def _agreement(result, reference, valid) -> dict:
+    """How one robust result ranks against the reference (many draws): top 20 shared, Spearman's
+    rank correlation of the score over the valid candidates, and the largest and median
+    differences of P(closure) and the expected quality."""
+    from scipy.stats import spearmanr
+
+    got, ref = (np.asarray(r.score)[valid] for r in (result, reference))
+    p = np.abs(np.asarray(result.p_closure) - np.asarray(reference.p_closure))[valid]
+    q = np.abs(np.asarray(result.quality_mean) - np.asarray(reference.quality_mean))[valid]
+    top = [set(np.argsort(-np.asarray(r.score))[:TOP].tolist()) for r in (result, reference)]
+    return {"top20_shared": len(top[0] & top[1]), "spearman": float(spearmanr(got, ref).statistic),
+            "p_closure_max": float(p.max()), "p_closure_median": float(np.median(p)),
+            "quality_mean_max": float(q.max()), "quality_mean_median": float(np.median(q))}
+
+
+def robust_part(n_poses: int, samples: int = 16, reference_samples: int = 256) -> dict:
+    """Candidates/s of ``score`` with an ``Uncertainty`` of ``samples`` draws and with the
+    linearisation (``linear=True``), against the nominal score, on the throughput grid (both
+    estimators); and how each ranks against ``reference_samples`` draws of the same uncertainty."""
     from softgrip_jax import Uncertainty
 
     gripper, sdf = make_gripper(), disc_grid()
     poses = jnp.asarray(throughput_grid(n_poses))
-    u = Uncertainty(samples=samples, pose_mm=0.5, pose_rad=0.01, mu_spread=0.2, theta=0.01, contour_mm=0.2)
-    out: dict = {"poses": n_poses, "samples": samples, "rates": {}, "top20_shared": {}}
+    spread = dict(pose_mm=0.5, pose_rad=0.01, mu_spread=0.2, theta=0.01, contour_mm=0.2)
+    settings = {"nominal": None, f"K = {samples}": Uncertainty(samples=samples, **spread),
+                "linear": Uncertainty(linear=True, **spread),
+                f"K = {reference_samples}": Uncertainty(samples=reference_samples, **spread)}
+    out: dict = {"poses": n_poses, "samples": samples, "reference_samples": reference_samples, "spread": spread,
+                 "rates": {}, "closure": {}, "agreement": {}}
     for est_name, est in estimators().items():
         results = {}
-        for label, uncertainty in (("nominal", None), ("robust", u)):
+        for label, uncertainty in settings.items():
             call = lambda uncertainty=uncertainty: score(gripper, sdf, poses, chunk_size=CHUNK, estimator=est,  # noqa: E731
                                                         uncertainty=uncertainty)
             results[label] = jax.block_until_ready(call())
-            out["rates"][f"{label} {est_name}"] = n_poses / best_of(call, repeats=2)
-        top = {k: set(np.argsort(-np.asarray(r.score))[:TOP].tolist()) for k, r in results.items()}
-        out["top20_shared"][est_name] = len(top["nominal"] & top["robust"])
-        out.setdefault("closure", {})[est_name] = {k: int(np.asarray(r.force_closure).sum()) for k, r in results.items()}
+            repeats = 1 if label == f"K = {reference_samples}" else 2
+            out["rates"][f"{label}|{est_name}"] = n_poses / best_of(call, repeats=repeats)
+            out["closure"][f"{label}|{est_name}"] = int(np.asarray(results[label].force_closure).sum())
+        valid = np.asarray(results["nominal"].valid)
+        reference = results[f"K = {reference_samples}"]
+        for label in ("nominal", f"K = {samples}", "linear"):
+            out["agreement"][f"{label}|{est_name}"] = _agreement(results[label], reference, valid)
     return out
 
 
@@ -555,13 +578,19 @@ def quality_cost_table(part: dict) -> list[str]:
 
 
 def robust_table(part: dict) -> list[str]:
-    lines = [f"{part['poses']:,} poses (the throughput grid), K = {part['samples']} draws", "",
-             "| score | estimator | candidates/s | poses in closure | top 20 shared with the nominal |",
-             "|---|---|---|---|---|"]
+    ref = f"K = {part['reference_samples']}"
+    spread = ", ".join(f"{k} {v}" for k, v in part["spread"].items())
+    lines = [f"{part['poses']:,} poses (the throughput grid), chunks of {CHUNK}; uncertainty: {spread}; the "
+             f"reference: {ref} draws", "",
+             f"| score | estimator | candidates/s | poses in closure | top 20 shared with {ref} | Spearman (score) | "
+             "P(closure) error max / median | expected-quality error max / median |",
+             "|---|---|---|---|---|---|---|---|"]
     for key, rate in part["rates"].items():
-        label, est = key.split(" ")
-        lines.append(f"| {label} | {est} | {rate:,.0f} | {part['closure'][est][label]} | "
-                     f"{part['top20_shared'][est] if label == 'robust' else ''} |")
+        label, est = key.split("|")
+        a = part["agreement"].get(key)
+        agree = (f"{a['top20_shared']} | {a['spearman']:.3f} | {a['p_closure_max']:.3f} / {a['p_closure_median']:.4f} | "
+                 f"{a['quality_mean_max']:.4f} / {a['quality_mean_median']:.5f}") if a else "| | |"
+        lines.append(f"| {label} | {est} | {rate:,.0f} | {part['closure'][key]} | {agree} |")
     return lines
 
 

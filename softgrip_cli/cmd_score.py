@@ -111,9 +111,12 @@ def add_parser(subparsers) -> None:
         "robust quality", "score each candidate also for K draws of what is uncertain (the same draws for every "
                           "candidate): the profile's calibration standard errors (calibrate --fit writes them), the "
                           "arm's pose error, mu and the object's outline; ranks grasps in force closure by their "
-                          "expected quality and reports quality_mean and p_closure (K times the time)")
-    robust.add_argument("--robust", type=int, default=0, metavar="K",
-                        help="draws per candidate (e.g. 16; default 0: the nominal quality only)")
+                          "expected quality and reports quality_mean and p_closure (K times the time); or, with "
+                          "--robust linear, a first-order expansion of the closure margin in all of them (one "
+                          "derivative per uncertain input, no draws)")
+    robust.add_argument("--robust", default="0", metavar="K|linear",
+                        help="draws per candidate (e.g. 16), or 'linear' for the linearisation (default 0: the "
+                             "nominal quality only)")
     robust.add_argument("--pose-sigma", default=None, metavar="MM,RAD",
                         help=f"the arm's pose error, standard deviations (default {ROBUST_DEFAULTS['pose']})")
     robust.add_argument("--mu-spread", default=None, metavar="S",
@@ -225,17 +228,23 @@ def parse_robust(args: argparse.Namespace) -> dict | None:
     a SoftgripError naming the option otherwise. The options without ``--robust`` are refused."""
     given = [flag for flag, value in (("--pose-sigma", args.pose_sigma), ("--mu-spread", args.mu_spread),
                                       ("--contour-sigma", args.contour_sigma)) if value is not None]
-    if args.robust == 0:
+    text = str(args.robust).strip()
+    linear = text.lower() == "linear"
+    try:
+        samples = 0 if linear else int(text)
+    except ValueError:
+        samples = -1
+    if not linear and samples == 0:
         if given:
-            raise SoftgripError(f"{given[0]} sets robust scoring: add --robust K (e.g. --robust 16)")
+            raise SoftgripError(f"{given[0]} sets robust scoring: add --robust K (e.g. --robust 16) or --robust linear")
         return None
-    if not 1 <= args.robust <= 4096:
+    if not linear and not 1 <= samples <= 4096:
         raise SoftgripError(f"--robust {args.robust}: expected the number of draws per candidate, 1 to 4096 "
-                            f"(e.g. 16), or 0 for none")
+                            f"(e.g. 16), 'linear', or 0 for none")
     pose = (args.pose_sigma or ROBUST_DEFAULTS["pose"]).split(",")
     if len(pose) != 2:
         raise SoftgripError(f"--pose-sigma {args.pose_sigma}: expected MM,RAD (e.g. {ROBUST_DEFAULTS['pose']})")
-    return {"samples": args.robust, "pose_mm": _number(pose[0], "--pose-sigma (mm)", 0.0, 100.0),
+    return {**({"linear": True} if linear else {"samples": samples}), "pose_mm": _number(pose[0], "--pose-sigma (mm)", 0.0, 100.0),
             "pose_rad": _number(pose[1], "--pose-sigma (rad)", 0.0, 1.0),
             "mu_spread": _number(ROBUST_DEFAULTS["mu_spread"] if args.mu_spread is None else args.mu_spread,
                                  "--mu-spread", 0.0, 1.0, high_open=True),

@@ -168,3 +168,53 @@ def epsilon_l1(wrenches: Float[Array, "w 3"], tolerance: float = 1e-6) -> Float[
     inf = jnp.asarray(jnp.inf, wrenches.dtype)
     nearest = jnp.minimum(jnp.min(jnp.where(below, offset, inf)), jnp.min(jnp.where(above, -offset, inf)))
     return jnp.where(jnp.isfinite(nearest), jnp.maximum(nearest, 0.0), 0.0)
+
+
+def _pairs(w: int) -> np.ndarray:
+    return np.array(list(itertools.combinations(range(w), 2)), dtype=np.int32).reshape(-1, 2)
+
+
+def closure_margin(wrenches: Float[Array, "w 3"], active: Bool[Array, " w"]) -> Float[Array, ""]:
+    """The signed Ferrari-Canny margin of the ``active`` wrenches: ``min over unit u of max_i w_i . u``.
+
+    Inside the hull it is :func:`epsilon_l1` (the support function's minimum is the nearest facet's
+    offset); outside, minus the origin's distance to the hull. It is continuous where the contacts
+    move continuously, so it can be linearised across the edge of force closure, where the
+    epsilon is flat at 0 (:class:`~softgrip_jax._robust.Uncertainty`'s ``linear``).
+
+    Exact: the minimising direction is the outward normal of a facet (inside), or points from the
+    origin's nearest point on the hull, which lies inside a facet, on an edge or at a vertex
+    (outside). So it is the smallest support among the normals (both signs) of all triples, the
+    directions away from the nearest point of all pairs' segments, and away from all single
+    wrenches; every other direction's support is larger. Inactive wrenches (untouching contacts)
+    take no part; with none active the margin is -1.
+
+    Example (the antipodal pair of :func:`epsilon_l1`; one contact alone is outside closure):
+        >>> import jax.numpy as jnp
+        >>> w = edge_wrenches(jnp.array([[10.0, 0.0], [-10.0, 0.0]]), jnp.array([[1.0, 0.0], [-1.0, 0.0]]),
+        ...                   jnp.array([True, True]), 0.5, jnp.zeros(2), 10.0)
+        >>> round(float(closure_margin(w, jnp.ones(4, bool))), 4)
+        0.2981
+        >>> round(float(closure_margin(w, jnp.array([True, True, False, False]))), 4)  # -|(-1, 0, 0)|
+        -0.8944
+    """
+    w = wrenches.shape[0]
+    triples, pairs = _triples(w), _pairs(w)
+    a, b, c = (wrenches[triples[:, i]] for i in range(3))
+    normal = jnp.cross(b - a, c - a)
+    size = safe_norm(normal)
+    normal = normal / jnp.where(size > 1e-9, size, 1.0)[:, None]
+    facet_ok = (size > 1e-9) & jnp.all(active[triples], axis=1)
+    p, q = wrenches[pairs[:, 0]], wrenches[pairs[:, 1]]
+    along = q - p
+    t = jnp.clip(safe_divide(-jnp.sum(p * along, axis=-1), jnp.sum(along * along, axis=-1)), 0.0, 1.0)
+    nearest = p + t[:, None] * along
+    pair_ok = jnp.all(active[pairs], axis=1)
+    directions = jnp.concatenate([normal, -normal, -nearest, -wrenches])
+    length = safe_norm(directions)
+    usable = jnp.concatenate([facet_ok, facet_ok, pair_ok, active]) & (length > 1e-9)
+    directions = directions / jnp.where(usable, length, 1.0)[:, None]
+    heights = jnp.where(active[:, None], wrenches @ directions.T, -jnp.inf)  # (W, D)
+    support = jnp.max(heights, axis=0)
+    margin = jnp.min(jnp.where(usable, support, jnp.inf))
+    return jnp.where(jnp.isfinite(margin), margin, -1.0)

@@ -10,6 +10,17 @@ numbers, from a fixed ``seed``), so the ranking of two candidates is not decided
 batch's results do not depend on its size or order. The expected quality ``quality_mean`` (0 for a
 draw without force closure) and the probability of force closure ``p_closure`` are the means over
 the K draws.
+
+Or linearised (``Uncertainty(linear=True)``): every uncertain input is a standard variable z_j
+(:data:`NOISE_SIZE` of them: :func:`perturbed` maps them to the inputs), and the signed closure
+margin m (:func:`~softgrip_jax._quality.closure_margin`: the epsilon inside force closure, minus
+the distance to it outside) is expanded to first order, m ~ m0 + sum_j (dm/dz_j) z_j: normal with
+sigma^2 = sum_j (dm/dz_j)^2 Var z_j. Then (:func:`linear_moments`)
+
+    p_closure = Phi(m0 / sigma),    quality_mean = E[max(m, 0)] = m0 Phi(m0 / sigma) + sigma phi(m0 / sigma).
+
+One forward-mode derivative per input instead of K estimates; it is as good as the margin is
+smooth over the spread of the inputs (a finger that starts or stops touching within it is not seen).
 """
 
 from __future__ import annotations
@@ -20,6 +31,7 @@ from collections.abc import Mapping
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.scipy.stats import norm
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from softgrip_jax._errors import SoftgripError, check_number_fields
@@ -43,6 +55,8 @@ class Uncertainty(eqx.Module):
         base_compliance: each finger's base compliance (kept >= 0).
         contour_mm: the object outline grown (> 0) or shrunk by this much (mm).
         seed: the draws' seed; the same seed gives the same draws for every candidate and call.
+        linear: (static) instead of K draws, the first-order expansion of the closure margin
+            (see the module docstring); ``samples`` and ``seed`` are then unused.
     """
 
     samples: int = eqx.field(static=True, default=16)
@@ -55,8 +69,11 @@ class Uncertainty(eqx.Module):
     base_compliance: float | Array = 0.0
     contour_mm: float | Array = 0.0
     seed: int | Array = 0
+    linear: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
+        if not isinstance(self.linear, bool):
+            raise SoftgripError(f"Uncertainty.linear must be True or False, got {self.linear!r}")
         if isinstance(self.samples, bool) or not isinstance(self.samples, int) or not 1 <= self.samples <= 4096:
             raise SoftgripError(f"Uncertainty.samples must be an integer in [1, 4096], got {self.samples!r}")
         check_number_fields(self, {"pose_mm": (0.0, 1e3), "pose_rad": (0.0, 1.0), "mu_spread": (0.0, 0.999),
@@ -117,13 +134,20 @@ class OffsetSDF(AbstractSDF):
         return centroid, rho + self.offset
 
 
+#: The standard variables z of one draw: each finger's Theta, L, stiffness ratio and base compliance
+#: (left 0-3, right 4-7), the pose's x, y and angle (8-10) and the contour (11), all N(0, 1); the
+#: friction (12), uniform in [-1, 1].
+NOISE_SIZE = 13
+_UNIFORM = 12
+
+
 class Perturbations(eqx.Module):
-    """K draws of everything uncertain: leaves with a leading axis K."""
+    """Draws of everything uncertain: leaves with a leading axis K (or none, for one draw)."""
 
     gripper: Gripper
-    pose: Float[Array, "k 3"]  #: added to the candidate's pose (mm, mm, rad)
-    mu: Float[Array, " k"]
-    contour: Float[Array, " k"]  #: mm the object is grown by
+    pose: Float[Array, "*k 3"]  #: added to the candidate's pose (mm, mm, rad)
+    mu: Float[Array, "*k"]
+    contour: Float[Array, "*k"]  #: mm the object is grown by
 
 
 def _finger(finger: FingerModel, u: Uncertainty, noise: Float[Array, "4"]) -> FingerModel:
@@ -135,16 +159,46 @@ def _finger(finger: FingerModel, u: Uncertainty, noise: Float[Array, "4"]) -> Fi
          jnp.maximum(finger.base_compliance + u.base_compliance * noise[3], 0.0)))
 
 
+def perturbed(gripper: Gripper, mu: Float[ArrayLike, ""], u: Uncertainty, z: Float[Array, "13"]) -> Perturbations:
+    """The inputs of one draw from its standard variables ``z`` (:data:`NOISE_SIZE`,); z = 0 gives
+    the nominal gripper, mu, a zero pose offset and contour."""
+    dtype = gripper.base_separation.dtype
+    pose = z[8:11] * jnp.stack([jnp.asarray(u.pose_mm, dtype)] * 2 + [jnp.asarray(u.pose_rad, dtype)])
+    return Perturbations(
+        gripper=Gripper(left=_finger(gripper.left, u, z[0:4]), right=_finger(gripper.right, u, z[4:8]),
+                        base_separation=gripper.base_separation),
+        pose=pose, mu=jnp.asarray(mu, dtype) * (1.0 + u.mu_spread * z[_UNIFORM]), contour=u.contour_mm * z[11])
+
+
+def noise_deviations(dtype) -> Float[Array, "13"]:
+    """The standard deviation of each standard variable z_j: 1, and 1 / sqrt(3) for the uniform one."""
+    return jnp.ones(NOISE_SIZE, dtype).at[_UNIFORM].set(1.0 / math.sqrt(3.0))
+
+
 def perturbations(gripper: Gripper, mu: Float[ArrayLike, ""], u: Uncertainty) -> Perturbations:
     """K = ``u.samples`` draws (common random numbers from ``u.seed``) of the gripper's calibration,
     the pose error, mu and the contour offset around the nominal ``gripper`` and ``mu``."""
     dtype = gripper.base_separation.dtype
-    k = u.samples
     key = jax.random.key(jnp.asarray(u.seed, jnp.uint32))
-    normal = jax.random.normal(key, (k, 12), dtype)
-    uniform = jax.random.uniform(jax.random.fold_in(key, 1), (k,), dtype, -1.0, 1.0)
-    grippers = jax.vmap(lambda z: Gripper(left=_finger(gripper.left, u, z[0:4]), right=_finger(gripper.right, u, z[4:8]),
-                                          base_separation=gripper.base_separation))(normal)
-    pose = normal[:, 8:11] * jnp.stack([jnp.asarray(u.pose_mm, dtype)] * 2 + [jnp.asarray(u.pose_rad, dtype)])
-    return Perturbations(gripper=grippers, pose=pose, mu=jnp.asarray(mu, dtype) * (1.0 + u.mu_spread * uniform),
-                         contour=u.contour_mm * normal[:, 11])
+    normal = jax.random.normal(key, (u.samples, NOISE_SIZE - 1), dtype)
+    uniform = jax.random.uniform(jax.random.fold_in(key, 1), (u.samples, 1), dtype, -1.0, 1.0)
+    return jax.vmap(lambda z: perturbed(gripper, mu, u, z))(jnp.concatenate([normal, uniform], axis=1))
+
+
+def linear_moments(margin: Float[Array, "*b"], tangents: Float[Array, "j *b"]) -> tuple[Float[Array, "*b"], Float[Array, "*b"]]:
+    """``(quality_mean, p_closure)`` of a normal margin with mean ``margin`` and the standard
+    deviation of the ``tangents`` (J, ...) (dm/dz_j times z_j's deviation, stacked on axis 0).
+
+    Example (the margin one standard deviation above 0: P = Phi(1)):
+        >>> import jax.numpy as jnp
+        >>> q, p = linear_moments(jnp.array(0.1), jnp.array([0.06, 0.08]))
+        >>> round(float(p), 4), round(float(q), 4)
+        (0.8413, 0.1083)
+    """
+    sigma = jnp.sqrt(jnp.sum(tangents**2, axis=0))
+    spread = sigma > 1e-12
+    t = margin / jnp.where(spread, sigma, 1.0)
+    p = jnp.where(spread, norm.cdf(t), (margin > 0).astype(margin.dtype))
+    mean = jnp.where(spread, margin * norm.cdf(t) + sigma * norm.pdf(t),
+                     jnp.maximum(margin, 0.0))
+    return mean, p

@@ -49,9 +49,10 @@ from softgrip_jax._kinematics import chain_stations
 from softgrip_jax._estimators import AbstractEstimator, Mechanics, as_estimator
 from softgrip_jax._mechanics import MechanicsConfig, contact_forces
 from softgrip_jax._model import FingerModel, Gripper
-from softgrip_jax._quality import (CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, edge_wrenches, epsilon_l1,
-                                   finger_contacts)
-from softgrip_jax._robust import OffsetSDF, Uncertainty, perturbations
+from softgrip_jax._quality import (CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, closure_margin, edge_wrenches,
+                                   epsilon_l1, finger_contacts)
+from softgrip_jax._robust import (NOISE_SIZE, OffsetSDF, Uncertainty, linear_moments, noise_deviations, perturbations,
+                                  perturbed)
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate, Status
@@ -200,6 +201,15 @@ def score_pose(
         True
     """
     estimator = as_estimator(estimator, method, mechanics)
+    if uncertainty is not None and uncertainty.linear:
+        def at(sample):
+            g, o, w = _draw(gripper, sdf, weights, sample)
+            s = _score_grasp(g, o, estimate_grasp(g, o, pose + sample.pose, config, estimator=estimator), w, config,
+                             estimator)
+            return _margin(s, w.mu), s
+
+        return _linearised(lambda z: at(perturbed(gripper, weights.mu, uncertainty, z)),
+                           gripper.base_separation.dtype)
     grasp = estimate_grasp(gripper, sdf, pose, config, estimator=estimator)
     nominal = _score_grasp(gripper, sdf, grasp, weights, config, estimator)
     if uncertainty is None:
@@ -264,6 +274,29 @@ def _with_robust(nominal: Score, quality: Float[Array, " k"], closure: Bool[Arra
     return eqx.tree_at(lambda s: (s.score, s.quality_mean, s.p_closure), nominal, (score, mean, p))
 
 
+def _margin(s: Score, mu) -> Float[Array, ""]:
+    """The signed closure margin (:func:`~softgrip_jax._quality.closure_margin`) of a scored
+    candidate's contacts; -1 where the candidate is not valid."""
+    c = s.contacts
+    wrenches = edge_wrenches(c.points.reshape(-1, 2), c.normals.reshape(-1, 2), c.touching.reshape(-1), mu,
+                             s.centroid, s.rho)
+    margin = closure_margin(wrenches, jnp.repeat(c.touching.reshape(-1), 2))
+    return jnp.where(s.valid, margin, -1.0)
+
+
+def _linearised(margins, dtype) -> Score:
+    """The nominal :class:`Score` (leaves of any leading shape) with ``quality_mean`` and
+    ``p_closure`` from the first-order expansion of the closure margin in the standard variables z
+    (:func:`~softgrip_jax._robust.linear_moments`); ``margins(z)`` gives ``(margin, Score)`` at z."""
+    margin, derivative, nominal = jax.linearize(margins, jnp.zeros(NOISE_SIZE, dtype), has_aux=True)
+    tangents = jax.vmap(derivative)(jnp.diag(noise_deviations(dtype)))  # (13, *b)
+    mean, p = linear_moments(margin, tangents)
+    mean, p = jnp.where(nominal.valid, mean, 0.0), jnp.where(nominal.valid, p, 0.0)
+    score = jnp.where(nominal.valid & nominal.force_closure, 1.0 + mean * (1.0 - nominal.components.risk),
+                      nominal.score)
+    return eqx.tree_at(lambda s: (s.score, s.quality_mean, s.p_closure), nominal, (score, mean, p))
+
+
 def _draw(gripper, sdf, weights, sample):
     """The gripper, object and weights of one draw of :func:`~softgrip_jax._robust.perturbations`."""
     return sample.gripper, OffsetSDF(sdf, sample.contour), eqx.tree_at(lambda w: w.mu, weights, sample.mu)
@@ -279,6 +312,13 @@ def _score_share(gripper, sdf, poses, weights, config, uncertainty, chunk_size, 
         return jax.vmap(lambda e: _score_grasp(g, o, e, w, config, estimator))(grasps)
 
     def chunk(share):
+        if uncertainty is not None and uncertainty.linear:
+            def at(sample):
+                g, o, w = _draw(gripper, sdf, weights, sample)
+                s = scored(g, o, w, share + sample.pose)
+                return jax.vmap(_margin, in_axes=(0, None))(s, w.mu), s
+
+            return _linearised(lambda z: at(perturbed(gripper, weights.mu, uncertainty, z)), share.dtype)
         nominal = scored(gripper, sdf, weights, share)
         if uncertainty is None:
             return nominal

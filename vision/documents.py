@@ -198,12 +198,14 @@ def candidate_json(pose: np.ndarray, scored, gripper, camera, robust: bool = Fal
 
 
 def uncertainty_json(uncertainty) -> dict:
-    """The document-level ``"robust"`` of ``softgrip score --robust``: the draws and every standard
-    deviation (mm, rad) they were made with."""
-    names = ("samples", "pose_mm", "pose_rad", "mu_spread", "theta", "length", "stiffness_ratio", "base_compliance",
-             "contour_mm", "seed")
-    return {name: (int(getattr(uncertainty, name)) if name in ("samples", "seed")
-                   else number_json(getattr(uncertainty, name), 6)) for name in names}
+    """The document-level ``"robust"`` of ``softgrip score --robust``: the method (``"draws"`` or
+    ``"linear"``), the draws (``samples`` and ``seed``, null when linearised) and every standard
+    deviation (mm, rad) the uncertainty was given with."""
+    names = ("pose_mm", "pose_rad", "mu_spread", "theta", "length", "stiffness_ratio", "base_compliance", "contour_mm")
+    linear = bool(uncertainty.linear)
+    return {"method": "linear" if linear else "draws",
+            "samples": None if linear else int(uncertainty.samples), "seed": None if linear else int(uncertainty.seed),
+            **{name: number_json(getattr(uncertainty, name), 6) for name in names}}
 
 
 def friction_json(mu: float) -> dict:

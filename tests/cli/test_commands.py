@@ -373,7 +373,8 @@ def test_score_robust_reports_expected_quality_and_closure_probability(tmp_path)
     document = json.loads(out)
     check_schema(document, "score")
     robust = document["robust"]
-    assert (robust["samples"], robust["pose_mm"], robust["pose_rad"], robust["contour_mm"]) == (4, 1.0, 0.02, 0.3)
+    assert (robust["method"], robust["samples"], robust["pose_mm"], robust["pose_rad"], robust["contour_mm"]) == (
+        "draws", 4, 1.0, 0.02, 0.3)
     assert robust["mu_spread"] == pytest.approx(0.2)
     valid = [c for c in document["candidates"] if c["valid"]]
     assert valid and all(0 <= c["quality_mean"] <= 1 and 0 <= c["p_closure"] <= 1 for c in valid)
@@ -386,10 +387,27 @@ def test_score_robust_reports_expected_quality_and_closure_probability(tmp_path)
     assert heatmap.stat().st_size > 0
 
 
+def test_robust_linear_sets_the_linearisation_with_the_same_spreads():
+    from argparse import Namespace
+
+    from softgrip_cli.cmd_score import parse_robust
+    from softgrip_jax import Uncertainty
+    from vision.documents import uncertainty_json
+
+    args = Namespace(robust="linear", pose_sigma="0.8,0.02", mu_spread=None, contour_sigma="0.1")
+    settings = parse_robust(args)
+    assert settings == {"linear": True, "pose_mm": 0.8, "pose_rad": 0.02, "mu_spread": 0.2, "contour_mm": 0.1}
+    document = uncertainty_json(Uncertainty(**settings))
+    assert (document["method"], document["samples"], document["seed"], document["pose_mm"]) == ("linear", None, None, 0.8)
+    assert parse_robust(Namespace(robust="16", pose_sigma=None, mu_spread=None, contour_sigma=None))["samples"] == 16
+    assert parse_robust(Namespace(robust="0", pose_sigma=None, mu_spread=None, contour_sigma=None)) is None
+
+
 @pytest.mark.parametrize(("argv", "flag"), [(["--pose-sigma", "1,0.01"], "--pose-sigma"),
                                             (["--robust", "4", "--pose-sigma", "1"], "--pose-sigma"),
                                             (["--robust", "4", "--mu-spread", "1.5"], "--mu-spread"),
                                             (["--robust", "-2"], "--robust"),
+                                            (["--robust", "lineal"], "--robust"),
                                             (["--robust", "4", "--contour-sigma", "nan"], "--contour-sigma")])
 def test_bad_robust_options_are_one_line_user_errors(argv, flag):
     code, out, err = run_cli(["score", FRAMES[0], "--profile", str(PROFILE), *argv])

@@ -199,3 +199,34 @@ def test_a_contact_on_a_corner_takes_the_normal_the_finger_pushes_along(directio
     assert c.touching.tolist() == [False, True, False]
     np.testing.assert_allclose(np.asarray(c.normals[1]), np.asarray(unit), atol=1e-4)
     np.testing.assert_allclose(np.asarray(c.points[1]), np.asarray(corner), atol=1e-3)
+
+
+def test_closure_margin_is_the_epsilon_inside_and_minus_the_distance_outside() -> None:
+    """Against independent references: Qhull's facets where the origin is inside the hull, the
+    origin's distance to the hull from scipy's SLSQP (min |sum l_i w_i|, l on the simplex) outside."""
+    from scipy.optimize import minimize
+    from scipy.spatial import ConvexHull
+
+    from softgrip_jax._quality import closure_margin
+
+    rng = np.random.default_rng(11)
+    inside = outside = 0
+    for _ in range(60):
+        w = (rng.normal(size=(12, 3)) + rng.normal(size=3) * rng.uniform(0.0, 2.0)).astype(np.float32)
+        active = rng.uniform(size=12) < 0.8
+        active[:3] = True
+        p = w[active].astype(np.float64)
+        k = len(p)
+        fit = minimize(lambda lam: np.sum((lam @ p) ** 2), np.full(k, 1.0 / k), method="SLSQP", bounds=[(0, 1)] * k,
+                       constraints=[{"type": "eq", "fun": lambda lam: lam.sum() - 1.0}],
+                       options={"ftol": 1e-14, "maxiter": 500})
+        distance = float(np.sqrt(fit.fun))
+        if distance > 1e-4:
+            reference, outside = -distance, outside + 1
+        else:
+            reference, inside = float(np.min(-ConvexHull(p).equations[:, 3])), inside + 1
+        got = float(closure_margin(jnp.asarray(w), jnp.asarray(active)))
+        assert got == pytest.approx(reference, abs=1e-4, rel=1e-3)
+        if reference > 0:
+            assert got == pytest.approx(float(epsilon_l1(jnp.asarray(np.where(active[:, None], w, 0.0)))), abs=1e-5)
+    assert inside >= 5 and outside >= 5

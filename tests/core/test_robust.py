@@ -84,3 +84,74 @@ def test_bad_uncertainty_is_refused_with_its_name(field) -> None:
         Uncertainty(**{field: -1.0})
     with pytest.raises(SoftgripError, match="Uncertainty.samples"):
         Uncertainty(samples=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# The linearisation (Uncertainty(linear=True))
+
+
+def test_linear_moments_are_a_normal_margins_by_monte_carlo() -> None:
+    """Phi(m / s) and E[max(m, 0)] of a normal margin, against numpy draws of it."""
+    from softgrip_jax._robust import linear_moments
+
+    rng = np.random.default_rng(3)
+    for m, parts in ((0.05, [0.03, 0.04]), (-0.02, [0.01, 0.0, 0.02]), (0.2, [0.001])):
+        draws = m + np.linalg.norm(parts) * rng.standard_normal(400_000)
+        q, p = linear_moments(jnp.asarray(m, jnp.float32), jnp.asarray(parts, jnp.float32))
+        assert float(p) == pytest.approx(np.mean(draws > 0), abs=3e-3)
+        assert float(q) == pytest.approx(np.mean(np.maximum(draws, 0.0)), abs=3e-4)
+    # No spread: a step and the margin itself.
+    q, p = linear_moments(jnp.asarray([0.1, -0.1]), jnp.zeros((13, 2)))
+    assert p.tolist() == [1.0, 0.0] and q.tolist() == pytest.approx([0.1, 0.0])
+
+
+def test_linear_without_uncertainty_is_the_nominal_score() -> None:
+    nothing = Uncertainty(linear=True, pose_mm=0.0, pose_rad=0.0, mu_spread=0.0)
+    nominal = score(GRIPPER, DISC, POSES, estimator=Geometric())
+    robust = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=nothing)
+    assert bool(jnp.any(nominal.force_closure))
+    np.testing.assert_allclose(np.asarray(robust.quality_mean), np.asarray(nominal.quality), rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(robust.p_closure), np.asarray(nominal.force_closure, np.float32))
+
+
+def test_linear_spread_is_the_finite_difference_gradient_of_the_quality() -> None:
+    """Inside force closure the margin is the quality. Its derivatives in the pose and mu by
+    central differences of the nominal score give sigma, and with it P = Phi(q / sigma) and the
+    expected quality, which the linearised score must reproduce (its derivatives: forward mode)."""
+    from scipy.stats import norm
+
+    from softgrip_jax import ScoreWeights
+
+    mu, spread, sx, sa = 0.5, 0.2, 0.3, 0.01
+    u = Uncertainty(linear=True, pose_mm=sx, pose_rad=sa, mu_spread=spread)
+    lin = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=u)
+    closed = np.flatnonzero(np.asarray(lin.force_closure))
+    assert closed.size
+    q0 = np.asarray(lin.quality)
+
+    def quality(poses, m=mu):
+        return np.asarray(score(GRIPPER, DISC, poses, ScoreWeights(mu=m), estimator=Geometric()).quality, np.float64)
+
+    h = np.array([0.01, 0.01, 0.0005])
+    grad = [(quality(POSES + np.eye(3)[j] * h[j]) - quality(POSES - np.eye(3)[j] * h[j])) / (2 * h[j]) for j in range(3)]
+    dmu = (quality(POSES, mu + 1e-3) - quality(POSES, mu - 1e-3)) / 2e-3
+    sigma = np.sqrt((sx * grad[0]) ** 2 + (sx * grad[1]) ** 2 + (sa * grad[2]) ** 2 + (mu * spread / np.sqrt(3) * dmu) ** 2)
+    q0, sigma = q0[closed], sigma[closed]
+    assert np.all(sigma > 0)
+    t = q0 / sigma
+    np.testing.assert_allclose(np.asarray(lin.p_closure)[closed], norm.cdf(t), atol=2e-3)
+    expected = q0 * norm.cdf(t) + sigma * norm.pdf(t)
+    np.testing.assert_allclose(np.asarray(lin.quality_mean)[closed], expected, rtol=2e-3, atol=1e-5)
+
+
+def test_linear_agrees_with_many_draws_where_the_margin_is_smooth() -> None:
+    """A small spread (0.2 mm, 0.005 rad, mu +- 10 %): the margin is nearly linear over it, and the
+    linearised P(closure) and expected quality match 2,000 draws'."""
+    kw = dict(pose_mm=0.2, pose_rad=0.005, mu_spread=0.1)
+    lin = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=Uncertainty(linear=True, **kw))
+    draws = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=Uncertainty(samples=2000, **kw))
+    closed = np.asarray(lin.force_closure)
+    assert closed.any()
+    np.testing.assert_allclose(np.asarray(lin.p_closure)[closed], np.asarray(draws.p_closure)[closed], atol=0.05)
+    np.testing.assert_allclose(np.asarray(lin.quality_mean)[closed], np.asarray(draws.quality_mean)[closed],
+                               rtol=0.05, atol=2e-3)
