@@ -433,7 +433,7 @@ def new_weights_calls(gripper, sdf, poses, counter: CompileCounter, jitted_score
 def quality_cost_part(n_poses: int) -> dict:
     """What the grasp quality adds to ``score``, isolated: the same score with the quality's
     contacts and hull replaced by constants (``softgrip_jax._score``'s ``finger_contacts`` and
-    ``epsilon_l1``, patched in this process only, programs compiled anew), best of 3 each, both
+    ``closure_margin``, patched in this process only, programs compiled anew), best of 3 each, both
     estimators, interleaved A, B, A, B so that load drifts hit both."""
     import softgrip_jax._score as score_module
     from softgrip_jax._quality import FingerContacts
@@ -444,21 +444,21 @@ def quality_cost_part(n_poses: int) -> dict:
 
     gripper, sdf = make_gripper(), disc_grid()
     poses = jnp.asarray(throughput_grid(n_poses))
-    real = (score_module.finger_contacts, score_module.epsilon_l1)
-    stub = (no_contacts, lambda w: jnp.zeros((), w.dtype))
+    real = (score_module.finger_contacts, score_module.closure_margin)
+    stub = (no_contacts, lambda w, active: jnp.zeros((), w.dtype))
     out: dict = {"poses": n_poses, "rates": {}}
     for est_name, est in estimators().items():
         times = {"with quality": [], "without": []}
         for _ in range(2):
             for label, (contacts_fn, hull_fn) in (("with quality", real), ("without", stub)):
-                score_module.finger_contacts, score_module.epsilon_l1 = contacts_fn, hull_fn
+                score_module.finger_contacts, score_module.closure_margin = contacts_fn, hull_fn
                 jax.clear_caches()  # trace again with the functions in place
                 try:
                     call = lambda: score(gripper, sdf, poses, chunk_size=CHUNK, estimator=est)  # noqa: E731
                     jax.block_until_ready(call())
                     times[label].append(best_of(call))
                 finally:
-                    score_module.finger_contacts, score_module.epsilon_l1 = real
+                    score_module.finger_contacts, score_module.closure_margin = real
         for label, t in times.items():
             out["rates"][f"{label} {est_name}"] = n_poses / min(t)
         out.setdefault("added", {})[est_name] = min(times["with quality"]) / min(times["without"]) - 1.0

@@ -154,20 +154,28 @@ def epsilon_l1(wrenches: Float[Array, "w 3"], tolerance: float = 1e-6) -> Float[
         >>> round(float(epsilon_l1(w)), 4), round(mu / ((1 + mu**2) * (2 + mu**2)) ** 0.5, 4)
         (0.2981, 0.2981)
     """
-    w = wrenches.shape[0]
-    triples = _triples(w)
+    triples = _triples(wrenches.shape[0])
     a, b, c = (wrenches[triples[:, i]] for i in range(3))  # (T, 3) each
-    normal = jnp.cross(b - a, c - a)
-    size = safe_norm(normal)
-    spans = size > 1e-9
-    normal = normal / jnp.where(spans, size, 1.0)[:, None]
+    normal = jnp.cross(b - a, c - a)  # not normalised: the side test needs only its direction
+    size2 = jnp.sum(normal * normal, axis=-1)
+    spans = size2 > 1e-18
+    inverse = jax.lax.rsqrt(jnp.where(spans, size2, 1.0))
     offset = jnp.sum(normal * a, axis=-1)  # (T,)
-    side = wrenches @ normal.T - offset[None, :]  # (W, T): each wrench's height above each plane
-    below = jnp.all(side <= tolerance, axis=0) & spans  # outward normal +normal, offset = n . a
-    above = jnp.all(side >= -tolerance, axis=0) & spans  # outward normal -normal, offset = -n . a
+    # (W, T): each wrench's height above each plane, times |normal|. Written out, not as a matrix
+    # product: XLA:CPU runs this many tiny products under vmap about twice as slowly.
+    side = _heights(wrenches, normal) - offset[None, :]
+    limit = tolerance / inverse
+    below = jnp.all(side <= limit, axis=0) & spans  # outward normal +normal, offset = n . a
+    above = jnp.all(side >= -limit, axis=0) & spans  # outward normal -normal, offset = -n . a
+    offset = offset * inverse
     inf = jnp.asarray(jnp.inf, wrenches.dtype)
     nearest = jnp.minimum(jnp.min(jnp.where(below, offset, inf)), jnp.min(jnp.where(above, -offset, inf)))
     return jnp.where(jnp.isfinite(nearest), jnp.maximum(nearest, 0.0), 0.0)
+
+
+def _heights(wrenches: Float[Array, "w 3"], directions: Float[Array, "d 3"]) -> Float[Array, "w d"]:
+    """``wrenches @ directions.T``, as three broadcast products."""
+    return sum(wrenches[:, i, None] * directions[None, :, i] for i in range(3))
 
 
 def _pairs(w: int) -> np.ndarray:
@@ -200,21 +208,24 @@ def closure_margin(wrenches: Float[Array, "w 3"], active: Bool[Array, " w"]) -> 
     """
     w = wrenches.shape[0]
     triples, pairs = _triples(w), _pairs(w)
+    # Inactive wrenches become copies of an active one: the supports are unchanged, and any
+    # direction's support bounds the minimum from above, so extra directions do no harm.
+    wrenches = jnp.where(active[:, None], wrenches, wrenches[jnp.argmax(active)])
     a, b, c = (wrenches[triples[:, i]] for i in range(3))
-    normal = jnp.cross(b - a, c - a)
-    size = safe_norm(normal)
-    normal = normal / jnp.where(size > 1e-9, size, 1.0)[:, None]
-    facet_ok = (size > 1e-9) & jnp.all(active[triples], axis=1)
+    normal = jnp.cross(b - a, c - a)  # (T, 3), not normalised
+    size2 = jnp.sum(normal * normal, axis=-1)
+    facet_ok = size2 > 1e-18
+    inverse = jax.lax.rsqrt(jnp.where(facet_ok, size2, 1.0))
+    # Both signs of each normal from one (W, T) table: support(n) = max, support(-n) = -min.
+    height = _heights(wrenches, normal)
+    facets = jnp.minimum(jnp.max(height, axis=0), -jnp.min(height, axis=0)) * inverse
     p, q = wrenches[pairs[:, 0]], wrenches[pairs[:, 1]]
     along = q - p
     t = jnp.clip(safe_divide(-jnp.sum(p * along, axis=-1), jnp.sum(along * along, axis=-1)), 0.0, 1.0)
-    nearest = p + t[:, None] * along
-    pair_ok = jnp.all(active[pairs], axis=1)
-    directions = jnp.concatenate([normal, -normal, -nearest, -wrenches])
-    length = safe_norm(directions)
-    usable = jnp.concatenate([facet_ok, facet_ok, pair_ok, active]) & (length > 1e-9)
-    directions = directions / jnp.where(usable, length, 1.0)[:, None]
-    heights = jnp.where(active[:, None], wrenches @ directions.T, -jnp.inf)  # (W, D)
-    support = jnp.max(heights, axis=0)
-    margin = jnp.min(jnp.where(usable, support, jnp.inf))
-    return jnp.where(jnp.isfinite(margin), margin, -1.0)
+    away = -jnp.concatenate([p + t[:, None] * along, wrenches])  # from the pairs' and vertices' nearest points
+    length = safe_norm(away)
+    near_ok = length > 1e-9
+    away = away / jnp.where(near_ok, length, 1.0)[:, None]
+    near = jnp.max(_heights(wrenches, away), axis=0)
+    margin = jnp.minimum(jnp.min(jnp.where(facet_ok, facets, jnp.inf)), jnp.min(jnp.where(near_ok, near, jnp.inf)))
+    return jnp.where(jnp.any(active) & jnp.isfinite(margin), margin, -1.0)

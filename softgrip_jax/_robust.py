@@ -39,6 +39,10 @@ from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 
 
+#: :class:`Uncertainty`'s default ``reach`` (closure margin, in the quality's unit-force wrench measure).
+DEFAULT_REACH = 0.1
+
+
 class Uncertainty(eqx.Module):
     """How uncertain each input of a grasp is (standard deviations unless noted; all run-time values
     but ``samples``).
@@ -55,6 +59,9 @@ class Uncertainty(eqx.Module):
         base_compliance: each finger's base compliance (kept >= 0).
         contour_mm: the object outline grown (> 0) or shrunk by this much (mm).
         seed: the draws' seed; the same seed gives the same draws for every candidate and call.
+        reach: only candidates whose nominal closure margin (``Score.margin``) is above
+            ``-reach`` are drawn (the others, farther from force closure, get ``quality_mean`` and
+            ``p_closure`` 0): the draws' cost follows the candidates near closure. ``inf``: all.
         linear: (static) instead of K draws, the first-order expansion of the closure margin
             (see the module docstring); ``samples`` and ``seed`` are then unused.
     """
@@ -69,6 +76,7 @@ class Uncertainty(eqx.Module):
     base_compliance: float | Array = 0.0
     contour_mm: float | Array = 0.0
     seed: int | Array = 0
+    reach: float | Array = DEFAULT_REACH
     linear: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
@@ -78,7 +86,8 @@ class Uncertainty(eqx.Module):
             raise SoftgripError(f"Uncertainty.samples must be an integer in [1, 4096], got {self.samples!r}")
         check_number_fields(self, {"pose_mm": (0.0, 1e3), "pose_rad": (0.0, 1.0), "mu_spread": (0.0, 0.999),
                                    "theta": (0.0, 1.0), "length": (0.0, 1e3), "stiffness_ratio": (0.0, 10.0),
-                                   "base_compliance": (0.0, 1e3), "contour_mm": (0.0, 1e3)})
+                                   "base_compliance": (0.0, 1e3), "contour_mm": (0.0, 1e3),
+                                   "reach": (0.0, math.inf)})
 
 
     @classmethod

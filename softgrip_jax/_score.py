@@ -44,19 +44,21 @@ from softgrip_jax._compile import tuned_jit
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._errors import SoftgripError, check_number_fields
 from softgrip_jax._export import exportable
+from softgrip_jax._gather import where_needed
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp
 from softgrip_jax._kinematics import chain_stations
 from softgrip_jax._estimators import AbstractEstimator, Mechanics, as_estimator
 from softgrip_jax._mechanics import MechanicsConfig, contact_forces
 from softgrip_jax._model import FingerModel, Gripper
-from softgrip_jax._quality import (CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, closure_margin, edge_wrenches,
-                                   epsilon_l1, finger_contacts)
+from softgrip_jax._quality import CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, closure_margin, edge_wrenches, finger_contacts
 from softgrip_jax._robust import (NOISE_SIZE, OffsetSDF, Uncertainty, linear_moments, noise_deviations, perturbations,
                                   perturbed)
 from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate, Status
 
+#: Candidates near force closure whose draws are evaluated together (robust quality).
+_DRAWN_GROUP = 32
 #: The score of the best grasp without force closure is at most this (every grasp in closure scores 1 or more).
 OPEN_TIER_MAX = 0.99
 
@@ -119,6 +121,9 @@ class Score(eqx.Module):
         quality_mean, p_closure: with an :class:`~softgrip_jax._robust.Uncertainty`, the expected
             quality and the probability of force closure over its draws, and the score in closure
             is ``1 + quality_mean (1 - risk)``; without one, ``quality`` and 0 or 1.
+        margin: the signed closure margin (:func:`~softgrip_jax._quality.closure_margin`): the
+            quality in force closure, minus the wrench distance to it outside (how far a grasp
+            is from closure); -1 where not valid.
     """
 
     score: Float[Array, ""]
@@ -134,6 +139,7 @@ class Score(eqx.Module):
     rho: Float[Array, ""]
     quality_mean: Float[Array, ""]
     p_closure: Float[Array, ""]
+    margin: Float[Array, ""]
 
 
 def _finger_terms(finger: FingerModel, sdf: AbstractSDF, est: Estimate, weights: ScoreWeights, config, estimator,
@@ -206,7 +212,7 @@ def score_pose(
             g, o, w = _draw(gripper, sdf, weights, sample)
             s = _score_grasp(g, o, estimate_grasp(g, o, pose + sample.pose, config, estimator=estimator), w, config,
                              estimator)
-            return _margin(s, w.mu), s
+            return s.margin, s
 
         return _linearised(lambda z: at(perturbed(gripper, weights.mu, uncertainty, z)),
                            gripper.base_separation.dtype)
@@ -214,15 +220,8 @@ def score_pose(
     nominal = _score_grasp(gripper, sdf, grasp, weights, config, estimator)
     if uncertainty is None:
         return nominal
-
-    def one(sample):
-        g, o, w = _draw(gripper, sdf, weights, sample)
-        s = _score_grasp(g, o, estimate_grasp(g, o, pose + sample.pose, config, estimator=estimator), w, config,
-                         estimator)
-        return s.quality, s.force_closure
-
-    quality, closure = jax.vmap(one)(perturbations(gripper, weights.mu, uncertainty))
-    return _with_robust(nominal, quality, closure)
+    quality, closure = _drawn(gripper, sdf, weights, config, estimator, uncertainty, pose)
+    return _with_robust(nominal, quality, closure, _within_reach(nominal, uncertainty))
 
 
 def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weights: ScoreWeights, config,
@@ -234,10 +233,9 @@ def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weigh
     opposition = -jnp.dot(left[4], right[4]) * touch[0] * touch[1]
     contacts = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), left[5], right[5])
     centroid, rho = sdf.mass_properties()
-    wrenches = edge_wrenches(contacts.points.reshape(-1, 2), contacts.normals.reshape(-1, 2),
-                             contacts.touching.reshape(-1), weights.mu, centroid, rho)
-    quality = epsilon_l1(wrenches)
-    closure = quality > CLOSURE_EPSILON
+    margin = _contacts_margin(contacts, weights.mu, centroid, rho)
+    closure = margin > CLOSURE_EPSILON
+    quality = jnp.where(closure, margin, 0.0)
     r = jnp.stack([gripper.left.half_thickness, gripper.right.half_thickness])
     limit = weights.max_penetration * r
     depth = jnp.max(jnp.clip(safe_divide(penetration, limit, 1.0), 0.0, 1.0))
@@ -260,28 +258,44 @@ def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weigh
         grasp=grasp, penetrating=penetrating, valid=valid, status=status,
         quality=jnp.where(valid & closure, quality, 0.0), force_closure=closure & valid, contacts=contacts,
         centroid=centroid, rho=rho, quality_mean=jnp.where(valid & closure, quality, 0.0),
-        p_closure=(closure & valid).astype(quality.dtype),
+        p_closure=(closure & valid).astype(quality.dtype), margin=jnp.where(valid, margin, -1.0),
     )
 
 
-def _with_robust(nominal: Score, quality: Float[Array, " k"], closure: Bool[Array, " k"]) -> Score:
+def _contacts_margin(contacts: FingerContacts, mu, centroid, rho) -> Float[Array, ""]:
+    """The signed closure margin (:func:`~softgrip_jax._quality.closure_margin`) of both fingers'
+    contacts (leaves with a leading axis 2)."""
+    touching = contacts.touching.reshape(-1)
+    wrenches = edge_wrenches(contacts.points.reshape(-1, 2), contacts.normals.reshape(-1, 2), touching, mu,
+                             centroid, rho)
+    return closure_margin(wrenches, jnp.repeat(touching, 2))
+
+
+def _drawn(gripper, sdf, weights, config, estimator, uncertainty, pose):
+    """(K,) quality and force closure of one pose (3,) in each of the K draws of ``uncertainty``."""
+    def one(sample):
+        g, o, w = _draw(gripper, sdf, weights, sample)
+        s = _score_grasp(g, o, estimate_grasp(g, o, pose + sample.pose, config, estimator=estimator), w, config,
+                         estimator)
+        return s.quality, s.force_closure
+
+    return jax.vmap(one)(perturbations(gripper, weights.mu, uncertainty))
+
+
+def _within_reach(nominal: Score, uncertainty: Uncertainty) -> Bool[Array, "*b"]:
+    """Which candidates are drawn: valid, and their closure margin above ``-uncertainty.reach``."""
+    return nominal.valid & (nominal.margin > -uncertainty.reach)
+
+
+def _with_robust(nominal: Score, quality: Float[Array, " k"], closure: Bool[Array, " k"], drawn) -> Score:
     """``nominal`` with the expected quality and probability of closure over K draws (each draw's
-    quality and closure, 0 and False where its estimate is not valid), ranked by them."""
-    mean = jnp.where(nominal.valid, jnp.mean(quality, axis=0), 0.0)
-    p = jnp.where(nominal.valid, jnp.mean(closure.astype(mean.dtype), axis=0), 0.0)
+    quality and closure, 0 and False where its estimate is not valid), ranked by them; 0 where
+    not ``drawn``."""
+    mean = jnp.where(drawn, jnp.mean(quality, axis=0), 0.0)
+    p = jnp.where(drawn, jnp.mean(closure.astype(mean.dtype), axis=0), 0.0)
     score = jnp.where(nominal.valid & nominal.force_closure, 1.0 + mean * (1.0 - nominal.components.risk),
                       nominal.score)
     return eqx.tree_at(lambda s: (s.score, s.quality_mean, s.p_closure), nominal, (score, mean, p))
-
-
-def _margin(s: Score, mu) -> Float[Array, ""]:
-    """The signed closure margin (:func:`~softgrip_jax._quality.closure_margin`) of a scored
-    candidate's contacts; -1 where the candidate is not valid."""
-    c = s.contacts
-    wrenches = edge_wrenches(c.points.reshape(-1, 2), c.normals.reshape(-1, 2), c.touching.reshape(-1), mu,
-                             s.centroid, s.rho)
-    margin = closure_margin(wrenches, jnp.repeat(c.touching.reshape(-1), 2))
-    return jnp.where(s.valid, margin, -1.0)
 
 
 def _linearised(margins, dtype) -> Score:
@@ -306,7 +320,7 @@ def _score_share(gripper, sdf, poses, weights, config, uncertainty, chunk_size, 
     """The :class:`Score` of poses (P, 3) on one device, ``chunk_size`` at a time: in each chunk both
     fingers' estimates (the contact refined and the equilibrium solved only where a finger touches,
     :mod:`softgrip_jax._batch`), then the score of each pose; with ``uncertainty``, the same for
-    each of its K draws (one after another: the chunk's memory, K times the time)."""
+    of its K draws for the candidates within its ``reach`` of force closure."""
     def scored(g, o, w, share):
         grasps = grasp_chunk(g, o, share, config, estimator)
         return jax.vmap(lambda e: _score_grasp(g, o, e, w, config, estimator))(grasps)
@@ -316,19 +330,18 @@ def _score_share(gripper, sdf, poses, weights, config, uncertainty, chunk_size, 
             def at(sample):
                 g, o, w = _draw(gripper, sdf, weights, sample)
                 s = scored(g, o, w, share + sample.pose)
-                return jax.vmap(_margin, in_axes=(0, None))(s, w.mu), s
+                return s.margin, s
 
             return _linearised(lambda z: at(perturbed(gripper, weights.mu, uncertainty, z)), share.dtype)
         nominal = scored(gripper, sdf, weights, share)
         if uncertainty is None:
             return nominal
-
-        def one(sample):
-            s = scored(*_draw(gripper, sdf, weights, sample), share + sample.pose)
-            return s.quality, s.force_closure
-
-        quality, closure = jax.lax.map(one, perturbations(gripper, weights.mu, uncertainty))
-        return jax.vmap(_with_robust, in_axes=(0, 1, 1))(nominal, quality, closure)
+        # Only the candidates near force closure are drawn, a group at a time (all K draws of a
+        # group's candidates together): the cost follows their number, not the chunk's.
+        drawn = _within_reach(nominal, uncertainty)
+        quality, closure = where_needed(lambda pose: _drawn(gripper, sdf, weights, config, estimator, uncertainty, pose),
+                                        drawn, share, group_size=_DRAWN_GROUP)
+        return jax.vmap(_with_robust)(nominal, quality, closure, drawn)
 
     return map_chunks(chunk, poses, chunk_size)
 
@@ -381,7 +394,10 @@ def score(
         uncertainty: robust quality (:class:`~softgrip_jax._robust.Uncertainty`): each candidate
             is also scored for its K draws of the calibration, the pose error, mu and the contour
             (the same draws for every candidate), giving ``quality_mean`` and ``p_closure``, which
-            then rank the grasps in closure; K times the time. None: the nominal quality only.
+            then rank the grasps in closure. Only candidates whose closure margin is above
+            ``-uncertainty.reach`` are drawn (K times their time); the others get 0. With
+            ``linear=True``, a first-order expansion instead (see :mod:`softgrip_jax._robust`).
+            None: the nominal quality only.
 
     Returns:
         :class:`Score` with leading axis B: ``score`` (B,) (-inf where not valid), ``components``,
