@@ -467,11 +467,13 @@ def quality_cost_part(n_poses: int) -> dict:
 
 def _agreement(result, reference, valid) -> dict:
     """How one robust result ranks against the reference (many draws): top 20 shared, Spearman's
-    rank correlation of the score over the valid candidates, and the largest and median
+    rank correlation of the score over the candidates in force closure (the others rank by the
+    nominal progress alike), and the largest and median
     differences of P(closure) and the expected quality."""
     from scipy.stats import spearmanr
 
-    got, ref = (np.asarray(r.score)[valid] for r in (result, reference))
+    closed = valid & np.asarray(reference.force_closure)  # the robust values rank these
+    got, ref = (np.asarray(r.score)[closed] for r in (result, reference))
     p = np.abs(np.asarray(result.p_closure) - np.asarray(reference.p_closure))[valid]
     q = np.abs(np.asarray(result.quality_mean) - np.asarray(reference.quality_mean))[valid]
     top = [set(np.argsort(-np.asarray(r.score))[:TOP].tolist()) for r in (result, reference)]
@@ -491,7 +493,8 @@ def robust_part(n_poses: int, samples: int = 16, reference_samples: int = 256) -
     spread = dict(pose_mm=0.5, pose_rad=0.01, mu_spread=0.2, theta=0.01, contour_mm=0.2)
     settings = {"nominal": None, f"K = {samples}": Uncertainty(samples=samples, **spread),
                 "linear": Uncertainty(linear=True, **spread),
-                f"K = {reference_samples}": Uncertainty(samples=reference_samples, **spread)}
+                # The reference draws every valid candidate, however far from closure.
+                f"K = {reference_samples}": Uncertainty(samples=reference_samples, reach=math.inf, **spread)}
     out: dict = {"poses": n_poses, "samples": samples, "reference_samples": reference_samples, "spread": spread,
                  "rates": {}, "closure": {}, "agreement": {}}
     for est_name, est in estimators().items():
@@ -503,10 +506,33 @@ def robust_part(n_poses: int, samples: int = 16, reference_samples: int = 256) -
             repeats = 1 if label == f"K = {reference_samples}" else 2
             out["rates"][f"{label}|{est_name}"] = n_poses / best_of(call, repeats=repeats)
             out["closure"][f"{label}|{est_name}"] = int(np.asarray(results[label].force_closure).sum())
+        if est_name == "geometric":  # new spreads, seed and reach: run-time values, no new program
+            from softgrip_jax._score import _score_one_device
+
+            counter = CompileCounter()
+            for setting in (dict(pose_mm=1.0, pose_rad=0.02, mu_spread=0.1), dict(contour_mm=0.4, theta=0.02,
+                                                                                   seed=7, reach=0.3)):
+                u = Uncertainty(samples=samples, **{**spread, **setting})
+                before, cache = counter.snapshot(), _score_one_device._jitted._cache_size()
+                t0 = time.perf_counter()
+                jax.block_until_ready(score(gripper, sdf, poses, chunk_size=CHUNK, estimator=est, uncertainty=u))
+                after = counter.snapshot()
+                out.setdefault("new_uncertainty", []).append(
+                    {"setting": setting, "seconds": time.perf_counter() - t0,
+                     "traces": after["traces"] - before["traces"], "compiles": after["compiles"] - before["compiles"],
+                     "jit_cache_entries": _score_one_device._jitted._cache_size() - cache})
         valid = np.asarray(results["nominal"].valid)
         reference = results[f"K = {reference_samples}"]
         for label in ("nominal", f"K = {samples}", "linear"):
             out["agreement"][f"{label}|{est_name}"] = _agreement(results[label], reference, valid)
+        # What the reach leaves out: the reference's P(closure) of the candidates K draws skip.
+        margin = np.asarray(results["nominal"].margin)
+        skipped = valid & (margin <= -settings[f"K = {samples}"].reach)
+        p_ref = np.asarray(reference.p_closure)
+        out.setdefault("skipped", {})[est_name] = {
+            "count": int(skipped.sum()), "valid": int(valid.sum()),
+            "largest_reference_p": float(p_ref[skipped].max()) if skipped.any() else 0.0,
+            "reach": float(settings[f"K = {samples}"].reach)}
     return out
 
 
@@ -582,7 +608,7 @@ def robust_table(part: dict) -> list[str]:
     spread = ", ".join(f"{k} {v}" for k, v in part["spread"].items())
     lines = [f"{part['poses']:,} poses (the throughput grid), chunks of {CHUNK}; uncertainty: {spread}; the "
              f"reference: {ref} draws", "",
-             f"| score | estimator | candidates/s | poses in closure | top 20 shared with {ref} | Spearman (score) | "
+             f"| score | estimator | candidates/s | poses in closure | top 20 shared with {ref} | Spearman (score in closure) | "
              "P(closure) error max / median | expected-quality error max / median |",
              "|---|---|---|---|---|---|---|---|"]
     for key, rate in part["rates"].items():
@@ -591,6 +617,16 @@ def robust_table(part: dict) -> list[str]:
         agree = (f"{a['top20_shared']} | {a['spearman']:.3f} | {a['p_closure_max']:.3f} / {a['p_closure_median']:.4f} | "
                  f"{a['quality_mean_max']:.4f} / {a['quality_mean_median']:.5f}") if a else "| | |"
         lines.append(f"| {label} | {est} | {rate:,.0f} | {part['closure'][key]} | {agree} |")
+    if part.get("new_uncertainty"):
+        lines += ["", f"| new Uncertainty (K = {part['samples']}, geometric) | call (s) | traces | compilations | "
+                      "jit cache entries added |", "|---|---|---|---|---|"]
+        for r in part["new_uncertainty"]:
+            setting = ", ".join(f"{k}={v}" for k, v in r["setting"].items())
+            lines.append(f"| {setting} | {r['seconds']:.3f} | {r['traces']} | {r['compiles']} | {r['jit_cache_entries']} |")
+    for est, sk in part.get("skipped", {}).items():
+        lines.append(f"\n{est}: {sk['count']:,} of {sk['valid']:,} valid candidates lie farther than the reach "
+                     f"({sk['reach']:g}) from closure and are not drawn; their largest P(closure) in the reference: "
+                     f"{sk['largest_reference_p']:.3f}")
     return lines
 
 

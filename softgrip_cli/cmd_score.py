@@ -207,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
         write_json_stream(sys.stdout.write, header, scene, poses, result, shown, robust=uncertainty is not None)
         sys.stdout.flush()
     else:
-        print(_table(scene, poses, result, shown, n_valid))
+        print(_table(scene, poses, result, shown, n_valid, robust=uncertainty is not None))
     return 0
 
 
@@ -572,18 +572,27 @@ rank = scene_api.rank
 # Output
 
 
-def _table(scene: pipe.FrameScene, poses: np.ndarray, result, shown: np.ndarray, n_valid: int) -> str:
+def _table(scene: pipe.FrameScene, poses: np.ndarray, result, shown: np.ndarray, n_valid: int,
+           robust: bool = False) -> str:
+    """The ranked candidates as text: pose, score, grasp quality (0 without force closure; with
+    ``robust``, P(closure) too), both fingers' contact cases and the status."""
     from softgrip_jax import CASE_NAMES
 
-    lines = [f"{scene.path}: {len(poses)} candidate poses, {n_valid} valid; best first",
-             f"{'rank':>4}  {'x (mm)':>8} {'y (mm)':>8} {'angle':>7}  {'score':>7}  {'left':<14} {'right':<14} status"]
+    extra = f" {'P(closure)':>10}" if robust else ""
+    lines = [f"{scene.path}: {len(poses)} candidate poses, {n_valid} valid; "
+             f"{int(np.sum(result.force_closure))} in force closure; best first",
+             f"{'rank':>4}  {'x (mm)':>8} {'y (mm)':>8} {'angle':>7}  {'score':>7} {'quality':>7}{extra}  "
+             f"{'left':<14} {'right':<14} status"]
     for k, i in enumerate(shown, start=1):
         x, y, a = poses[i]
         valid = bool(result.valid[i])
         value = f"{float(result.score[i]):7.3f}" if valid else f"{'-':>7}"
+        quality = f"{float(result.quality[i]):7.3f}" if valid else f"{'-':>7}"
+        if robust:
+            quality += f" {float(result.p_closure[i]):10.3f}" if valid else f" {'-':>10}"
         cases = [CASE_NAMES[int(getattr(result.grasp, side).case[i])] for side in pipe.SIDES]
         status = pipe.status_name(result.status[i], bool(result.penetrating[i]))
-        lines.append(f"{k:>4}  {x:8.2f} {y:8.2f} {a:7.3f}  {value}  {cases[0]:<14} {cases[1]:<14} {status}")
+        lines.append(f"{k:>4}  {x:8.2f} {y:8.2f} {a:7.3f}  {value} {quality}  {cases[0]:<14} {cases[1]:<14} {status}")
     return "\n".join(lines)
 
 

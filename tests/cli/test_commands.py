@@ -765,3 +765,29 @@ def test_calibrate_fit_refuses_an_empty_pair_with_an_object(tmp_path, profile):
     one_line_error(code, err)
     assert f"{closed} shows an object" in err and out == ""
     assert not (tmp_path / "p.json").exists()
+
+
+def test_score_text_table_shows_quality_and_closure_probability():
+    """The plain-text ranking: score, quality (0 without closure) and, robust, P(closure); '-' where
+    a candidate is not valid."""
+    from types import SimpleNamespace
+
+    from softgrip_cli.cmd_score import _table
+
+    case = np.array([1, 2, 0])
+    finger = SimpleNamespace(case=case)
+    result = SimpleNamespace(valid=np.array([True, True, False]), score=np.array([1.25, 0.5, -np.inf]),
+                             quality=np.array([0.25, 0.0, 0.0]), p_closure=np.array([0.875, 0.125, 0.0]),
+                             force_closure=np.array([True, False, False]), status=np.array([0, 0, 3]),
+                             penetrating=np.array([False, False, False]),
+                             grasp=SimpleNamespace(left=finger, right=finger))
+    poses = np.array([[0.0, -40.0, 0.0], [1.0, -42.0, 0.1], [2.0, -44.0, 0.2]])
+    scene = SimpleNamespace(path="frame_0")
+    lines = _table(scene, poses, result, np.array([0, 1, 2]), 2, robust=True).splitlines()
+    assert "1 in force closure" in lines[0]
+    assert lines[1].split()[6:9] == ["score", "quality", "P(closure)"]
+    assert lines[2].split()[4:7] == ["1.250", "0.250", "0.875"]
+    assert lines[3].split()[4:7] == ["0.500", "0.000", "0.125"]
+    assert lines[4].split()[4:7] == ["-", "-", "-"]
+    plain = _table(scene, poses, result, np.array([0]), 2).splitlines()
+    assert "P(closure)" not in plain[1] and plain[2].split()[4:6] == ["1.250", "0.250"]

@@ -155,3 +155,27 @@ def test_linear_agrees_with_many_draws_where_the_margin_is_smooth() -> None:
     np.testing.assert_allclose(np.asarray(lin.p_closure)[closed], np.asarray(draws.p_closure)[closed], atol=0.05)
     np.testing.assert_allclose(np.asarray(lin.quality_mean)[closed], np.asarray(draws.quality_mean)[closed],
                                rtol=0.05, atol=2e-3)
+
+
+def test_only_candidates_within_reach_of_closure_are_drawn() -> None:
+    """reach = inf draws every valid candidate; reach = r only those whose closure margin is above
+    -r: the others get 0, the rest (closure poses included) the same values as with every draw."""
+    import math
+
+    x, y = jnp.meshgrid(jnp.linspace(-4.0, 4.0, 3), jnp.linspace(-12.0, 4.0, 5), indexing="ij")
+    poses = jnp.stack([x.ravel(), y.ravel(), jnp.zeros(x.size)], axis=-1)
+    kw = dict(samples=16, pose_mm=1.0, pose_rad=0.02, mu_spread=0.3)
+    every = score(GRIPPER, DISC, poses, estimator=Geometric(), uncertainty=Uncertainty(reach=math.inf, **kw))
+    reach = 0.05
+    near = score(GRIPPER, DISC, poses, estimator=Geometric(), uncertainty=Uncertainty(reach=reach, **kw))
+    margin, valid = np.asarray(every.margin), np.asarray(every.valid)
+    drawn = valid & (margin > -reach)
+    assert np.asarray(every.force_closure).any() and (valid & ~drawn).any()
+    assert np.all(drawn[np.asarray(every.force_closure)])  # closure poses are always drawn
+    np.testing.assert_allclose(np.asarray(near.p_closure)[drawn], np.asarray(every.p_closure)[drawn], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(near.quality_mean)[drawn], np.asarray(every.quality_mean)[drawn], atol=1e-6)
+    assert np.all(np.asarray(near.p_closure)[~drawn] == 0) and np.all(np.asarray(near.quality_mean)[~drawn] == 0)
+    # The nominal margin: the quality inside closure, negative outside, -1 where not valid.
+    closed = np.asarray(every.force_closure)
+    np.testing.assert_allclose(margin[closed], np.asarray(every.quality)[closed], rtol=1e-6)
+    assert np.all(margin[valid & ~closed] <= 1e-5) and np.all(margin[~valid] == -1)
