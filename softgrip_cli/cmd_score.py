@@ -244,7 +244,8 @@ def parse_robust(args: argparse.Namespace) -> dict | None:
     pose = (args.pose_sigma or ROBUST_DEFAULTS["pose"]).split(",")
     if len(pose) != 2:
         raise SoftgripError(f"--pose-sigma {args.pose_sigma}: expected MM,RAD (e.g. {ROBUST_DEFAULTS['pose']})")
-    return {**({"linear": True} if linear else {"samples": samples}), "pose_mm": _number(pose[0], "--pose-sigma (mm)", 0.0, 100.0),
+    # Every valid candidate is drawn (reach inf): the document and heat map give each one's P(closure).
+    return {**({"linear": True} if linear else {"samples": samples, "reach": math.inf}), "pose_mm": _number(pose[0], "--pose-sigma (mm)", 0.0, 100.0),
             "pose_rad": _number(pose[1], "--pose-sigma (rad)", 0.0, 1.0),
             "mu_spread": _number(ROBUST_DEFAULTS["mu_spread"] if args.mu_spread is None else args.mu_spread,
                                  "--mu-spread", 0.0, 1.0, high_open=True),

@@ -39,8 +39,9 @@ from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 
 
-#: :class:`Uncertainty`'s default ``reach`` (closure margin, in the quality's unit-force wrench measure).
-DEFAULT_REACH = 0.1
+#: :class:`Uncertainty`'s default ``reach`` (closure margin, in the quality's unit-force wrench
+#: measure): draw the grasps in force closure only.
+DEFAULT_REACH = 0.0
 
 
 class Uncertainty(eqx.Module):
@@ -59,9 +60,12 @@ class Uncertainty(eqx.Module):
         base_compliance: each finger's base compliance (kept >= 0).
         contour_mm: the object outline grown (> 0) or shrunk by this much (mm).
         seed: the draws' seed; the same seed gives the same draws for every candidate and call.
-        reach: only candidates whose nominal closure margin (``Score.margin``) is above
-            ``-reach`` are drawn (the others, farther from force closure, get ``quality_mean`` and
-            ``p_closure`` 0): the draws' cost follows the candidates near closure. ``inf``: all.
+        reach: which candidates are drawn: those in force closure, and those whose nominal
+            closure margin (``Score.margin``) is above ``-reach``; the others' ``quality_mean`` and
+            ``p_closure`` are NaN (not drawn). The draws' cost follows the drawn candidates. 0 (the
+            default): the grasps in closure, which robust quality ranks; ``inf``: every valid
+            candidate. The margin does not see a contact that appears within the spread, so a
+            grasp far outside closure by it may still close in some draws.
         linear: (static) instead of K draws, the first-order expansion of the closure margin
             (see the module docstring); ``samples`` and ``seed`` are then unused.
     """

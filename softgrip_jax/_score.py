@@ -120,7 +120,8 @@ class Score(eqx.Module):
             largest distance from the centroid.
         quality_mean, p_closure: with an :class:`~softgrip_jax._robust.Uncertainty`, the expected
             quality and the probability of force closure over its draws, and the score in closure
-            is ``1 + quality_mean (1 - risk)``; without one, ``quality`` and 0 or 1.
+            is ``1 + quality_mean (1 - risk)`` (NaN for a candidate not drawn: not valid, or
+            outside closure beyond the uncertainty's ``reach``); without one, ``quality`` and 0 or 1.
         margin: the signed closure margin (:func:`~softgrip_jax._quality.closure_margin`): the
             quality in force closure, minus the wrench distance to it outside (how far a grasp
             is from closure); -1 where not valid.
@@ -283,16 +284,17 @@ def _drawn(gripper, sdf, weights, config, estimator, uncertainty, pose):
 
 
 def _within_reach(nominal: Score, uncertainty: Uncertainty) -> Bool[Array, "*b"]:
-    """Which candidates are drawn: valid, and their closure margin above ``-uncertainty.reach``."""
-    return nominal.valid & (nominal.margin > -uncertainty.reach)
+    """Which candidates are drawn: valid, and in force closure or their closure margin above
+    ``-uncertainty.reach``."""
+    return nominal.valid & (nominal.force_closure | (nominal.margin > -uncertainty.reach))
 
 
 def _with_robust(nominal: Score, quality: Float[Array, " k"], closure: Bool[Array, " k"], drawn) -> Score:
     """``nominal`` with the expected quality and probability of closure over K draws (each draw's
-    quality and closure, 0 and False where its estimate is not valid), ranked by them; 0 where
-    not ``drawn``."""
-    mean = jnp.where(drawn, jnp.mean(quality, axis=0), 0.0)
-    p = jnp.where(drawn, jnp.mean(closure.astype(mean.dtype), axis=0), 0.0)
+    quality and closure, 0 and False where its estimate is not valid), ranked by them; NaN where
+    not ``drawn`` (not known)."""
+    mean = jnp.where(drawn, jnp.mean(quality, axis=0), jnp.nan)
+    p = jnp.where(drawn, jnp.mean(closure.astype(mean.dtype), axis=0), jnp.nan)
     score = jnp.where(nominal.valid & nominal.force_closure, 1.0 + mean * (1.0 - nominal.components.risk),
                       nominal.score)
     return eqx.tree_at(lambda s: (s.score, s.quality_mean, s.p_closure), nominal, (score, mean, p))
@@ -305,7 +307,7 @@ def _linearised(margins, dtype) -> Score:
     margin, derivative, nominal = jax.linearize(margins, jnp.zeros(NOISE_SIZE, dtype), has_aux=True)
     tangents = jax.vmap(derivative)(jnp.diag(noise_deviations(dtype)))  # (13, *b)
     mean, p = linear_moments(margin, tangents)
-    mean, p = jnp.where(nominal.valid, mean, 0.0), jnp.where(nominal.valid, p, 0.0)
+    mean, p = jnp.where(nominal.valid, mean, jnp.nan), jnp.where(nominal.valid, p, jnp.nan)
     score = jnp.where(nominal.valid & nominal.force_closure, 1.0 + mean * (1.0 - nominal.components.risk),
                       nominal.score)
     return eqx.tree_at(lambda s: (s.score, s.quality_mean, s.p_closure), nominal, (score, mean, p))
@@ -394,8 +396,9 @@ def score(
         uncertainty: robust quality (:class:`~softgrip_jax._robust.Uncertainty`): each candidate
             is also scored for its K draws of the calibration, the pose error, mu and the contour
             (the same draws for every candidate), giving ``quality_mean`` and ``p_closure``, which
-            then rank the grasps in closure. Only candidates whose closure margin is above
-            ``-uncertainty.reach`` are drawn (K times their time); the others get 0. With
+            then rank the grasps in closure. Only valid candidates in force closure, or whose
+            closure margin is above ``-uncertainty.reach``, are drawn (K times their time); the
+            others' ``quality_mean`` and ``p_closure`` are NaN (not drawn). With
             ``linear=True``, a first-order expansion instead (see :mod:`softgrip_jax._robust`).
             None: the nominal quality only.
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import math
 from pathlib import Path
 
 import cv2
@@ -399,7 +400,8 @@ def test_robust_linear_sets_the_linearisation_with_the_same_spreads():
     assert settings == {"linear": True, "pose_mm": 0.8, "pose_rad": 0.02, "mu_spread": 0.2, "contour_mm": 0.1}
     document = uncertainty_json(Uncertainty(**settings))
     assert (document["method"], document["samples"], document["seed"], document["pose_mm"]) == ("linear", None, None, 0.8)
-    assert parse_robust(Namespace(robust="16", pose_sigma=None, mu_spread=None, contour_sigma=None))["samples"] == 16
+    drawn = parse_robust(Namespace(robust="16", pose_sigma=None, mu_spread=None, contour_sigma=None))
+    assert (drawn["samples"], drawn["reach"]) == (16, math.inf)  # every valid candidate drawn
     assert parse_robust(Namespace(robust="0", pose_sigma=None, mu_spread=None, contour_sigma=None)) is None
 
 

@@ -54,22 +54,26 @@ def test_draws_have_the_requested_spread_and_are_common() -> None:
 
 
 def test_without_uncertainty_the_robust_score_is_the_nominal_one() -> None:
-    nothing = Uncertainty(samples=2, pose_mm=0.0, pose_rad=0.0, mu_spread=0.0)
+    nothing = Uncertainty(samples=2, pose_mm=0.0, pose_rad=0.0, mu_spread=0.0, reach=math.inf)
     nominal = score(GRIPPER, DISC, POSES, estimator=Geometric())
     robust = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=nothing)
     assert bool(jnp.any(nominal.force_closure))
-    np.testing.assert_allclose(np.asarray(robust.quality_mean), np.asarray(nominal.quality), rtol=1e-6, atol=1e-7)
-    np.testing.assert_array_equal(np.asarray(robust.p_closure), np.asarray(nominal.force_closure, np.float32))
+    valid = np.asarray(nominal.valid)
+    np.testing.assert_allclose(np.asarray(robust.quality_mean)[valid], np.asarray(nominal.quality)[valid], rtol=1e-6,
+                               atol=1e-7)
+    np.testing.assert_array_equal(np.asarray(robust.p_closure)[valid], np.asarray(nominal.force_closure, np.float32)[valid])
+    assert np.all(np.isnan(np.asarray(robust.p_closure)[~valid]))  # not valid: not drawn
     np.testing.assert_allclose(np.asarray(robust.score), np.asarray(nominal.score), rtol=1e-6)
 
 
 @pytest.mark.slow
 def test_a_candidates_robust_quality_does_not_depend_on_its_batch() -> None:
-    u = Uncertainty(samples=8, pose_mm=1.0, pose_rad=0.02, theta=0.02, contour_mm=0.3)
+    u = Uncertainty(samples=8, pose_mm=1.0, pose_rad=0.02, theta=0.02, contour_mm=0.3, reach=math.inf)
     whole = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=u)
-    alone = score(GRIPPER, DISC, POSES[1:2], estimator=Geometric(), uncertainty=u)
-    assert float(alone.quality_mean[0]) == pytest.approx(float(whole.quality_mean[1]), abs=1e-6)
-    assert float(alone.p_closure[0]) == float(whole.p_closure[1])
+    i = int(np.flatnonzero(np.asarray(whole.valid))[-1])
+    alone = score(GRIPPER, DISC, POSES[i:i + 1], estimator=Geometric(), uncertainty=u)
+    assert float(alone.quality_mean[0]) == pytest.approx(float(whole.quality_mean[i]), abs=1e-6)
+    assert float(alone.p_closure[0]) == float(whole.p_closure[i])
     closed = np.asarray(whole.force_closure)
     assert closed.any()
     # Expected quality is at most the best draw's; a closure grasp ranks on it.
@@ -110,8 +114,11 @@ def test_linear_without_uncertainty_is_the_nominal_score() -> None:
     nominal = score(GRIPPER, DISC, POSES, estimator=Geometric())
     robust = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=nothing)
     assert bool(jnp.any(nominal.force_closure))
-    np.testing.assert_allclose(np.asarray(robust.quality_mean), np.asarray(nominal.quality), rtol=1e-5, atol=1e-6)
-    np.testing.assert_array_equal(np.asarray(robust.p_closure), np.asarray(nominal.force_closure, np.float32))
+    valid = np.asarray(nominal.valid)
+    np.testing.assert_allclose(np.asarray(robust.quality_mean)[valid], np.asarray(nominal.quality)[valid], rtol=1e-5,
+                               atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(robust.p_closure)[valid], np.asarray(nominal.force_closure, np.float32)[valid])
+    assert np.all(np.isnan(np.asarray(robust.p_closure)[~valid]))
 
 
 def test_linear_spread_is_the_finite_difference_gradient_of_the_quality() -> None:
@@ -158,8 +165,8 @@ def test_linear_agrees_with_many_draws_where_the_margin_is_smooth() -> None:
 
 
 def test_only_candidates_within_reach_of_closure_are_drawn() -> None:
-    """reach = inf draws every valid candidate; reach = r only those whose closure margin is above
-    -r: the others get 0, the rest (closure poses included) the same values as with every draw."""
+    """reach = inf draws every valid candidate; reach = r only those in closure or whose closure
+    margin is above -r: the others get NaN (not drawn), the rest the same values as with every draw."""
     import math
 
     x, y = jnp.meshgrid(jnp.linspace(-4.0, 4.0, 3), jnp.linspace(-12.0, 4.0, 5), indexing="ij")
@@ -169,12 +176,13 @@ def test_only_candidates_within_reach_of_closure_are_drawn() -> None:
     reach = 0.05
     near = score(GRIPPER, DISC, poses, estimator=Geometric(), uncertainty=Uncertainty(reach=reach, **kw))
     margin, valid = np.asarray(every.margin), np.asarray(every.valid)
-    drawn = valid & (margin > -reach)
+    drawn = valid & (np.asarray(every.force_closure) | (margin > -reach))
     assert np.asarray(every.force_closure).any() and (valid & ~drawn).any()
     assert np.all(drawn[np.asarray(every.force_closure)])  # closure poses are always drawn
     np.testing.assert_allclose(np.asarray(near.p_closure)[drawn], np.asarray(every.p_closure)[drawn], atol=1e-6)
     np.testing.assert_allclose(np.asarray(near.quality_mean)[drawn], np.asarray(every.quality_mean)[drawn], atol=1e-6)
-    assert np.all(np.asarray(near.p_closure)[~drawn] == 0) and np.all(np.asarray(near.quality_mean)[~drawn] == 0)
+    assert np.all(np.isnan(np.asarray(near.p_closure)[~drawn])) and np.all(np.isnan(np.asarray(near.quality_mean)[~drawn]))
+    assert np.all(np.isfinite(np.asarray(every.p_closure)[valid]))
     # The nominal margin: the quality inside closure, negative outside, -1 where not valid.
     closed = np.asarray(every.force_closure)
     np.testing.assert_allclose(margin[closed], np.asarray(every.quality)[closed], rtol=1e-6)
