@@ -15,8 +15,8 @@ Parts (``--part``, comma-separated):
   ``Score.contacts`` (:func:`reference_wrenches`, written here from the formula, not the core's
   ``edge_wrenches``) and the epsilon taken from ``scipy.spatial.ConvexHull``'s facets
   (:func:`reference_epsilon`); compared with ``Score.quality`` on the valid candidates.
-* ``ranking``: a side^3 grid of poses (x, y +-10 mm, angle +-0.2 rad) around the pose that puts
-  the object between the fingers at mid-length, on each of the paper's five objects, both
+* ``ranking``: a grid of 11 x 18 x 11 poses (x +-10 mm, y from -30 to +4 mm, angle +-0.2 rad)
+  about the pose that puts the object between the fingers at mid-length (:data:`BOX`), on each of the paper's five objects, both
   estimators: valid, closure, and whether the top 20 are in force closure with both fingers touching.
 * ``variants``: the same on frames rendered with renderer variants, through vision: a one-frame
   calibration (closed frame without object, open frame with it), ``vision.scene.frame_scene`` (the
@@ -74,8 +74,10 @@ PAPER_OBJECTS: tuple[str, ...] = ACCURACY_SET
 CONCAVE_OBJECTS: tuple[str, ...] = ("crescent", "l_shape")
 #: Vertices of every object's polygon (the most any of the objects above has: the crescent's 288).
 VERTICES = 288
-#: Half-widths of the pose box around the centred pose: x mm, y mm, angle rad.
-BOX = (10.0, 10.0, 0.2)
+#: The ranking grids' offsets from the centred pose, low and high: x mm, y mm (from the object
+#: 4 mm nearer the base than mid-length to 30 mm farther, past the fingertips: the approach depths
+#: a planner searches), angle rad.
+BOX = ((-10.0, -30.0, -0.2), (10.0, 4.0, 0.2))
 #: The hull part's pose box: x, y from the centred pose (mm) and angle (rad), low and high; lower
 #: than the ranking's box too (the fingers reach farther round the object: more force closure).
 HULL_BOX = ((-10.0, -18.0, -0.2), (10.0, 10.0, 0.2))
@@ -85,10 +87,10 @@ MU_RANGE = (0.2, 1.0)
 TOP = 20
 CHUNK = 2048
 
-SIZES = {  # --size: hull candidates, ranking grid side, variant grid side, variants, throughput poses
-    "full": dict(hull=1000, side=13, variant_side=13, variants=("default", "tilt 10 deg", "lighting and noise",
-                                                              "round fingers"), throughput=8192),
-    "quick": dict(hull=224, side=7, variant_side=7, variants=("default", "tilt 10 deg"), throughput=2048),
+SIZES = {  # --size: hull candidates, ranking and variant grids' values per axis, variants, throughput poses
+    "full": dict(hull=1000, counts=(11, 18, 11), variants=("default", "tilt 10 deg", "lighting and noise",
+                                                        "round fingers"), throughput=8192),
+    "quick": dict(hull=224, counts=(5, 9, 5), variants=("default", "tilt 10 deg"), throughput=2048),
 }
 
 
@@ -131,9 +133,10 @@ def centred_pose() -> np.ndarray:
     return np.array([OBJECT_CENTRE_MM[0], OBJECT_CENTRE_MM[1] - LENGTH_MM / 2.0, 0.0])
 
 
-def pose_grid(centre: np.ndarray, side: int, box: tuple[float, float, float] = BOX) -> np.ndarray:
-    """(side^3, 3) float32 poses: a regular grid of ``side`` values per axis over centre +- box."""
-    axes = [np.linspace(c - h, c + h, side) for c, h in zip(centre, box)]
+def pose_grid(centre: np.ndarray, counts: tuple[int, int, int], box=BOX) -> np.ndarray:
+    """(prod(counts), 3) float32 poses: a regular grid of ``counts`` values per axis over
+    centre + box[0] to centre + box[1]."""
+    axes = [np.linspace(c + lo, c + hi, n) for c, lo, hi, n in zip(centre, *box, counts)]
     return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
 
 
@@ -240,10 +243,10 @@ def ranking_row(result, poses: np.ndarray, top: int = TOP) -> dict:
             "best_quality": float(result.quality[best]), "best_score": float(result.score[best])}
 
 
-def ranking_part(side: int, names: tuple[str, ...] = PAPER_OBJECTS) -> list[dict]:
+def ranking_part(counts: tuple[int, int, int], names: tuple[str, ...] = PAPER_OBJECTS) -> list[dict]:
     """One :func:`ranking_row` per object and estimator on the exact outlines (mu 0.5)."""
     gripper = make_gripper()
-    poses = pose_grid(centred_pose(), side)
+    poses = pose_grid(centred_pose(), counts)
     rows = []
     for name in names:
         for est_name, est in estimators().items():
@@ -291,14 +294,14 @@ def vision_scene(setup: RenderedScene, variant: str):
 EXACT = "exact outline"
 
 
-def exact_rows(side: int, names: tuple[str, ...]) -> list[dict]:
+def exact_rows(counts: tuple[int, int, int], names: tuple[str, ...]) -> list[dict]:
     """:func:`ranking_row` per object and estimator for the rendered set-up (:class:`RenderedScene`)
     on the exact outline and the true gripper (W 68 mm), the grid about the true pose."""
     rows = []
     for k, name in enumerate(names):
         setup = RenderedScene(index=k, object_name=name)
         gripper = make_gripper(base_separation_mm=setup.base_separation_mm)
-        poses = pose_grid(np.array([*setup.gripper_centre_mm, 0.0]), side)
+        poses = pose_grid(np.array([*setup.gripper_centre_mm, 0.0]), counts)
         sdf = object_sdf(name, setup.object_centre_mm)
         for est_name, est in estimators().items():
             result = jax.tree_util.tree_map(np.asarray, score(gripper, sdf, jnp.asarray(poses), estimator=est))
@@ -307,18 +310,18 @@ def exact_rows(side: int, names: tuple[str, ...]) -> list[dict]:
     return rows
 
 
-def variants_part(side: int, variants: tuple[str, ...], names: tuple[str, ...] = PAPER_OBJECTS) -> list[dict]:
+def variants_part(counts: tuple[int, int, int], variants: tuple[str, ...], names: tuple[str, ...] = PAPER_OBJECTS) -> list[dict]:
     """One :func:`ranking_row` per variant, object and estimator, through vision (mu 0.5); the grid
     is about the frame's measured pose, and ``pose_error_mm`` says how far that is from the truth
     (in the measured plane's millimetres). First the same set-up on its exact geometry (:func:`exact_rows`)."""
-    rows = exact_rows(side, names)
+    rows = exact_rows(counts, names)
     for variant in variants:
         for k, name in enumerate(names):
             setup = RenderedScene(index=k, object_name=name)
             t0 = time.perf_counter()
             scene = vision_scene(setup, variant)
             vision_s = time.perf_counter() - t0
-            poses = pose_grid(np.asarray(scene.pose), side)
+            poses = pose_grid(np.asarray(scene.pose), counts)
             for est_name, est in estimators().items():
                 result = scene.score(poses, estimator=est)
                 rows.append({"variant": variant, "object": name, "estimator": est_name,
@@ -647,8 +650,8 @@ def main(argv: list[str] | None = None) -> None:
     results: dict = {"command": command.strip(), "machine": describe(), "size": args.size}
     say = (lambda *a, **k: None) if args.json else print
     say(f"`{results['command']}` on {results['machine']}\n")
-    runners = {"hull": lambda: hull_part(size["hull"]), "ranking": lambda: ranking_part(size["side"]),
-               "variants": lambda: variants_part(size["variant_side"], size["variants"]),
+    runners = {"hull": lambda: hull_part(size["hull"]), "ranking": lambda: ranking_part(size["counts"]),
+               "variants": lambda: variants_part(size["counts"], size["variants"]),
                "throughput": lambda: throughput_part(size["throughput"]),
                "quality_cost": lambda: quality_cost_part(size["throughput"]),
                "robust": lambda: robust_part(size["throughput"] // 4)}

@@ -55,8 +55,9 @@ def test_resampled_outlines_keep_every_corner_and_the_area(name) -> None:
 
 
 def test_pose_grid_covers_the_box_about_the_centred_pose() -> None:
-    poses = bench.pose_grid(bench.centred_pose(), 5)
-    assert poses.shape == (125, 3)
-    np.testing.assert_allclose(poses.min(0), bench.centred_pose() - bench.BOX, atol=1e-6)
-    np.testing.assert_allclose(poses.max(0), bench.centred_pose() + bench.BOX, atol=1e-6)
+    poses = bench.pose_grid(bench.centred_pose(), (5, 4, 3))
+    assert poses.shape == (60, 3)
+    np.testing.assert_allclose(poses.min(0), bench.centred_pose() + np.asarray(bench.BOX[0]), atol=1e-5)
+    np.testing.assert_allclose(poses.max(0), bench.centred_pose() + np.asarray(bench.BOX[1]), atol=1e-5)
+    assert len(bench.pose_grid(bench.centred_pose(), bench.SIZES["full"]["counts"])) >= 2000
     assert bench.centred_pose()[1] + bench.LENGTH_MM / 2 == bench.OBJECT_CENTRE_MM[1]
