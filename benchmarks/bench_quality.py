@@ -471,14 +471,15 @@ def quality_cost_part(n_poses: int) -> dict:
 def _agreement(result, reference, valid) -> dict:
     """How one robust result ranks against the reference (many draws): top 20 shared, Spearman's
     rank correlation of the score over the candidates in force closure (the others rank by the
-    nominal progress alike), and the largest and median
-    differences of P(closure) and the expected quality."""
+    nominal progress alike), and the largest and median differences of P(closure) and the
+    expected quality over the candidates it drew."""
     from scipy.stats import spearmanr
 
     closed = valid & np.asarray(reference.force_closure)  # the robust values rank these
     got, ref = (np.asarray(r.score)[closed] for r in (result, reference))
-    p = np.abs(np.asarray(result.p_closure) - np.asarray(reference.p_closure))[valid]
-    q = np.abs(np.asarray(result.quality_mean) - np.asarray(reference.quality_mean))[valid]
+    drawn = valid & np.isfinite(np.asarray(result.p_closure))  # NaN: not drawn (outside the reach)
+    p = np.abs(np.asarray(result.p_closure) - np.asarray(reference.p_closure))[drawn]
+    q = np.abs(np.asarray(result.quality_mean) - np.asarray(reference.quality_mean))[drawn]
     top = [set(np.argsort(-np.asarray(r.score))[:TOP].tolist()) for r in (result, reference)]
     return {"top20_shared": len(top[0] & top[1]), "spearman": float(spearmanr(got, ref).statistic),
             "p_closure_max": float(p.max()), "p_closure_median": float(np.median(p)),

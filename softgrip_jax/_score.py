@@ -293,11 +293,13 @@ def _with_robust(nominal: Score, quality: Float[Array, " k"], closure: Bool[Arra
     """``nominal`` with the expected quality and probability of closure over K draws (each draw's
     quality and closure, 0 and False where its estimate is not valid), ranked by them; NaN where
     not ``drawn`` (not known)."""
-    mean = jnp.where(drawn, jnp.mean(quality, axis=0), jnp.nan)
+    mean = jnp.where(drawn, jnp.mean(quality, axis=0), 0.0)
     p = jnp.where(drawn, jnp.mean(closure.astype(mean.dtype), axis=0), jnp.nan)
+    # (NaN only in the reported fields: in the score's untaken branch it would reach its gradient.)
     score = jnp.where(nominal.valid & nominal.force_closure, 1.0 + mean * (1.0 - nominal.components.risk),
                       nominal.score)
-    return eqx.tree_at(lambda s: (s.score, s.quality_mean, s.p_closure), nominal, (score, mean, p))
+    return eqx.tree_at(lambda s: (s.score, s.quality_mean, s.p_closure), nominal,
+                       (score, jnp.where(drawn, mean, jnp.nan), p))
 
 
 def _linearised(margins, dtype) -> Score:
@@ -307,10 +309,10 @@ def _linearised(margins, dtype) -> Score:
     margin, derivative, nominal = jax.linearize(margins, jnp.zeros(NOISE_SIZE, dtype), has_aux=True)
     tangents = jax.vmap(derivative)(jnp.diag(noise_deviations(dtype)))  # (13, *b)
     mean, p = linear_moments(margin, tangents)
-    mean, p = jnp.where(nominal.valid, mean, jnp.nan), jnp.where(nominal.valid, p, jnp.nan)
     score = jnp.where(nominal.valid & nominal.force_closure, 1.0 + mean * (1.0 - nominal.components.risk),
                       nominal.score)
-    return eqx.tree_at(lambda s: (s.score, s.quality_mean, s.p_closure), nominal, (score, mean, p))
+    unknown = lambda x: jnp.where(nominal.valid, x, jnp.nan)  # noqa: E731
+    return eqx.tree_at(lambda s: (s.score, s.quality_mean, s.p_closure), nominal, (score, unknown(mean), unknown(p)))
 
 
 def _draw(gripper, sdf, weights, sample):

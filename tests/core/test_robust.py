@@ -187,3 +187,19 @@ def test_only_candidates_within_reach_of_closure_are_drawn() -> None:
     closed = np.asarray(every.force_closure)
     np.testing.assert_allclose(margin[closed], np.asarray(every.quality)[closed], rtol=1e-6)
     assert np.all(margin[valid & ~closed] <= 1e-5) and np.all(margin[~valid] == -1)
+
+
+def test_the_robust_score_has_finite_gradients_in_and_out_of_closure() -> None:
+    """refine climbs the robust score by gradient: its derivative in the pose must be finite where
+    the candidate is in closure (drawn) and where it is not (not drawn: NaN only in the reports)."""
+    from softgrip_jax import score_pose
+
+    u = Uncertainty(samples=4, pose_mm=0.3, pose_rad=0.01, mu_spread=0.1)
+    nominal = score(GRIPPER, DISC, POSES, estimator=Geometric())
+    closed, valid = np.asarray(nominal.force_closure), np.asarray(nominal.valid)
+    picks = [int(np.flatnonzero(closed)[0]), int(np.flatnonzero(valid & ~closed)[0])]
+    value_and_grad = jax.jit(jax.value_and_grad(
+        lambda p: score_pose(GRIPPER, DISC, p, estimator=Geometric(), uncertainty=u).score))
+    for i in picks:
+        value, grad = value_and_grad(POSES[i])
+        assert np.isfinite(float(value)) and np.all(np.isfinite(np.asarray(grad))), (i, value, grad)
