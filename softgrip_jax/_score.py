@@ -57,8 +57,10 @@ from softgrip_jax._safe import safe_divide
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate, Status
 
-#: Candidates near force closure whose draws are evaluated together (robust quality).
+#: Candidates near force closure whose draws are evaluated together (robust quality), and draws of
+#: each evaluated together: memory holds _DRAWN_GROUP x _DRAW_BLOCK estimates, whatever K is.
 _DRAWN_GROUP = 32
+_DRAW_BLOCK = 16
 #: The score of the best grasp without force closure is at most this (every grasp in closure scores 1 or more).
 OPEN_TIER_MAX = 0.99
 
@@ -273,14 +275,22 @@ def _contacts_margin(contacts: FingerContacts, mu, centroid, rho) -> Float[Array
 
 
 def _drawn(gripper, sdf, weights, config, estimator, uncertainty, pose):
-    """(K,) quality and force closure of one pose (3,) in each of the K draws of ``uncertainty``."""
+    """(K,) quality and force closure of one pose (3,) in each of the K draws of ``uncertainty``,
+    :data:`_DRAW_BLOCK` draws at a time (so memory does not grow with K)."""
     def one(sample):
         g, o, w = _draw(gripper, sdf, weights, sample)
         s = _score_grasp(g, o, estimate_grasp(g, o, pose + sample.pose, config, estimator=estimator), w, config,
                          estimator)
         return s.quality, s.force_closure
 
-    return jax.vmap(one)(perturbations(gripper, weights.mu, uncertainty))
+    k = uncertainty.samples
+    block = min(k, _DRAW_BLOCK)
+    count = -(-k // block)
+    wrapped = jnp.arange(count * block) % k  # the last block is filled with the first draws, then dropped
+    draws = jax.tree_util.tree_map(lambda x: x[wrapped].reshape((count, block) + x.shape[1:]),
+                                   perturbations(gripper, weights.mu, uncertainty))
+    quality, closure = jax.lax.map(jax.vmap(one), draws)
+    return quality.reshape(-1)[:k], closure.reshape(-1)[:k]
 
 
 def _within_reach(nominal: Score, uncertainty: Uncertainty) -> Bool[Array, "*b"]:

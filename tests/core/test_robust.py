@@ -53,14 +53,16 @@ def test_draws_have_the_requested_spread_and_are_common() -> None:
     assert not bool(jnp.all(other.pose == d.pose))
 
 
-def test_without_uncertainty_the_robust_score_is_the_nominal_one() -> None:
-    nothing = Uncertainty(samples=2, pose_mm=0.0, pose_rad=0.0, mu_spread=0.0, reach=math.inf)
+@pytest.mark.parametrize("nothing", [
+    Uncertainty(samples=2, pose_mm=0.0, pose_rad=0.0, mu_spread=0.0, reach=math.inf),
+    Uncertainty(linear=True, pose_mm=0.0, pose_rad=0.0, mu_spread=0.0)], ids=["draws", "linear"])
+def test_without_uncertainty_the_robust_score_is_the_nominal_one(nothing) -> None:
     nominal = score(GRIPPER, DISC, POSES, estimator=Geometric())
     robust = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=nothing)
     assert bool(jnp.any(nominal.force_closure))
     valid = np.asarray(nominal.valid)
-    np.testing.assert_allclose(np.asarray(robust.quality_mean)[valid], np.asarray(nominal.quality)[valid], rtol=1e-6,
-                               atol=1e-7)
+    np.testing.assert_allclose(np.asarray(robust.quality_mean)[valid], np.asarray(nominal.quality)[valid], rtol=1e-5,
+                               atol=1e-6)
     np.testing.assert_array_equal(np.asarray(robust.p_closure)[valid], np.asarray(nominal.force_closure, np.float32)[valid])
     assert np.all(np.isnan(np.asarray(robust.p_closure)[~valid]))  # not valid: not drawn
     np.testing.assert_allclose(np.asarray(robust.score), np.asarray(nominal.score), rtol=1e-6)
@@ -82,7 +84,7 @@ def test_a_candidates_robust_quality_does_not_depend_on_its_batch() -> None:
                                rtol=1e-6)
 
 
-@pytest.mark.parametrize("field", ["pose_mm", "mu_spread", "theta"])
+@pytest.mark.parametrize("field", ["pose_mm", "mu_spread", "theta", "reach"])
 def test_bad_uncertainty_is_refused_with_its_name(field) -> None:
     with pytest.raises(SoftgripError, match=f"Uncertainty.{field}"):
         Uncertainty(**{field: -1.0})
@@ -107,18 +109,6 @@ def test_linear_moments_are_a_normal_margins_by_monte_carlo() -> None:
     # No spread: a step and the margin itself.
     q, p = linear_moments(jnp.asarray([0.1, -0.1]), jnp.zeros((13, 2)))
     assert p.tolist() == [1.0, 0.0] and q.tolist() == pytest.approx([0.1, 0.0])
-
-
-def test_linear_without_uncertainty_is_the_nominal_score() -> None:
-    nothing = Uncertainty(linear=True, pose_mm=0.0, pose_rad=0.0, mu_spread=0.0)
-    nominal = score(GRIPPER, DISC, POSES, estimator=Geometric())
-    robust = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=nothing)
-    assert bool(jnp.any(nominal.force_closure))
-    valid = np.asarray(nominal.valid)
-    np.testing.assert_allclose(np.asarray(robust.quality_mean)[valid], np.asarray(nominal.quality)[valid], rtol=1e-5,
-                               atol=1e-6)
-    np.testing.assert_array_equal(np.asarray(robust.p_closure)[valid], np.asarray(nominal.force_closure, np.float32)[valid])
-    assert np.all(np.isnan(np.asarray(robust.p_closure)[~valid]))
 
 
 def test_linear_spread_is_the_finite_difference_gradient_of_the_quality() -> None:
