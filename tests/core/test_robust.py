@@ -141,6 +141,7 @@ def test_linear_spread_is_the_finite_difference_gradient_of_the_quality() -> Non
     np.testing.assert_allclose(np.asarray(lin.quality_mean)[closed], expected, rtol=2e-3, atol=1e-5)
 
 
+@pytest.mark.slow  # compiles a large program (2,000 draws; a gradient through 4 draws)
 def test_linear_agrees_with_many_draws_where_the_margin_is_smooth() -> None:
     """A small spread (0.2 mm, 0.005 rad, mu +- 10 %): the margin is nearly linear over it, and the
     linearised P(closure) and expected quality match 2,000 draws'."""
@@ -179,6 +180,7 @@ def test_only_candidates_within_reach_of_closure_are_drawn() -> None:
     assert np.all(margin[valid & ~closed] <= 1e-5) and np.all(margin[~valid] == -1)
 
 
+@pytest.mark.slow  # compiles a large program (2,000 draws; a gradient through 4 draws)
 def test_the_robust_score_has_finite_gradients_in_and_out_of_closure() -> None:
     """refine climbs the robust score by gradient: its derivative in the pose must be finite where
     the candidate is in closure (drawn) and where it is not (not drawn: NaN only in the reports)."""
