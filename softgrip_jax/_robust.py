@@ -198,7 +198,8 @@ def perturbations(gripper: Gripper, mu: Float[ArrayLike, ""], u: Uncertainty) ->
     return jax.vmap(lambda z: perturbed(gripper, mu, u, z))(jnp.concatenate([normal, uniform], axis=1))
 
 
-def linear_moments(margin: Float[Array, "*b"], tangents: Float[Array, "j *b"]) -> tuple[Float[Array, "*b"], Float[Array, "*b"]]:
+def linear_moments(margin: Float[Array, "*b"],
+                   tangents: Float[Array, "j *b"]) -> tuple[Float[Array, "*b"], Float[Array, "*b"]]:
     """``(quality_mean, p_closure)`` of a normal margin with mean ``margin`` and the standard
     deviation of the ``tangents`` (J, ...) (dm/dz_j times z_j's deviation, stacked on axis 0).
 

@@ -50,7 +50,8 @@ from softgrip_jax._kinematics import chain_stations
 from softgrip_jax._estimators import AbstractEstimator, Mechanics, as_estimator
 from softgrip_jax._mechanics import MechanicsConfig, contact_forces
 from softgrip_jax._model import FingerModel, Gripper
-from softgrip_jax._quality import CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, closure_margin, edge_wrenches, finger_contacts
+from softgrip_jax._quality import (CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, closure_margin, edge_wrenches,
+                                   finger_contacts)
 from softgrip_jax._robust import (NOISE_SIZE, OffsetSDF, Uncertainty, linear_moments, noise_deviations, perturbations,
                                   perturbed)
 from softgrip_jax._safe import safe_divide
@@ -211,14 +212,12 @@ def score_pose(
     """
     estimator = as_estimator(estimator, method, mechanics)
     if uncertainty is not None and uncertainty.linear:
-        def at(sample):
-            g, o, w = _draw(gripper, sdf, weights, sample)
-            s = _score_grasp(g, o, estimate_grasp(g, o, pose + sample.pose, config, estimator=estimator), w, config,
-                             estimator)
+        def at(z):
+            sample = perturbed(gripper, weights.mu, uncertainty, z)
+            s = _score_drawn(gripper, sdf, weights, config, estimator, pose, sample)
             return s.margin, s
 
-        return _linearised(lambda z: at(perturbed(gripper, weights.mu, uncertainty, z)),
-                           gripper.base_separation.dtype)
+        return _linearised(at, gripper.base_separation.dtype)
     grasp = estimate_grasp(gripper, sdf, pose, config, estimator=estimator)
     nominal = _score_grasp(gripper, sdf, grasp, weights, config, estimator)
     if uncertainty is None:
@@ -274,13 +273,19 @@ def _contacts_margin(contacts: FingerContacts, mu, centroid, rho) -> Float[Array
     return closure_margin(wrenches, jnp.repeat(touching, 2))
 
 
+def _score_drawn(gripper, sdf, weights, config, estimator, pose, sample) -> Score:
+    """The :class:`Score` of one pose (3,) under one draw (:class:`~softgrip_jax._robust.Perturbations`
+    without a leading axis): its gripper, object, friction and pose offset."""
+    g, o, w = _draw(gripper, sdf, weights, sample)
+    return _score_grasp(g, o, estimate_grasp(g, o, pose + sample.pose, config, estimator=estimator), w, config,
+                        estimator)
+
+
 def _drawn(gripper, sdf, weights, config, estimator, uncertainty, pose):
     """(K,) quality and force closure of one pose (3,) in each of the K draws of ``uncertainty``,
     :data:`_DRAW_BLOCK` draws at a time (so memory does not grow with K)."""
     def one(sample):
-        g, o, w = _draw(gripper, sdf, weights, sample)
-        s = _score_grasp(g, o, estimate_grasp(g, o, pose + sample.pose, config, estimator=estimator), w, config,
-                         estimator)
+        s = _score_drawn(gripper, sdf, weights, config, estimator, pose, sample)
         return s.quality, s.force_closure
 
     k = uncertainty.samples
@@ -334,7 +339,7 @@ def _score_share(gripper, sdf, poses, weights, config, uncertainty, chunk_size, 
     """The :class:`Score` of poses (P, 3) on one device, ``chunk_size`` at a time: in each chunk both
     fingers' estimates (the contact refined and the equilibrium solved only where a finger touches,
     :mod:`softgrip_jax._batch`), then the score of each pose; with ``uncertainty``, the same for
-    of its K draws for the candidates within its ``reach`` of force closure."""
+    each of its K draws, for the candidates in (or within its ``reach`` of) force closure."""
     def scored(g, o, w, share):
         grasps = grasp_chunk(g, o, share, config, estimator)
         return jax.vmap(lambda e: _score_grasp(g, o, e, w, config, estimator))(grasps)
@@ -350,11 +355,11 @@ def _score_share(gripper, sdf, poses, weights, config, uncertainty, chunk_size, 
         nominal = scored(gripper, sdf, weights, share)
         if uncertainty is None:
             return nominal
-        # Only the candidates near force closure are drawn, a group at a time (all K draws of a
-        # group's candidates together): the cost follows their number, not the chunk's.
+        # Only the candidates in (or near) force closure are drawn, a group at a time: the cost
+        # follows their number, not the chunk's.
         drawn = _within_reach(nominal, uncertainty)
-        quality, closure = where_needed(lambda pose: _drawn(gripper, sdf, weights, config, estimator, uncertainty, pose),
-                                        drawn, share, group_size=_DRAWN_GROUP)
+        draw_pose = lambda pose: _drawn(gripper, sdf, weights, config, estimator, uncertainty, pose)  # noqa: E731
+        quality, closure = where_needed(draw_pose, drawn, share, group_size=_DRAWN_GROUP)
         return jax.vmap(_with_robust)(nominal, quality, closure, drawn)
 
     return map_chunks(chunk, poses, chunk_size)
