@@ -111,6 +111,7 @@ def test_linear_moments_are_a_normal_margins_by_monte_carlo() -> None:
     assert p.tolist() == [1.0, 0.0] and q.tolist() == pytest.approx([0.1, 0.0])
 
 
+@pytest.mark.slow  # compiles the robust score anew (make test's 15-minute budget)
 def test_linear_spread_is_the_finite_difference_gradient_of_the_quality() -> None:
     """Inside force closure the margin is the quality. Its derivatives in the pose and mu by
     central differences of the nominal score give sigma, and with it P = Phi(q / sigma) and the
@@ -155,6 +156,7 @@ def test_linear_agrees_with_many_draws_where_the_margin_is_smooth() -> None:
                                rtol=0.05, atol=2e-3)
 
 
+@pytest.mark.slow  # compiles the robust score anew (make test's 15-minute budget)
 def test_only_candidates_within_reach_of_closure_are_drawn() -> None:
     """reach = inf draws every valid candidate; reach = r only those in closure or whose closure
     margin is above -r: the others get NaN (not drawn), the rest the same values as with every draw."""
