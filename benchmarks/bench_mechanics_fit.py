@@ -5,6 +5,7 @@ Run from the repository root:
     .venv/bin/python benchmarks/bench_mechanics_fit.py            # uniform and profiled gripper
     .venv/bin/python benchmarks/bench_mechanics_fit.py --quick    # tiny configuration (CI test)
     .venv/bin/python benchmarks/bench_mechanics_fit.py --variant 'round fingers, flat base'  # other frames
+    .venv/bin/python benchmarks/bench_mechanics_fit.py --selection  # the stiffness model chosen from 3 pairs
 
 and paste the printed markdown into benchmarks/RESULTS.md.
 
@@ -24,6 +25,13 @@ solver): a uniform one, and one whose bending stiffness doubles from the tip to 
 * on the held-out pairs: eq. 10 at i = N/2 and i = N (mean over fingers) between the estimate from
   the open frame and the rod's observed joints, and the share of fingers whose estimated contact
   case is the rod's (the rod's case from where it touches, as in ``reproduce_paper.py``).
+
+With ``--selection``: what ``softgrip calibrate --fit`` does by default through the mechanics
+estimate, from 3 training pairs and the calibration pair, on grippers that need more than a
+uniform clamped finger and on ones that do not: the stiffness model the pairs choose
+(:func:`calib.select.fit_stiffness_model`), against the uniform model (Theta only) and against a fit
+of Theta with the gripper's true stiffness profile and base compliance held fixed (the same
+estimate on its true stiffness), each judged on the held-out pairs.
 """
 
 from __future__ import annotations
@@ -145,6 +153,77 @@ def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int,
     return lines
 
 
+#: (stiffness ratio, base compliance) of the grippers of ``--selection``: uniform and clamped (the
+#: paper's finger), stiffer at the base, and stiffer at the base on a compliant clamp.
+SELECTION_GRIPPERS = ((1.0, 0.0), (2.0, 0.0), (2.0, 0.3), (1.0, 0.3))
+
+
+def run_selection(stiffness_ratio: float, base_compliance: float, n_links: int, n_train: int, n_test: int,
+                  variant: str = "default") -> list[str]:
+    from calib.select import fit_stiffness_model
+    from vision_accuracy import VARIANTS
+
+    options = dict(VARIANTS[variant])
+    rod = RodMechanics(stiffness_ratio=stiffness_ratio, base_compliance=base_compliance)
+    t0 = time.perf_counter()
+    pairs = [p for p in (bc.make_pair(i, n_links, rod, options) for i in range(n_train + n_test)) if p is not None]
+    train, test = pairs[:-n_test], pairs[-n_test:]
+    one_frame, calibration_pair = bc.one_frame_calibration_with_pair(n_links, options)
+    scenes_s = time.perf_counter() - t0
+    data = [p.observation for p in train] + [calibration_pair]
+
+    def timed(make):
+        t = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                return make(), time.perf_counter() - t, None
+            except Exception as err:  # a fit that fails is a row of the table, not the end of the run
+                return None, time.perf_counter() - t, f"{type(err).__name__}: {err}"
+
+    true_stiffness = dataclasses.replace(one_frame, fingers={
+        side: dataclasses.replace(one_frame.fingers[side], stiffness_ratio=stiffness_ratio,
+                                  base_compliance=base_compliance) for side in bc.SIDES})
+    rows = [
+        ("one-frame calibration (uniform)", *timed(lambda: one_frame)),
+        ("least squares: Theta, true stiffness held", *timed(lambda: fit(data, true_stiffness, ("theta_entire",),
+                                                                         progress=False))),
+        ("least squares: Theta, uniform", *timed(lambda: fit(data, one_frame, ("theta_entire",), progress=False))),
+        ("default --fit (model chosen)", *timed(lambda: fit_stiffness_model(data, one_frame, progress=False))),
+    ]
+    reference = None if rows[1][1] is None else held_out(rows[1][1], test, "mechanics", n_links)
+    lines = [f"#### Rod stiffness ratio {stiffness_ratio:g}, base compliance {base_compliance:g} (true Theta 0.55 / "
+             f"0.45 rad), frames rendered as '{variant}': {len(train)} training pairs + the calibration pair, "
+             f"{len(test)} held out, N = {n_links}\n",
+             "| profile | Theta left / right (rad) | stiffness ratio left / right | base compliance left / right "
+             "| fit time (s) | held-out error i=N/2 (mm) | held-out error i=N (mm) | i=N against true stiffness (mm) "
+             "| case agreement |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    notes = []
+    for name, profile, seconds, failure in rows:
+        if profile is None:
+            lines.append(f"| {name} | failed | | | {seconds:.0f} | | | | |")
+            notes.append(f"{name}: {failure}")
+            continue
+        result = held_out(profile, test, "mechanics", n_links)
+        f = profile.fingers
+        selection = profile.fit.model_selection
+        if selection is not None:
+            name = f"default --fit: chose '{selection['chosen']}'"
+            notes.append(f"{name}: " + "; ".join(
+                f"{c['model']} held out {'-' if c['held_out_rms_mm'] is None else format(c['held_out_rms_mm'], '.3f')}"
+                f" mm" + (f" ({c['failure']})" if c["failure"] else "") for c in selection["candidates"]))
+        against = "-" if reference is None else f"{result['tip'] - reference['tip']:+.2f}"
+        lines.append(f"| {name} | {f['left'].theta_entire:.4f} / {f['right'].theta_entire:.4f} "
+                     f"| {f['left'].stiffness_ratio:.2f} / {f['right'].stiffness_ratio:.2f} "
+                     f"| {f['left'].base_compliance:.3f} / {f['right'].base_compliance:.3f} "
+                     f"| {'-' if profile is one_frame else f'{seconds:.0f}'} | {result['mid']:.2f} | {result['tip']:.2f} "
+                     f"| {against} | {100 * result['agree']:.0f} % of {result['fingers']} |")
+    lines.append("\n" + "\n".join(f"- {n}" for n in notes))
+    lines.append(f"\n(scenes, rod closures and rendering: {scenes_s:.0f} s; fit times include compilation)\n")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> str:
     from _machine import describe
 
@@ -153,6 +232,9 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--variant", default="default", metavar="NAME",
                         help="render the frames as this variant of benchmarks/vision_accuracy.py (one whose gripper "
                              "plane faces the camera and whose tips do not touch), e.g. 'round fingers, flat base'")
+    parser.add_argument("--selection", action="store_true",
+                        help="the stiffness model chosen by the default fit from 3 pairs, on grippers with and "
+                             "without a stiffer base and a compliant clamp")
     args = parser.parse_args(argv)
     from vision_accuracy import VARIANTS
 
@@ -166,8 +248,15 @@ def main(argv: list[str] | None = None) -> str:
     t0 = time.perf_counter()
     lines = ["Command (from the repository root):\n",
              "    .venv/bin/python benchmarks/bench_mechanics_fit.py" + (" --quick" if args.quick else "")
+             + (" --selection" if args.selection else "")
              + ("" if args.variant == "default" else f" --variant '{args.variant}'") + "\n",
              f"Machine: {describe()}\n"]
+    if args.selection:
+        grippers = SELECTION_GRIPPERS[2:3] if args.quick else SELECTION_GRIPPERS
+        for ratio, compliance in grippers:
+            lines += run_selection(ratio, compliance, n_links, 3, n_test, args.variant)
+            print(f"gripper ({ratio:g}, {compliance:g}) done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+        configs = ()
     for ratio in configs:
         lines += run_gripper(ratio, n_links, n_train, n_test, args.variant)
         print(f"gripper with stiffness ratio {ratio:g} done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)

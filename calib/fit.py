@@ -98,8 +98,14 @@ NOMINAL_THETA = 0.5
 COMPLIANCE_START = 0.01
 
 #: Frames are padded (with masked copies) to a multiple of this, so that fits over similar numbers
-#: of frame pairs share one compilation.
-FRAME_BUCKET = 16
+#: of frame pairs share one compilation (every padded copy is evaluated at every step: a bucket much
+#: larger than the usual few pairs multiplies the cost of a step).
+FRAME_BUCKET = 8
+
+#: The fit stops when an accepted step changes every joint residual by less than FIT_ATOL mm plus
+#: FIT_RTOL of it (see :func:`_residual_change_norm`): 0.1 micrometre is far below what frames
+#: resolve, and a tighter stop asks for more than the estimate's float32 joints carry.
+FIT_RTOL = FIT_ATOL = 1e-4
 
 #: With at least this many frame pairs, standard errors also allow for errors shared by the joints
 #: of one frame (see :func:`_covariance`); with fewer, the frame-clustered estimate is too noisy.
@@ -116,6 +122,10 @@ _COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 class FitError(SoftgripError):
     """A least-squares calibration that cannot be done; the message says why and what to change."""
+
+
+class NotConvergedError(FitError):
+    """A least-squares fit that stopped before converging (its iteration cap, or a solver failure)."""
 
 
 class SkippedFrameWarning(UserWarning):
@@ -237,6 +247,7 @@ def fit(
     max_steps: int = 100,
     skipped: Sequence[dict[str, str]] = (),
     progress: bool = True,
+    unconstrained: Literal["error", "hold"] = "error",
 ) -> CalibrationProfile:
     """Fit ``parameters`` of both fingers to the observations by robust least squares.
 
@@ -261,6 +272,9 @@ def fit(
         progress: show a progress bar on stderr. Its per-step report is a host callback: with
             ``progress=False`` the compiled solve has none and is kept by the persistent
             compilation cache (``softgrip_jax.enable_compilation_cache``).
+        unconstrained: what to do with a parameter the residuals do not change with (e.g. the
+            stiffness of a finger that touches no object): ``"error"`` raises a FitError naming it;
+            ``"hold"`` keeps it at its start value, without a standard error.
 
     Returns:
         ``start`` with the fitted values and ``fit`` describing the fit: method ``"least-squares"``,
@@ -334,7 +348,7 @@ def fit(
     used = [obs for obs, ok in zip(candidates, start_ok) if ok]
     _require_frames(used, names, skipped, total)
     if int(result) != _SUCCESSFUL:
-        raise FitError(f"the least-squares fit did not converge within {max_steps} steps (optimistix result "
+        raise NotConvergedError(f"the least-squares fit did not converge within {max_steps} steps (optimistix result "
                        f"{int(result)}); raise max_steps, or start closer (e.g. from a one-frame calibration)")
     final = _per_frame(residuals, index)[start_ok]
     # The frame pair of each of the solver's residuals, flattened the way the solver's are.
@@ -342,9 +356,29 @@ def fit(
                                                g.observed.shape).ravel()
                                for start_row, g in zip(np.cumsum([0] + [len(g.real) for g in groups]), groups)])
     fitted = _report(start, names, flat, final, robust, jacobian, y0, [o.label for o in used], skipped, estimator.name,
-                     clusters)
+                     clusters, hold=unconstrained == "hold")
     return _with_frame_report(fitted, _per_frame(start_residuals, index)[start_ok], final,
                               next((o.label for o in used if o.free_closure), None))
+
+
+def profile_residuals(profile: CalibrationProfile, observations: Sequence[Observation], *,
+                      estimator: AbstractEstimator | None = None,
+                      config: ContactConfig = ContactConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """Estimated minus observed joints of ``profile`` on ``observations``, as the fit sees them.
+
+    Returns:
+        (F, 2, N+1, 2) residuals in mm ([left, right] fingers, base first) and (F, 2) estimate
+        statuses (``Status``), one row per observation in order; rows whose status is not OK are
+        not meaningful. Evaluated in float64 with the fit's compiled residual function, so a
+        held-out pair costs no compilation after a fit.
+    """
+    estimator = as_estimator(estimator, None, None)
+    n_links = _common_n_links(profile, observations)
+    with jax.enable_x64(True):
+        y, fixed, _ = _unknowns(profile, ())
+        groups, index = _stack(observations)
+        residuals, status = jax.tree.map(np.asarray, _evaluate(y, fixed, groups, n_links, config, estimator))
+    return _per_frame(residuals, index), _per_frame(status, index)
 
 
 class PairOrderError(SoftgripError):
@@ -735,6 +769,17 @@ def _robust(residuals: Float[Array, "*b 2"], scale: Float[Array, ""], loss: Loss
     return factor * residuals
 
 
+def _residual_change_norm(tree) -> Array:
+    """The norm optimistix's Levenberg-Marquardt judges convergence with, on a scaled change of the
+    unknowns (a dict ``{side: {name: value}}``) or of the residuals (a list per frame group): the
+    largest residual change, and 0 for the unknowns. A step that moves no joint by more than the
+    tolerance has converged whatever it moves the unknowns by: along a direction the pairs hardly
+    constrain (a stiffness ratio of a finger that barely touches), the unknowns would otherwise keep
+    drifting in ever smaller steps of the loss until the iteration cap. Such a parameter gets a large
+    standard error and a PoorlyDeterminedWarning instead."""
+    return jnp.zeros(()) if isinstance(tree, dict) else optx.max_norm(tree)
+
+
 def _report_step(**info) -> None:
     """optimistix's per-step hook: forward the step count and loss to the active progress bar."""
     jax.debug.callback(_tick, info["num_steps"][1], info["loss_last_accepted_step"][1])
@@ -806,7 +851,8 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
 
     # The progress hook is a host callback, and a program with one never enters the persistent
     # compilation cache: it is compiled in only when a progress bar is shown.
-    solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6, verbose=_report_step if progress else False)
+    solver = optx.LevenbergMarquardt(rtol=FIT_RTOL, atol=FIT_ATOL, norm=_residual_change_norm,
+                                     verbose=_report_step if progress else False)
     solution = optx.least_squares(objective, solver, y0, has_aux=True, max_steps=max_steps, throw=False)
     # The solver's state holds the residuals and the linearisation at the last accepted step: the solution.
     robust = ravel_pytree(solution.state.f_info.residual)[0]
@@ -877,7 +923,8 @@ def _warn_if_poorly_determined(jac: np.ndarray, columns: list[tuple[str, str]],
 
 def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, residuals: np.ndarray,
             robust: np.ndarray, jacobian: np.ndarray, y0, labels: list[str],
-            skipped: list[dict[str, str]], estimate_name: str, clusters: np.ndarray) -> CalibrationProfile:
+            skipped: list[dict[str, str]], estimate_name: str, clusters: np.ndarray,
+            hold: bool = False) -> CalibrationProfile:
     """The fitted profile: values, residual RMS per frame and overall, standard errors.
 
     ``residuals`` (F, 2, J, 2) are the raw residuals of the F used frames; ``robust`` (M,) and
@@ -898,7 +945,10 @@ def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, r
     jac = jacobian[:, fitted] / np.where(derivative == 0.0, 1.0, derivative)
     norms = np.linalg.norm(jacobian[:, fitted], axis=0)
     flat_columns = [columns[k] for k, norm in zip(fitted, norms) if not norm > 0.0]
-    if flat_columns:
+    if flat_columns and hold:  # held at their start values: the solver cannot have moved them
+        keep = [i for i, k in enumerate(fitted) if columns[k] not in flat_columns]
+        fitted, jac = [fitted[i] for i in keep], jac[:, keep]
+    elif flat_columns:
         what = ", ".join(sorted({f"{side}.{name}" for side, name in flat_columns}))
         hint = (" (the stiffness only shows where a finger touches an object: add pairs whose closed fingers "
                 "wrap an object)" if any(name in ("stiffness_ratio", "base_compliance") for _, name in flat_columns)

@@ -140,6 +140,9 @@ class FitEntry:
         frame_mid_error_mm: per frame, the mean over both fingers of the fitted joint distance
             |estimated - observed| at joint N // 2, mm (empty when not recorded).
         frame_tip_error_mm: the same at the tip, joint N, mm (empty when not recorded).
+        model_selection: how a fit chose the stiffness model (:mod:`calib.select`): ``{"chosen":
+            model name, "reason": text, "candidates": [{"model", "parameters", "residual_rms_mm",
+            "held_out_rms_mm", "failure"}, ...]}``; None when the model was given, not chosen.
     """
 
     method: Method
@@ -153,6 +156,7 @@ class FitEntry:
     frame_start_residual_rms_mm: list[float] = field(default_factory=list)
     frame_mid_error_mm: list[float] = field(default_factory=list)
     frame_tip_error_mm: list[float] = field(default_factory=list)
+    model_selection: dict[str, Any] | None = None
 
 
 #: The optional per-frame lists of ``fit`` (each one value per frame of ``fit.frames``, mm >= 0).
@@ -205,7 +209,8 @@ class CalibrationProfile:
                     "standard_errors": dict(self.fit.standard_errors),
                     "skipped": [dict(s) for s in self.fit.skipped],
                     **({} if self.fit.free_closure is None else {"free_closure": self.fit.free_closure}),
-                    **{name: list(getattr(self.fit, name)) for name in _PER_FRAME[1:] if getattr(self.fit, name)}},
+                    **{name: list(getattr(self.fit, name)) for name in _PER_FRAME[1:] if getattr(self.fit, name)},
+                    **({} if self.fit.model_selection is None else {"model_selection": self.fit.model_selection})},
         }
 
     @classmethod
@@ -371,4 +376,5 @@ def _parse(data: Any, source: str) -> CalibrationProfile:
         fit=FitEntry(method=fit.method, frames=list(fit.frames), residual_rms_mm=fit.residual_rms_mm,
                      standard_errors=dict(data["fit"].get("standard_errors", {})),
                      skipped=[s.model_dump() for s in fit.skipped], estimate_method=fit.estimate_method,
-                     free_closure=fit.free_closure, **{name: list(getattr(fit, name)) for name in _PER_FRAME}))
+                     free_closure=fit.free_closure, **{name: list(getattr(fit, name)) for name in _PER_FRAME},
+                     model_selection=None if fit.model_selection is None else fit.model_selection.model_dump()))

@@ -101,6 +101,22 @@ class Skipped(_Object):
     reason: text()
 
 
+class Candidate(_Object):
+    """One stiffness model a fit tried (calib.select)."""
+
+    model: text()
+    parameters: list[text()]
+    residual_rms_mm: _NON_NEGATIVE | None = None
+    held_out_rms_mm: _NON_NEGATIVE | None = None
+    failure: text() | None = None
+
+
+class ModelSelection(_Object):
+    chosen: text()
+    reason: text()
+    candidates: list[Candidate]
+
+
 class Fit(_Object):
     method: text(("one-frame", "least-squares"))
     estimate_method: text(("geometric", "mechanics")) | None = None
@@ -114,6 +130,7 @@ class Fit(_Object):
         {}, description="a JSON object (parameter name -> standard error)")
     skipped: list[Skipped] = []
     free_closure: text() | None = None
+    model_selection: ModelSelection | None = None
 
 
 class Vision(BaseModel):

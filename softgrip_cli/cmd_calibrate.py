@@ -32,11 +32,17 @@ examples:
       --json -o fitted.json
       start from a profile (its N, L, r, segmentation), also fit a base offset per finger, and print
       the report as JSON
-  softgrip calibrate --fit open_1 closed_1 open_2 closed_2 open_3 closed_3 --method mechanics \
-      --stiffness --base-compliance -o fitted.json
-      fit through the mechanics estimate (the spring-joint chain at equilibrium): Theta, the
-      base-to-tip stiffness ratio and the base compliance of each finger; the pairs need objects
-      that the closed fingers wrap, at different places along the fingers
+  softgrip calibrate --fit open_1 closed_1 open_2 closed_2 open_3 closed_3 --empty open_0 closed_0 \\
+      -o fitted.json
+      through the mechanics estimate (the default), the pairs also choose the stiffness model:
+      a uniform finger clamped at its base, + a base-to-tip stiffness ratio, + a compliant base.
+      Each model is fitted to all pairs and predicts each pair with an object from the others;
+      a richer model is kept only when it predicts them clearly better (the report lists each
+      model's errors and why one was chosen; the profile's fit.model_selection records them)
+  softgrip calibrate --fit open_1 closed_1 open_2 closed_2 open_3 closed_3 --stiffness \\
+      --base-compliance -o fitted.json
+      fit the given stiffness parameters instead of choosing (--uniform: Theta only); the pairs
+      need objects that the closed fingers wrap, at different places along the fingers
 
 Frame arguments are frame folders (color.png, depth.png, intrinsics.json; see `softgrip capture`).
 A fit over pairs with objects alone can bend Theta to make up for errors in the measured L, r or
@@ -90,6 +96,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--base-compliance", action="store_true",
                         help="with --fit --method mechanics, also fit each finger's base compliance (needs 2 or "
                              "more pairs whose fingers touch an object)")
+    parser.add_argument("--uniform", action="store_true",
+                        help="with --fit --method mechanics, keep the uniform finger clamped at its base (fit "
+                             "Theta only) instead of letting the pairs choose the stiffness model")
     parser.add_argument("--base-end", choices=("auto", "rounded", "flat"), default=None,
                         help="the fingers' base ends: 'flat' where they are cut where they leave the gripper's "
                              "body (the base is the middle of the cut), 'rounded' for a capped end (the base "
@@ -188,7 +197,7 @@ def _one_frame(args: argparse.Namespace):
         raise SoftgripError("give CLOSED_FRAME and --open OPEN_FRAME for a one-frame calibration, or --fit OPEN "
                             "CLOSED [...] for least squares (see softgrip calibrate --help)")
     fit_only = [f"--{name.replace('_', '-')}" for name in ("profile", "empty", "base_offset", "method", "stiffness",
-                                                           "base_compliance")
+                                                           "base_compliance", "uniform")
                 if getattr(args, name) not in (None, False)]
     if fit_only:
         raise SoftgripError(f"{', '.join(fit_only)} only apply to --fit")
@@ -212,6 +221,9 @@ def _fit(args: argparse.Namespace):
                             "as pairs: --fit OPEN CLOSED [OPEN CLOSED ...]")
     if len(args.fit) % 2:
         raise SoftgripError(f"--fit needs frame pairs OPEN CLOSED, got {len(args.fit)} folders (an odd number)")
+    if args.uniform and (args.stiffness or args.base_compliance):
+        raise SoftgripError("--uniform keeps the uniform clamped finger; drop it, or drop --stiffness and "
+                            "--base-compliance")
     pairs = list(zip(args.fit[0::2], args.fit[1::2]))
     empty, empty_given = (tuple(args.empty), True) if args.empty else (None, False)
     if args.profile is not None:
@@ -244,10 +256,13 @@ def _fit(args: argparse.Namespace):
         settings = None
     estimator = resolve_estimator(args.method, start if args.profile is not None else None)
     mechanics_only = [flag for flag, on in (("--stiffness", args.stiffness),
-                                            ("--base-compliance", args.base_compliance)) if on]
+                                            ("--base-compliance", args.base_compliance), ("--uniform", args.uniform))
+                      if on]
     if mechanics_only and estimator.name != "mechanics":
         raise SoftgripError(f"{' and '.join(mechanics_only)} only change the mechanics estimate; add --method "
                             f"mechanics (the fit is going through the {estimator.name} estimate)")
+    # Through the mechanics estimate without a stiffness flag, the pairs choose the stiffness model.
+    select = estimator.name == "mechanics" and not mechanics_only
     parameters = ["theta_entire"] + [name for name, on in (("base_offset", args.base_offset),
                                                             ("stiffness_ratio", args.stiffness),
                                                             ("base_compliance", args.base_compliance)) if on]
@@ -266,8 +281,14 @@ def _fit(args: argparse.Namespace):
               "keeps it from making the free closure worse; add one with --empty OPEN CLOSED", file=sys.stderr)
     # A progress bar only on a terminal: its per-step callback keeps the solve out of the compilation
     # cache, so scripted runs (stderr not a terminal) compile once per machine instead of once per run.
-    fitted = fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale, estimator=estimator,
-                 skipped=skipped, progress=sys.stderr.isatty())
+    if select:
+        from calib.select import fit_stiffness_model
+
+        fitted = fit_stiffness_model(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale,
+                                     estimator=estimator, skipped=skipped, progress=sys.stderr.isatty())
+    else:
+        fitted = fit(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale,
+                     estimator=estimator, skipped=skipped, progress=sys.stderr.isatty())
     # The start's method says what the free closure's start residual is (e.g. the one-frame calibration's).
     return dataclasses.replace(fitted, vision={**fitted.vision, **measure.to_dict()}), start.fit.method
 
@@ -382,6 +403,11 @@ def _print_summary(profile, output: Path, start_method: str | None = None) -> No
           f"over {len(fit.frames)} frame pair(s){through}{skipped}")
     if fit.method == "least-squares":
         _print_frames(profile, start_method)
+    if fit.model_selection is not None:
+        from calib.select import describe_selection
+
+        print("stiffness model (RMS joint distance of each pair predicted from the others, and fitted to all):")
+        print("\n".join(describe_selection(fit.model_selection)))
     print(f"wrote {output}")
 
 

@@ -576,7 +576,7 @@ def test_cli_one_frame_then_fit(frames, tmp_path: Path, capsys) -> None:
 
     fitted = tmp_path / "fitted.json"
     argv = ["--fit", *(str(p) for pair in frames["pairs"] for p in pair), "--profile", str(one), "--json",
-            "-o", str(fitted)]
+            "--uniform", "-o", str(fitted)]  # (the stiffness model's choice: the next test)
     assert run_cli(argv) == 0
     captured = capsys.readouterr()
     report = json.loads(captured.out)
@@ -590,13 +590,36 @@ def test_cli_one_frame_then_fit(frames, tmp_path: Path, capsys) -> None:
     assert [row["frame"] for row in report["frames"]] == report["profile"]["fit"]["frames"]
     assert report["free_closure"]["frame"] == calibration and report["free_closure"]["start"] == "one-frame"
     assert "closed_empty" in report["profile"]["fit"]["skipped"][0]["frame"]
+    assert "model_selection" not in report["profile"]["fit"]  # --uniform: given, not chosen
     assert "softgrip calibrate: warning:" in captured.err and "closed_empty" in captured.err
     np.testing.assert_allclose(thetas(load_profile(fitted)), [TRUE["left"], TRUE["right"]], atol=0.01)
 
 
+def test_cli_fit_with_one_object_pair_keeps_the_uniform_finger_and_says_what_to_add(frames, tmp_path: Path,
+                                                                                   capsys) -> None:
+    """Through the mechanics estimate the pairs choose the stiffness model; one pair with an object
+    cannot judge a richer model on a held-out pair, so only the uniform model is fitted and the
+    report says why and what to add."""
+    one = tmp_path / "one.json"
+    assert run_cli([str(frames["closed"]), "--open", str(frames["open"]), "--n-links", str(N), "-o", str(one)]) == 0
+    output = tmp_path / "fitted.json"
+    capsys.readouterr()
+    assert run_cli(["--fit", *map(str, frames["pairs"][0]), "--profile", str(one), "-o", str(output)]) == 0
+    out = capsys.readouterr().out
+    selection = load_profile(output).fit.model_selection
+    assert selection["chosen"] == "uniform" and "1 pair(s) with an object" in selection["reason"]
+    assert [c["model"] for c in selection["candidates"]] == ["uniform", "stiffness ratio",
+                                                             "stiffness ratio + base compliance"]
+    assert selection["candidates"][0]["residual_rms_mm"] == load_profile(output).fit.residual_rms_mm
+    assert all(c["failure"].startswith("not tried") for c in selection["candidates"][1:])
+    assert "stiffness model" in out and "* uniform" in out and "different heights" in out
+    assert load_profile(output).fingers["left"].stiffness_ratio == 1.0
+
+
 def test_cli_fit_starts_from_the_first_open_frame(frames, tmp_path: Path, capsys) -> None:
     output = tmp_path / "fitted.json"
-    argv = ["--fit", *(str(p) for pair in frames["pairs"][:2] for p in pair), "--n-links", str(N), "-o", str(output)]
+    argv = ["--fit", *(str(p) for pair in frames["pairs"][:2] for p in pair), "--n-links", str(N), "--uniform",
+            "-o", str(output)]
     assert run_cli(argv) == 0
     out = capsys.readouterr().out
     assert "least-squares: residual RMS" in out and f"({DEFAULT_METHOD} estimate)" in out
@@ -614,6 +637,8 @@ def test_cli_fit_starts_from_the_first_open_frame(frames, tmp_path: Path, capsys
     (["closed", "--open", "open", "--base-offset", "-o", "p.json"], "--base-offset only apply to --fit"),
     (["closed", "--fit", "a", "b", "-o", "p.json"], "with --fit give the frames as pairs"),
     (["closed", "--open", "open", "--stiffness", "-o", "p.json"], "--stiffness only apply to --fit"),
+    (["closed", "--open", "open", "--uniform", "-o", "p.json"], "--uniform only apply to --fit"),
+    (["--fit", "a", "b", "--uniform", "--stiffness", "-o", "p.json"], "--uniform keeps the uniform clamped finger"),
     (["closed", "--open", "open", "--empty", "o", "c", "-o", "p.json"], "--empty only apply to --fit"),
     (["closed", "--open", "open", "--method", "mechanics", "--base-compliance", "-o", "p.json"],
      "--method, --base-compliance only apply to --fit"),
@@ -626,7 +651,8 @@ def test_cli_usage_errors(argv, message) -> None:
 def test_cli_stiffness_flags_need_the_mechanics_estimate(frames, tmp_path: Path) -> None:
     pairs = [str(p) for p in frames["pairs"][0]]
     for flags, named in ((["--stiffness"], "--stiffness"), (["--base-compliance", "--stiffness"],
-                                                              "--stiffness and --base-compliance")):
+                                                              "--stiffness and --base-compliance"),
+                          (["--uniform"], "--uniform")):
         with pytest.raises(SoftgripError, match=f"{named} only change the mechanics estimate; add --method "
                                                 f"mechanics \\(the fit is going through the geometric estimate\\)"):
             run_cli(["--fit", *pairs, "--n-links", str(N), "--method", "geometric", *flags, "-o", str(tmp_path / "p.json")])
