@@ -275,6 +275,9 @@ class PlaneFit:
         residual_mm: robust spread (1.4826 MAD) of the readings about the fitted surface, mm.
         mixed_band_px: how far inward from the fingers' outlines (px) the depth readings were found
             mixed with the background's and left out (:func:`_mixed_band_px`; 1.5 px when sharp).
+        mixed_band_capped: True when the mixing reached so far in that the band was capped: the
+            readings left (the inner 40 % of the width) tell a round front from a flat one only by
+            a few percent of its relief.
     """
 
     camera: PlaneCamera
@@ -283,6 +286,7 @@ class PlaneFit:
     readings: int
     residual_mm: float
     mixed_band_px: float = _EDGE_PX
+    mixed_band_capped: bool = False
 
     @property
     def tilt_deg(self) -> float:
@@ -358,8 +362,9 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
         region = np.asarray(region, dtype=bool)
         _readings(frame, region, f"finger region {k}")  # shape check and a clear error without readings
         insides.append(cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
-    mixed = max(_mixed_band_px(frame.depth * scale, np.asarray(region, bool) & (frame.depth > 0), inside,
-                               float(r_px), intr.fx) for region, inside, r_px in zip(regions, insides, half_thickness_px))
+    bands = [_mixed_band_px(frame.depth * scale, np.asarray(region, bool) & (frame.depth > 0), inside, float(r_px),
+                            intr.fx) for region, inside, r_px in zip(regions, insides, half_thickness_px)]
+    mixed, capped = max(b[0] for b in bands), any(b[1] for b in bands)
     rays, fractions, radii_px, labels = [], [], [], []
     for k, (region, inside, r_px) in enumerate(zip(regions, insides, half_thickness_px)):
         usable = np.asarray(region, bool) & (frame.depth > 0) & (inside >= max(_EDGE_PX, mixed))
@@ -436,11 +441,11 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
                            for k in range(n_regions)])
     return PlaneFit(camera=camera, relief_mm=tuple(float(x) for x in relief), relief_measured=fixed is None,
                     readings=len(points), residual_mm=1.4826 * float(np.median(np.abs(final - np.median(final)))),
-                    mixed_band_px=float(mixed))
+                    mixed_band_px=float(mixed), mixed_band_capped=bool(capped and fixed is None))
 
 
 def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarray, r_px: float,
-                   focal_px: float) -> float:
+                   focal_px: float) -> tuple[float, bool]:
     """How far (px) inward from a finger's outline the depth readings mix with the background's.
 
     The readings are grouped in rings of one pixel by their distance from the region's edge (the
@@ -454,10 +459,11 @@ def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarra
     that readings out to 40 % of the half-width remain.
 
     Returns:
-        The erosion (px): readings with ``inside`` below it are mixed; ``_EDGE_PX`` when no ring is.
+        The erosion (px): readings with ``inside`` below it are mixed (``_EDGE_PX`` when no ring
+        is), and whether it was capped.
     """
     if r_px <= 2.0:
-        return _EDGE_PX
+        return _EDGE_PX, False
     rings = np.floor(inside + 0.5).astype(int)
     limit = int(math.floor(r_px))
     means, errors = {}, {}
@@ -469,7 +475,7 @@ def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarra
         spread = 1.4826 * float(np.median(np.abs(values - np.median(values))))
         means[k], errors[k] = trimmed, 1.2 * max(spread, 0.05) / math.sqrt(values.size)
     if not means:
-        return _EDGE_PX
+        return _EDGE_PX, False
     depth = float(np.median(list(means.values())))
 
     def height(k: int) -> float:
@@ -484,11 +490,12 @@ def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarra
         if means[k] - means[k + 1] > allowed + 0.1 + 3.0 * math.hypot(errors[k], errors[k + 1]):
             band = k
     if band == 0:
-        return _EDGE_PX
+        return _EDGE_PX, False
     # Mixing fades like a Gaussian's tail: below the detectable step it still lifts the next ring or
     # two by a few hundredths of a millimetre, which the relief (a 10 % change of the bulge over the
     # inner half of the width) would amplify tenfold. One ring and a quarter of the band more go.
-    return float(min(band + 1.5 + 0.25 * band, max(_EDGE_PX, 0.6 * r_px + 0.5)))
+    wanted, cap = band + 1.5 + 0.25 * band, max(_EDGE_PX, 0.6 * r_px + 0.5)
+    return float(min(wanted, cap)), bool(wanted > cap)
 
 
 def _bulge_in_plane(points: np.ndarray, label: np.ndarray, plane: PlaneCamera,
