@@ -55,6 +55,7 @@ TILT_WARN_DEG = 15.0
 
 _EDGE_PX = 1.5  # readings nearer a mask's edge than this (px) mix two surfaces; left out of fits
 _MIN_READINGS = 30
+_AXIS_PASSES = 4  # at most this many fits with the fingers' axes placed on the plane of the previous one
 _RELIEF_REACH = 0.85  # readings this far across the finger (fraction of r) or nearer its centre are fitted
 
 
@@ -402,10 +403,12 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
         normal = np.array([math.cos(a) * math.sin(b), -math.sin(a), math.cos(a) * math.cos(b)])
         return normal, p[2], (0.0 if fixed is not None else p[3])
 
+    active = np.ones(len(points), bool)
+
     def residuals(p: np.ndarray) -> np.ndarray:
         normal, c, fraction = unpack(p)
         lift = fixed * bulge if fixed is not None else fraction * radius_mm * bulge
-        return points @ normal - c + lift
+        return np.where(active, points @ normal - c + lift, 0.0)
 
     def solve(start: np.ndarray, f_scale: float):
         lower = [-np.inf, -np.inf, 0.0] + ([] if fixed is not None else [0.0])
@@ -427,12 +430,22 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
         # the image its bulge is displaced outward from the outline's centre (by r / depth of the
         # distance from the optical axis, several pixels at the image's sides), which the pixel
         # distance would read as a flatter bulge.
-        first_pass = PlaneCamera(intr, depth_mm=c / normal[2], normal=tuple(normal))
-        bulge, measured_mm = _bulge_in_plane(points, label, first_pass, centrelines_px, width_edges_px)
-        radius_mm = np.where(np.isfinite(measured_mm), measured_mm, radius_mm)
-        solution = solve(solution.x, f_scale)
-        normal, c, fraction = unpack(solution.x)
-    final = residuals(solution.x)
+        # The axis is where the centreline's rays meet the plane, so it moves sideways with the
+        # plane's depth (by the finger's distance from the optical axis over the depth: 0.3 mm per mm
+        # at the image's sides): repeated until the plane's depth settles.
+        for _ in range(_AXIS_PASSES):
+            previous = c / normal[2]
+            plane = PlaneCamera(intr, depth_mm=previous, normal=tuple(normal))
+            bulge, measured_mm = _bulge_in_plane(points, label, plane, centrelines_px, width_edges_px)
+            radius_mm = np.where(np.isfinite(measured_mm), measured_mm, radius_mm)
+            # The outer band again, now measured in the plane: in perspective a round finger's near
+            # side is compressed in the image (its steep flank there sits within the 85 % in pixels).
+            active = bulge >= math.sqrt(1.0 - _RELIEF_REACH**2)
+            solution = solve(solution.x, f_scale)
+            normal, c, fraction = unpack(solution.x)
+            if abs(c / normal[2] - previous) < 0.01:
+                break
+    final = residuals(solution.x)[active]
     camera = PlaneCamera(intr, depth_mm=c / normal[2], normal=tuple(normal))
     if fixed is not None:
         relief = np.full(n_regions, fixed)
@@ -440,7 +453,7 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
         relief = np.array([fraction * float(np.median(radius_mm[label == k])) if np.any(label == k) else 0.0
                            for k in range(n_regions)])
     return PlaneFit(camera=camera, relief_mm=tuple(float(x) for x in relief), relief_measured=fixed is None,
-                    readings=len(points), residual_mm=1.4826 * float(np.median(np.abs(final - np.median(final)))),
+                    readings=int(active.sum()), residual_mm=1.4826 * float(np.median(np.abs(final - np.median(final)))),
                     mixed_band_px=float(mixed), mixed_band_capped=bool(capped and fixed is None))
 
 
