@@ -470,7 +470,7 @@ def plane_errors(scene: AccuracyScene, section: str = "round", blur_px: float = 
     import warnings
 
     from calib.one_frame import one_frame_from_frames
-    from vision.measure import PlaneDisagreementWarning
+    from vision.measure import MeasurementWarning
     from vision.scene import frame_scene
 
     opened, closed = plane_scenes(scene, section, blur_px)
@@ -478,9 +478,11 @@ def plane_errors(scene: AccuracyScene, section: str = "round", blur_px: float = 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         profile = one_frame_from_frames(closed_frame, open_frame, N_LINKS)
-    warned = any(issubclass(w.category, PlaneDisagreementWarning) for w in caught)
+    warned = any(issubclass(w.category, MeasurementWarning) and "gripper plane is" in str(w.message) for w in caught)
     detected = profile.vision["detected"]
-    depths = profile.vision["plane_depth_mm"]
+    # Without the record (a checkout before it, for comparison), each frame's plane on the optical
+    # axis: the same depth for these untilted scenes.
+    depths = profile.vision.get("plane_depth_mm") or {f: detected[f]["plane"]["depth_mm"] for f in ("open", "closed")}
     relief = tuple(float(np.mean(list(detected[f]["finger_relief_mm"].values()))) for f in ("open", "closed"))
     separation = float(np.hypot(*(opened.fingers[1][0] - opened.fingers[0][0])))
     theta = max(abs(profile.fingers[side].theta_entire - scene.theta) for side in ("left", "right"))
