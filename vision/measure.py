@@ -174,8 +174,8 @@ class GripperMeasurement:
             out.append(f"the depth readings mix with the background's as far as {self.plane.mixed_band_px:.1f} px "
                        f"into the fingers (of a half-width of about "
                        f"{min(k.half_thickness_px for k in self.keypoints):.1f} px): the relief of the fingers' "
-                       f"front (round or flat) and with it the plane's depth are uncertain by up to about a "
-                       f"millimetre; turn off or weaken the camera's spatial filter, or give the relief "
+                       f"front (round or flat) and with it the plane's depth may be off by a millimetre or "
+                       f"more; turn off or weaken the camera's spatial filter, or give the relief "
                        f"(vision.finger_relief_mm, --finger-relief: the half-thickness for a round finger, 0 for a "
                        f"flat front)")
         if self.segmentation.object.any() and self.object_offset_mm is None:

@@ -25,7 +25,7 @@ from calib.one_frame import frame_measurement, one_frame_from_frames
 from synthetic.render import Scene, render
 from synthetic.scenes import gripper_centrelines
 from vision.geometry import _EDGE_PX, _mixed_band_px
-from vision.measure import PLANE_AGREEMENT_MM, PlaneDisagreementWarning
+from vision.measure import PLANE_AGREEMENT_MM, MeasurementWarning, PlaneDisagreementWarning
 
 SCENE = accuracy_scenes(2)[1]
 MODERATE, STRONG = 1.1, 1.7  # Gaussian sigma (px): about a 5 x 5 and a 9 x 9 filter
@@ -114,6 +114,14 @@ def test_relief_and_plane_from_both_frames(section, blur) -> None:
         assert planes[-1] == pytest.approx(SCENE.plane_depth_mm, abs=PLANE_TOLERANCE_MM)
         assert (m.plane.mixed_band_px > _EDGE_PX) == (blur > 0.0)
     assert abs(planes[0] - planes[1]) <= PLANE_AGREEMENT_MM
+
+
+def test_mixing_past_the_band_the_relief_can_be_told_in_is_a_warning() -> None:
+    # sigma 2.5 px mixes depth over about 8 of a 13 px half-width: capped at 60 %, and said so.
+    opened, _ = plane_scenes(SCENE, "flat", 2.5)
+    with pytest.warns(MeasurementWarning, match="mix with the background's as far as .* --finger-relief"):
+        m = frame_measurement(render(opened, INTRINSICS))
+    assert m.plane.mixed_band_capped and m.plane.relief_measured
 
 
 def test_calibration_warns_when_the_two_frames_disagree_on_the_plane() -> None:
