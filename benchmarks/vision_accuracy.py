@@ -505,15 +505,26 @@ def plane_errors(scene: AccuracyScene, section: str = "round", blur_px: float = 
 def plane_table(n_scenes: int) -> list[str]:
     """Markdown rows: per finger section and depth smoothing, the range of the relief and plane
     errors and the worst of each calibration error over ``n_scenes`` scenes."""
+    from softgrip_jax import SoftgripError
+
     scenes = accuracy_scenes(n_scenes)
     lines = ["| section | depth blur (px) | relief open (mm) | relief closed (mm) | plane open - truth (mm) "
-             "| plane closed - truth (mm) | theta_rad | length_pct | separation_pct | closure_mm | plane warnings |",
-             "| --- " * 11 + "|",
+             "| plane closed - truth (mm) | theta_rad | length_pct | separation_pct | closure_mm | plane warnings "
+             "| failed |",
+             "| --- " * 12 + "|",
              "| goal | | r = 4 (round), 0 (flat) | | | | " + " | ".join(f"{g:g}" for g in PLANE_GOALS.values())
-             + " | none |"]
+             + " | none | none |"]
     for section in ("round", "flat"):
         for blur in PLANE_BLURS_PX:
-            results = [plane_errors(scene, section, blur) for scene in scenes]
+            results, failed = [], 0
+            for scene in scenes:
+                try:
+                    results.append(plane_errors(scene, section, blur))
+                except SoftgripError:  # the calibration refused the frames: counted, not fatal
+                    failed += 1
+            if not results:
+                lines.append(f"| {section} | {blur:g} | " + " | ".join(["-"] * 9) + f" | {failed}/{len(scenes)} |")
+                continue
 
             def span(values: list[float]) -> str:
                 return f"{min(values):+.2f} .. {max(values):+.2f}"
@@ -525,6 +536,7 @@ def plane_table(n_scenes: int) -> list[str]:
                 worst = max(getattr(r, name) for r in results)
                 cells.append(f"{worst:.3f}" + ("" if worst <= goal else " (over)"))
             cells.append(f"{sum(r.disagreement_warned for r in results)}/{len(results)}")
+            cells.append(f"{failed}/{len(scenes)}")
             lines.append(f"| {section} | {blur:g} | " + " | ".join(cells) + " |")
     return lines
 
