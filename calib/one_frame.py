@@ -18,6 +18,7 @@ pipeline on two frames first.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from typing import Protocol
 
@@ -29,7 +30,8 @@ from softgrip_jax import FingerFrame, SoftgripError, pcc_joints
 from vision.frames import Frame
 from vision.geometry import PlaneCamera
 from vision.keypoints import FingerKeypoints, finger_length, gripper_angle, theta_from_closed
-from vision.measure import GripperMeasurement, MeasureSettings, MeasurementWarning, measure_gripper
+from vision.measure import (PLANE_AGREEMENT_MM, GripperMeasurement, MeasureSettings, MeasurementWarning,
+                            PlaneDisagreementWarning, measure_gripper)
 from vision.segmentation import Segmentation, SegmentationSettings, segment
 
 
@@ -169,8 +171,6 @@ def frame_measurement(frame: Frame, settings: SegmentationSettings | None = None
     Raises:
         SoftgripError: segmentation or keypoint failures (their messages say what to adjust).
     """
-    import warnings
-
     seg = segment(frame, settings, center_hint=center_hint)
     measurement = measure_gripper(frame, seg, measure)
     for note in measurement.warnings():
@@ -200,6 +200,27 @@ def frame_keypoints(
     return m.segmentation, m.camera, m.keypoints
 
 
+def plane_depths(opened: GripperMeasurement, closed: GripperMeasurement) -> dict[str, float | str]:
+    """The gripper plane's depth (mm) in the open and in the closed frame of one gripper pose, both
+    at the pixel halfway between the open frame's finger bases (where a tilted plane's depths are
+    compared without the lever of the optical axis), and which one calibration uses:
+    ``{"open", "closed", "used": "open"}`` (:func:`one_frame_from_frames` says why).
+
+    Example (the sample calibration pair: both frames show the plane 120 mm deep):
+        >>> from pathlib import Path
+        >>> import calib
+        >>> from vision.frames import load_frame
+        >>> data = Path(calib.__file__).resolve().parents[1] / "data"
+        >>> depths = plane_depths(frame_measurement(load_frame(data / "calib_open")),
+        ...                       frame_measurement(load_frame(data / "calib_closed")))
+        >>> round(depths["open"]), round(depths["closed"]), depths["used"]
+        (120, 120, 'open')
+    """
+    centre = 0.5 * (np.asarray(opened.keypoints[0].base_px) + np.asarray(opened.keypoints[1].base_px))
+    return {"open": round(opened.plane_depth_at(centre), 3), "closed": round(closed.plane_depth_at(centre), 3),
+            "used": "open"}
+
+
 def one_frame_from_frames(
     closed_frame: Frame,
     open_frame: Frame,
@@ -217,6 +238,17 @@ def one_frame_from_frames(
     how the fingers are measured (base ends, relief); the profile records it in its ``vision``
     section with what was detected in each frame (base ends, body, plane and tilt, relief). The
     closed frame is split at the open frame's centre line when its fingertips touch.
+
+    The gripper plane is measured in both frames (:func:`plane_depths`), which show one gripper
+    pose from one camera, so both must put it at the same depth; the profile records both under
+    ``vision.plane_depth_mm``, and a :class:`~vision.measure.PlaneDisagreementWarning` says when they
+    differ by more than :data:`~vision.measure.PLANE_AGREEMENT_MM`. Each frame's keypoints are
+    converted through its own plane, and the calibration's millimetres (L, r and the base separation,
+    the scale of everything the profile holds) are the open frame's: its straight fingers show their
+    full width over their whole length, the widest band of readings clear of the mixed band at the
+    outline, and nothing touches them, where the closed frame's curled tips may meet and narrow
+    toward the image's edge. Theta (eq. 4) is a ratio of two lengths in the closed frame's plane:
+    a depth error there scales both alike, so the closed plane only checks the open one.
 
     Raises:
         SoftgripError: the closed frame shows an object (eq. 4 needs a free closure), or the vision
@@ -247,7 +279,18 @@ def one_frame_from_frames(
             f"{names[0]} shows an object ({int(closed.segmentation.object.sum())} px): eq. 4 needs the gripper "
             f"closed without touching anything; take the calibration frame without the object (or raise "
             f"the segmentation's object_min_saturation / min_object_px if that is not an object)")
-    vision = {**measure.to_dict(), "detected": {"open": opened.detected(), "closed": closed.detected()}}
+    depths = plane_depths(opened, closed)
+    if abs(depths["open"] - depths["closed"]) > PLANE_AGREEMENT_MM:
+        warnings.warn(
+            f"the gripper plane is {depths['open']:.2f} mm deep in {names[1]} but {depths['closed']:.2f} mm in "
+            f"{names[0]} ({abs(depths['open'] - depths['closed']):.2f} mm apart, more than {PLANE_AGREEMENT_MM:g}); "
+            f"the calibration uses the open frame's. Check that neither the camera nor the gripper moved between the "
+            f"two frames, that the fingers have depth readings across their width (holes, a spatial or hole-filling "
+            f"filter smoothing depth across their outline), and the fingers' relief in vision.detected (about the "
+            f"half-thickness for a round finger, 0 for a flat front; set it with --finger-relief if known)",
+            PlaneDisagreementWarning, stacklevel=2)
+    vision = {**measure.to_dict(), "detected": {"open": opened.detected(), "closed": closed.detected()},
+              "plane_depth_mm": depths}
     return one_frame_profile(closed.keypoints, opened.keypoints, n_links, label=label,
                              segmentation=settings.to_dict(),
                              camera={"name": camera_name, "intrinsics": closed_frame.intrinsics.to_dict()},

@@ -12,7 +12,8 @@ A profile says everything the estimator needs about one gripper and how it was o
       },
       "segmentation": {...},
       "camera": {"name": "synthetic", "intrinsics": {"width": 640, ...}},
-      "vision": {"base_end": "auto", "finger_relief_mm": "auto", "detected": {...}},
+      "vision": {"base_end": "auto", "finger_relief_mm": "auto", "detected": {...},
+                 "plane_depth_mm": {"open": 120.02, "closed": 119.97, "used": "open"}},
       "fit": {"method": "least-squares", "estimate_method": "mechanics", "frames": [...], "residual_rms_mm": 0.41,
               "frame_residual_rms_mm": [...], "standard_errors": {"left.theta_entire": 0.002, ...},
               "skipped": [{"frame": "...", "reason": "..."}],
@@ -40,7 +41,11 @@ intrinsics (pyrealsense2 names, or null). ``vision`` (optional) says how the fin
 (:class:`vision.measure.MeasureSettings`: ``base_end`` ``"auto"``/``"rounded"``/``"flat"``,
 ``finger_relief_mm`` ``"auto"`` or mm) and records under ``detected`` what calibration found in its
 frames (each finger's base end, whether the gripper's body was in view, the fitted plane with its
-tilt, each finger's relief, the object's face offset): a record for the user, not an input.
+tilt, each finger's relief, the object's face offset, the band of depth readings mixed with the
+background), and under ``plane_depth_mm`` the gripper plane's depth (mm) as the open and as the
+closed frame measured it, with the frame whose plane the calibration's millimetres use (``"open"``;
+calibration warns when the two differ by more than 0.5 mm): records for the user, not inputs.
+Profiles without ``plane_depth_mm`` (written before it was recorded) load as before.
 
 Loading validates every field and names the bad one as a path, e.g.
 ``fingers.left.theta_entire: expected a number in [0, pi/2), got "abc"``. Saving writes a temporary

@@ -133,12 +133,21 @@ class Fit(_Object):
     model_selection: ModelSelection | None = None
 
 
+class PlaneDepths(_Object):
+    """The gripper plane's depth measured in each frame of a one-frame calibration (a record)."""
+
+    open: number("the plane's depth in mm in the open frame (> 0)", gt=0)
+    closed: number("the plane's depth in mm in the closed frame (> 0)", gt=0)
+    used: text(("open",))
+
+
 class Vision(BaseModel):
     """How the fingers are measured (vision.measure.MeasureSettings checks those fields) and what
     calibration detected."""
 
     model_config = ConfigDict(extra="allow", strict=True, frozen=True)
     detected: dict[str, Any] = Field({}, description="a JSON object (what calibration detected)")
+    plane_depth_mm: PlaneDepths | None = None
 
 
 class ProfileDocument(_Object):

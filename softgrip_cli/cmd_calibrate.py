@@ -401,6 +401,10 @@ def _print_summary(profile, output: Path, start_method: str | None = None) -> No
     through = f" ({fit.estimate_method} estimate)" if fit.estimate_method else ""
     print(f"base separation {profile.base_separation:.2f} mm; {fit.method}: residual RMS {fit.residual_rms_mm:.3f} mm "
           f"over {len(fit.frames)} frame pair(s){through}{skipped}")
+    planes = profile.vision.get("plane_depth_mm")
+    if planes:
+        print(f"gripper plane {planes['open']:.2f} mm deep in the open frame, {planes['closed']:.2f} mm in the closed "
+              f"one (millimetres from the {planes['used']} frame's)")
     if fit.method == "least-squares":
         _print_frames(profile, start_method)
     if fit.model_selection is not None:

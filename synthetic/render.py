@@ -20,9 +20,11 @@ What is drawn, nearest last:
 
 Labels and depth are point samples at pixel centres: a pixel belongs to a part when its centre's ray
 hits it. Colour is the same point sample, or with ``supersample`` the mean of n x n samples
-(anti-aliased edges). Lighting (gain and a gradient across the image), colour noise, depth noise
-growing with depth squared (stereo-like) and a few small zero-depth holes on the foreground follow,
-all drawn from ``seed``.
+(anti-aliased edges). Lighting (gain and a gradient across the image), colour noise, the depth
+sensor's spatial smoothing (``depth_blur_px``: a Gaussian filter of the depth image, which mixes a
+finger's depth with the background's across its silhouette, as a stereo camera's correlation
+window and spatial filter do), depth noise growing with depth squared (stereo-like) and a few small
+zero-depth holes on the foreground follow, all drawn from ``seed``.
 
 Example:
     >>> from synthetic.scenes import gripper_centrelines
@@ -168,7 +170,13 @@ class Scene:
         color_noise_sigma: standard deviation of the per-channel colour noise (levels).
         depth_noise_sigma_mm: standard deviation of the depth noise at the plane depth; it grows
             with the square of the depth.
-        n_depth_holes: number of small zero-depth blobs, centred on the gripper or object.
+        n_depth_holes: number of small zero-depth blobs, centred on the gripper or object (cut
+            after smoothing and noise: a hole reads 0, it is never mixed into its neighbours).
+        depth_blur_px: standard deviation (px) of a Gaussian filter applied to the depth image
+            alone, before noise and holes: a sensor's spatial smoothing and the mixed pixels at depth
+            edges (a pixel near a finger's silhouette reads a weighted mean of the finger's and the
+            background's depth). 0 keeps depth sharp at edges; about 1.1 px is a 5 x 5 filter, 1.7
+            px a 9 x 9 one.
         seed: seed of every random draw (texture, noise, holes).
         tilt_deg: (a, b), the gripper plane turned by a degrees about the camera's x axis, then b
             about its y axis, about the point where the optical axis meets it (see
@@ -201,6 +209,7 @@ class Scene:
     color_noise_sigma: float = 3.0
     depth_noise_sigma_mm: float = 0.3
     n_depth_holes: int = 5
+    depth_blur_px: float = 0.0
     seed: int = 0
     tilt_deg: tuple[float, float] = (0.0, 0.0)
     finger_section: str = "flat"
@@ -218,7 +227,7 @@ class Scene:
         self.background_rgb = _check_rgb(self.background_rgb, "background_rgb")
         for name in ("half_thickness", "plane_depth_mm", "palm_height_mm"):
             _check_number(name, getattr(self, name), 0.0, strict=True)
-        for name in ("color_noise_sigma", "depth_noise_sigma_mm"):
+        for name in ("color_noise_sigma", "depth_noise_sigma_mm", "depth_blur_px"):
             _check_number(name, getattr(self, name), 0.0, strict=False)
         _check_number("object_depth_offset_mm", self.object_depth_offset_mm, -self.plane_depth_mm, strict=True)
         _check_number("light_gain", self.light_gain, 0.0, strict=True)
@@ -544,6 +553,9 @@ def render(scene: Scene, intrinsics: Intrinsics) -> Frame:
     color += color_rng.normal(scale=scene.color_noise_sigma, size=color.shape)
 
     depth_mm = centres.depth_mm.copy()
+    if scene.depth_blur_px > 0.0:
+        depth_mm = cv2.GaussianBlur(depth_mm, (0, 0), sigmaX=float(scene.depth_blur_px),
+                                    borderType=cv2.BORDER_REPLICATE)
     sigma = scene.depth_noise_sigma_mm * (depth_mm / scene.plane_depth_mm) ** 2
     depth_mm += sigma * depth_rng.standard_normal(shape_hw)
     depth = np.clip(np.rint(depth_mm / mm_per_unit), 1, _UINT16_MAX).astype(np.uint16)

@@ -45,6 +45,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
+from scipy.stats import trim_mean
 
 from vision.frames import Frame, FrameError, Intrinsics
 
@@ -54,6 +55,7 @@ TILT_WARN_DEG = 15.0
 
 _EDGE_PX = 1.5  # readings nearer a mask's edge than this (px) mix two surfaces; left out of fits
 _MIN_READINGS = 30
+_AXIS_PASSES = 4  # at most this many fits with the fingers' axes placed on the plane of the previous one
 _RELIEF_REACH = 0.85  # readings this far across the finger (fraction of r) or nearer its centre are fitted
 
 
@@ -265,12 +267,18 @@ class PlaneFit:
         camera: the plane through the fingers' outlines (where their silhouettes lie), tilted as
             measured: the millimetre frame of everything else.
         relief_mm: per finger region, how far its outline lies behind its nearest front-surface
-            reading (at its ridge): about r for a finger of round cross-section, 0 for a flat front
-            (one value measured for all the fingers, repeated per region).
+            reading (at its ridge): about r for a finger of round cross-section, 0 for a flat front,
+            within [0, r] when measured (one fraction of r measured for all the fingers, times each
+            finger's half-thickness).
         relief_measured: True when ``relief_mm`` was measured from the depth across the fingers,
             False when it was given.
         readings: number of depth readings the fit used.
         residual_mm: robust spread (1.4826 MAD) of the readings about the fitted surface, mm.
+        mixed_band_px: how far inward from the fingers' outlines (px) the depth readings were found
+            mixed with the background's and left out (:func:`_mixed_band_px`; 1.5 px when sharp).
+        mixed_band_capped: True when the mixing reached so far in that the band was capped: the
+            readings left (the inner 40 % of the width) tell a round front from a flat one only by
+            a few percent of its relief.
     """
 
     camera: PlaneCamera
@@ -278,6 +286,8 @@ class PlaneFit:
     relief_measured: bool
     readings: int
     residual_mm: float
+    mixed_band_px: float = _EDGE_PX
+    mixed_band_capped: bool = False
 
     @property
     def tilt_deg(self) -> float:
@@ -295,14 +305,23 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
     surface. The surface is modelled as the plane n . P = c, lifted toward the camera across each
     finger by an elliptic bulge ``relief_k sqrt(1 - (rho / r)^2)``, rho being the pixel's distance
     from the finger's centreline (or, without one, r minus its distance to the mask's edge) and r
-    the finger's half-width; readings in the outer 15 % of the width, where the surface is steep and
-    pixels mix finger and background, are left out:
-    a finger of round cross-section has relief r, a flat front relief 0, and either way its outline
-    (the widest part of its cross-section) lies in the plane n . P = c. The plane's two tilt angles,
-    c and the relief are found together by robust least squares (scipy's soft-L1 loss), so depth
-    holes, flying pixels and a few wrong readings do not pull the plane. One relief serves every
-    finger (a gripper's fingers are alike): a relief per finger would trade off against the tilt
-    about the axis between them (a nearer right finger reads as a tilt or as a larger relief alike).
+    the finger's half-width; a finger of round cross-section has relief r, a flat front relief 0,
+    and either way its outline (the widest part of its cross-section) lies in the plane n . P = c.
+    The relief is bounded to [0, r] (no front surface lies behind its own outline, and none stands
+    out farther than a round section's): it is fitted as that fraction of the local half-thickness.
+
+    Two bands of readings are left out. Near the outline the surface is steep, and a depth sensor
+    smooths across the silhouette: a reading there is a mix of the finger's depth and the far
+    background's, many millimetres too deep, and such mixing reaches several pixels inward for a
+    stereo camera's correlation window or spatial filter. The mixed band is measured in each frame
+    (:func:`_mixed_band_px`: where, going outward, the depth grows faster from one pixel ring to the
+    next than any front surface of relief <= r can) and the regions are eroded by it; readings in the
+    outer 15 % of the width are left out as well. The plane's two tilt angles, c and the relief are
+    then found together by bounded robust least squares (scipy's trust-region solver with a soft-L1
+    loss), so depth holes, flying pixels and a few wrong readings do not pull the plane. One relief
+    fraction serves every finger (a gripper's fingers are alike): a relief per finger would trade off
+    against the tilt about the axis between them (a nearer right finger reads as a tilt or as a
+    larger relief alike).
 
     Args:
         frame: the RGB-D frame.
@@ -337,13 +356,19 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
     if len(regions) != len(half_thickness_px) or not regions:
         raise FrameError(f"fit_gripper_plane: give one half-thickness per region, got {len(regions)} regions "
                          f"and {len(half_thickness_px)} half-thicknesses")
-    scale = frame.intrinsics.depth_scale * 1000.0
-    rays, heights, labels = [], [], []
-    for k, (region, r_px) in enumerate(zip(regions, half_thickness_px)):
+    intr = frame.intrinsics
+    scale = intr.depth_scale * 1000.0
+    insides = []
+    for k, region in enumerate(regions):
         region = np.asarray(region, dtype=bool)
         _readings(frame, region, f"finger region {k}")  # shape check and a clear error without readings
-        inside = cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        usable = region & (frame.depth > 0) & (inside >= _EDGE_PX)
+        insides.append(cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
+    bands = [_mixed_band_px(frame.depth * scale, np.asarray(region, bool) & (frame.depth > 0), inside, float(r_px),
+                            intr.fx) for region, inside, r_px in zip(regions, insides, half_thickness_px)]
+    mixed, capped = max(b[0] for b in bands), any(b[1] for b in bands)
+    rays, fractions, radii_px, labels = [], [], [], []
+    for k, (region, inside, r_px) in enumerate(zip(regions, insides, half_thickness_px)):
+        usable = np.asarray(region, bool) & (frame.depth > 0) & (inside >= max(_EDGE_PX, mixed))
         v, u = np.nonzero(usable)
         local_r = np.full(u.size, float(r_px))
         if centrelines_px is None:
@@ -353,58 +378,144 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
             rho, local_r = _across(np.column_stack([u, v]).astype(np.float64), centrelines_px[k], edges, float(r_px))
         keep = rho <= _RELIEF_REACH * local_r
         u, v, rho, local_r = u[keep], v[keep], rho[keep], local_r[keep]
-        rays.append(np.column_stack([(u - frame.intrinsics.ppx) / frame.intrinsics.fx,
-                                     (v - frame.intrinsics.ppy) / frame.intrinsics.fy, np.ones(u.size)])
+        rays.append(np.column_stack([(u - intr.ppx) / intr.fx, (v - intr.ppy) / intr.fy, np.ones(u.size)])
                     * (frame.depth[v, u] * scale)[:, None])
-        heights.append(np.sqrt(np.clip(1.0 - (rho / np.maximum(local_r, 1e-9)) ** 2, 0.0, 1.0)))
+        fractions.append(np.sqrt(np.clip(1.0 - (rho / np.maximum(local_r, 1e-9)) ** 2, 0.0, 1.0)))
+        radii_px.append(local_r)
         labels.append(np.full(u.size, k))
-    points, bulge, label = np.vstack(rays), np.concatenate(heights), np.concatenate(labels)
+    points, bulge, label = np.vstack(rays), np.concatenate(fractions), np.concatenate(labels)
     if len(points) < _MIN_READINGS:
         raise FrameError(f"only {len(points)} depth readings inside the fingers (at least {_MIN_READINGS} "
                          f"needed to fit the gripper plane): check the depth stream and the segmentation")
-    uv = points[:, :2] / points[:, 2:]
-    spread = np.linalg.eigvalsh(np.cov(uv.T * frame.intrinsics.fx)) if len(uv) > 2 else np.zeros(2)
+    directions = points / points[:, 2:]  # the rays (u', v', 1)
+    uv = directions[:, :2]
+    spread = np.linalg.eigvalsh(np.cov(uv.T * intr.fx)) if len(uv) > 2 else np.zeros(2)
     tilted = bool(spread.min() > 10.0**2)
     n_regions = len(regions)
     fixed = None if relief_mm is None else float(relief_mm)
+    # Each reading's half-thickness in mm at the plane: r (px) times the plane's depth along its ray
+    # over the focal length (first from the readings' median depth, then from the fitted plane).
+    radius_px = np.concatenate(radii_px)
+    radius_mm = radius_px * float(np.median(points[:, 2])) / intr.fx
 
-    def unpack(p: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    def unpack(p: np.ndarray) -> tuple[np.ndarray, float, float]:
         a, b = (p[0], p[1]) if tilted else (0.0, 0.0)
         normal = np.array([math.cos(a) * math.sin(b), -math.sin(a), math.cos(a) * math.cos(b)])
-        relief = np.full(n_regions, fixed if fixed is not None else p[3])
-        return normal, p[2], relief
+        return normal, p[2], (0.0 if fixed is not None else p[3])
+
+    active = np.ones(len(points), bool)
 
     def residuals(p: np.ndarray) -> np.ndarray:
-        normal, c, relief = unpack(p)
-        return points @ normal - c + relief[label] * bulge
+        normal, c, fraction = unpack(p)
+        lift = fixed * bulge if fixed is not None else fraction * radius_mm * bulge
+        return np.where(active, points @ normal - c + lift, 0.0)
 
-    start = np.concatenate([[0.0, 0.0, float(np.median(points[:, 2]))],
-                            [] if fixed is not None else [0.0]])
-    solution = least_squares(residuals, start, loss="soft_l1", f_scale=1.0, x_scale="jac")
-    spread_mm = 1.4826 * float(np.median(np.abs(residuals(solution.x))))
-    solution = least_squares(residuals, solution.x, loss="soft_l1", f_scale=max(2.0 * spread_mm, 0.02),
+    def solve(start: np.ndarray, f_scale: float):
+        lower = [-np.inf, -np.inf, 0.0] + ([] if fixed is not None else [0.0])
+        upper = [np.inf, np.inf, np.inf] + ([] if fixed is not None else [1.0])
+        return least_squares(residuals, start, bounds=(lower, upper), loss="soft_l1", f_scale=f_scale,
                              x_scale="jac")
-    normal, c, relief = unpack(solution.x)
-    if centrelines_px is not None and width_edges_px is not None and fixed is None and relief.max() > 0.0:
+
+    start = np.concatenate([[0.0, 0.0, float(np.median(points[:, 2]))], [] if fixed is not None else [0.5]])
+    solution = solve(start, 1.0)
+    spread_mm = 1.4826 * float(np.median(np.abs(residuals(solution.x))))
+    f_scale = max(2.0 * spread_mm, 0.02)
+    normal, c, _ = unpack(solution.x)
+    radius_mm = radius_px * (c / (directions @ normal)) / intr.fx
+    solution = solve(solution.x, f_scale)
+    normal, c, fraction = unpack(solution.x)
+    if centrelines_px is not None and width_edges_px is not None and fixed is None and fraction > 0.0:
         # Again with each reading's distance from its finger's axis measured in the plane, from its
         # 3-D point: a round finger's front surface stands nearer the camera than its axis, so in
         # the image its bulge is displaced outward from the outline's centre (by r / depth of the
         # distance from the optical axis, several pixels at the image's sides), which the pixel
         # distance would read as a flatter bulge.
-        first_pass = PlaneCamera(frame.intrinsics, depth_mm=c / normal[2], normal=tuple(normal))
-        bulge = _bulge_in_plane(points, label, first_pass, centrelines_px, width_edges_px)
-        solution = least_squares(residuals, solution.x, loss="soft_l1", f_scale=max(2.0 * spread_mm, 0.02),
-                                 x_scale="jac")
-        normal, c, relief = unpack(solution.x)
-    final = residuals(solution.x)
-    camera = PlaneCamera(frame.intrinsics, depth_mm=c / normal[2], normal=tuple(normal))
+        # The axis is where the centreline's rays meet the plane, so it moves sideways with the
+        # plane's depth (by the finger's distance from the optical axis over the depth: 0.3 mm per mm
+        # at the image's sides): repeated until the plane's depth settles.
+        for _ in range(_AXIS_PASSES):
+            previous = c / normal[2]
+            plane = PlaneCamera(intr, depth_mm=previous, normal=tuple(normal))
+            bulge, measured_mm = _bulge_in_plane(points, label, plane, centrelines_px, width_edges_px)
+            radius_mm = np.where(np.isfinite(measured_mm), measured_mm, radius_mm)
+            # The outer band again, now measured in the plane: in perspective a round finger's near
+            # side is compressed in the image (its steep flank there sits within the 85 % in pixels).
+            active = bulge >= math.sqrt(1.0 - _RELIEF_REACH**2)
+            solution = solve(solution.x, f_scale)
+            normal, c, fraction = unpack(solution.x)
+            if abs(c / normal[2] - previous) < 0.01:
+                break
+    final = residuals(solution.x)[active]
+    camera = PlaneCamera(intr, depth_mm=c / normal[2], normal=tuple(normal))
+    if fixed is not None:
+        relief = np.full(n_regions, fixed)
+    else:
+        relief = np.array([fraction * float(np.median(radius_mm[label == k])) if np.any(label == k) else 0.0
+                           for k in range(n_regions)])
     return PlaneFit(camera=camera, relief_mm=tuple(float(x) for x in relief), relief_measured=fixed is None,
-                    readings=len(points), residual_mm=1.4826 * float(np.median(np.abs(final - np.median(final)))))
+                    readings=int(active.sum()), residual_mm=1.4826 * float(np.median(np.abs(final - np.median(final)))),
+                    mixed_band_px=float(mixed), mixed_band_capped=bool(capped and fixed is None))
+
+
+def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarray, r_px: float,
+                   focal_px: float) -> tuple[float, bool]:
+    """How far (px) inward from a finger's outline the depth readings mix with the background's.
+
+    The readings are grouped in rings of one pixel by their distance from the region's edge (the
+    distance transform ``inside``: ring k holds 0.5 <= inside - k < 1.5), and each ring's depth is
+    a trimmed mean (robust to holes and flying pixels, not quantised as a median of 0.1 mm steps
+    is). Going outward from the centre, a front surface of relief at most r deepens from ring
+    k + 1 to ring k by at most the round section's drop there,
+    ``(h(rho_{k+1}) - h(rho_k)) Z / f`` with ``h(rho) = sqrt(r^2 - rho^2)`` and ``rho_k = r - k + 0.5``
+    (px). A ring deeper than that, by more than 0.1 mm and three standard errors, holds readings
+    pulled toward the background; the band is the innermost such ring, plus a margin. Capped so
+    that readings out to 40 % of the half-width remain.
+
+    Returns:
+        The erosion (px): readings with ``inside`` below it are mixed (``_EDGE_PX`` when no ring
+        is), and whether it was capped.
+    """
+    if r_px <= 2.0:
+        return _EDGE_PX, False
+    rings = np.floor(inside + 0.5).astype(int)
+    limit = int(math.floor(r_px))
+    means, errors = {}, {}
+    for k in range(1, limit + 1):
+        values = depth_mm[readings & (rings == k)]
+        if values.size < 20:
+            continue
+        trimmed = trim_mean(values, 0.2)
+        spread = 1.4826 * float(np.median(np.abs(values - np.median(values))))
+        means[k], errors[k] = trimmed, 1.2 * max(spread, 0.05) / math.sqrt(values.size)
+    if not means:
+        return _EDGE_PX, False
+    depth = float(np.median(list(means.values())))
+
+    def height(k: int) -> float:
+        rho = r_px - k + 0.5
+        return math.sqrt(max(r_px**2 - rho**2, 0.0))
+
+    band = 0
+    for k in sorted(means):
+        if k + 1 not in means:
+            continue
+        allowed = (height(k + 1) - height(k)) * depth / focal_px
+        if means[k] - means[k + 1] > allowed + 0.1 + 3.0 * math.hypot(errors[k], errors[k + 1]):
+            band = k
+    if band == 0:
+        return _EDGE_PX, False
+    # Mixing fades like a Gaussian's tail: below the detectable step it still lifts the next ring or
+    # two by a few hundredths of a millimetre, which the relief (a 10 % change of the bulge over the
+    # inner half of the width) would amplify tenfold. One ring and a quarter of the band more go.
+    wanted, cap = band + 1.5 + 0.25 * band, max(_EDGE_PX, 0.6 * r_px + 0.5)
+    return float(min(wanted, cap)), bool(wanted > cap)
 
 
 def _bulge_in_plane(points: np.ndarray, label: np.ndarray, plane: PlaneCamera,
-                    centrelines_px: Sequence[np.ndarray], width_edges_px: Sequence[np.ndarray]) -> np.ndarray:
-    """(P,) the elliptic bulge sqrt(1 - (rho / r)^2) of each reading (P, 3) in camera mm, with rho
+                    centrelines_px: Sequence[np.ndarray],
+                    width_edges_px: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(P,) the elliptic bulge sqrt(1 - (rho / r)^2) of each reading (P, 3) in camera mm and (P,)
+    r there (mm; NaN for a finger without side points), with rho
     the distance in ``plane`` from the reading's foot on it to its finger's axis (the centreline's
     rays met with the plane), and r the finger's half-thickness there: the outline's half-width on
     the plane times cos(beta), beta the ray's angle across the axis (a round finger's tangent rays
@@ -416,6 +527,7 @@ def _bulge_in_plane(points: np.ndarray, label: np.ndarray, plane: PlaneCamera,
     normal = np.asarray(plane.normal)
     c = float(on_plane(np.zeros((1, 2)))[0] @ normal)
     bulge = np.zeros(len(points))
+    radius = np.full(len(points), np.nan)
     for k, (line, edges) in enumerate(zip(centrelines_px, width_edges_px)):
         mine = label == k
         if not mine.any() or edges is None or len(edges) < 2:
@@ -428,7 +540,8 @@ def _bulge_in_plane(points: np.ndarray, label: np.ndarray, plane: PlaneCamera,
         feet = points[mine] - (points[mine] @ normal - c)[:, None] * normal
         rho, local_r = _across(feet, on_plane(np.asarray(line, np.float64)), sides, 0.0, step=0.02, half=half)
         bulge[mine] = np.sqrt(np.clip(1.0 - (rho / np.maximum(local_r, 1e-9)) ** 2, 0.0, 1.0))
-    return bulge
+        radius[mine] = local_r
+    return bulge, radius
 
 
 def _across(points: np.ndarray, polyline: np.ndarray, edges: np.ndarray | None, r: float, *,

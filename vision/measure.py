@@ -57,6 +57,16 @@ class MeasurementWarning(UserWarning):
     """Something measured in a frame that a user should check (e.g. a steep camera tilt)."""
 
 
+class PlaneDisagreementWarning(MeasurementWarning):
+    """Two frames of one gripper pose (calibration's open and closed frames) put the gripper plane
+    at depths more than :data:`PLANE_AGREEMENT_MM` apart; the message names both depths."""
+
+
+#: The largest difference (mm) between the gripper plane's depth measured in the open and in the
+#: closed frame of one gripper pose before calibration warns (:class:`PlaneDisagreementWarning`).
+PLANE_AGREEMENT_MM = 0.5
+
+
 @dataclass(frozen=True)
 class MeasureSettings:
     """How the gripper is measured (a calibration profile's ``vision`` section).
@@ -98,10 +108,11 @@ class MeasureSettings:
     @classmethod
     def from_dict(cls, d: Any, source: str = "vision settings") -> MeasureSettings:
         """Build from a JSON object (missing keys: defaults; unknown keys refused; errors name
-        ``source`` and the key). A ``"detected"`` entry (what a profile recorded) is ignored."""
+        ``source`` and the key). The ``"detected"`` and ``"plane_depth_mm"`` entries (what a
+        profile recorded) are ignored."""
         if not isinstance(d, dict):
             raise MeasureSettingsError(f"{source}: expected a JSON object, got {type(d).__name__}")
-        known = {"base_end", "finger_relief_mm", "detected"}
+        known = {"base_end", "finger_relief_mm", "detected", "plane_depth_mm"}
         unknown = sorted(set(d) - known)
         if unknown:
             raise MeasureSettingsError(f"{source}: unknown setting(s) {', '.join(unknown)}; valid ones: "
@@ -159,9 +170,22 @@ class GripperMeasurement:
             out.append(f"the camera is tilted {self.plane.tilt_deg:.1f} degrees from the gripper plane (more than "
                        f"{TILT_WARN_DEG:g}): the fingers' sides start to show and millimetres lose accuracy; "
                        f"face the camera to the gripper")
+        if self.plane.relief_measured and self.plane.mixed_band_capped:
+            out.append(f"the depth readings mix with the background's as far as {self.plane.mixed_band_px:.1f} px "
+                       f"into the fingers (of a half-width of about "
+                       f"{min(k.half_thickness_px for k in self.keypoints):.1f} px): the relief of the fingers' "
+                       f"front (round or flat) and with it the plane's depth may be off by a millimetre or "
+                       f"more; turn off or weaken the camera's spatial filter, or give the relief "
+                       f"(vision.finger_relief_mm, --finger-relief: the half-thickness for a round finger, 0 for a "
+                       f"flat front)")
         if self.segmentation.object.any() and self.object_offset_mm is None:
             out.append("the object has no depth readings: its outline is taken in the gripper plane")
         return out
+
+    def plane_depth_at(self, uv: Any) -> float:
+        """The gripper plane's depth Z (mm) at pixel ``uv`` (u, v): where two frames of one pose are
+        compared (a tilted plane's depth on the optical axis may lie far from the gripper)."""
+        return float(self.camera.depth_at(np.asarray(uv, np.float64)))
 
     def detected(self) -> dict[str, Any]:
         """What was found, for a profile's ``vision.detected``: base ends, body, plane, relief."""
@@ -170,6 +194,7 @@ class GripperMeasurement:
             "base_end": {side: k.base_end for side, k in zip(sides, self.keypoints)},
             "body_in_view": self.body_in_view,
             "plane": self.camera.to_dict(),
+            "mixed_band_px": round(self.plane.mixed_band_px, 2),
             "finger_relief_mm": {side: round(r, 3) for side, r in zip(sides, self.plane.relief_mm)},
             "finger_relief_measured": self.plane.relief_measured,
             "object_face_offset_mm": None if self.object_offset_mm is None else round(self.object_offset_mm, 3),

@@ -338,6 +338,37 @@ def test_a_bad_vision_setting_is_named(tmp_path: Path, vision: dict, field: str)
         load_profile(path)
 
 
+def test_the_planes_of_both_frames_round_trip_and_older_profiles_load_without_them(tmp_path: Path) -> None:
+    import dataclasses
+
+    depths = {"open": 120.02, "closed": 119.97, "used": "open"}
+    profile = dataclasses.replace(make_profile(), vision={"base_end": "auto", "finger_relief_mm": "auto",
+                                                           "detected": {}, "plane_depth_mm": depths})
+    loaded = load_profile(save_profile(profile, tmp_path / "p.json"))
+    assert loaded.vision["plane_depth_mm"] == depths
+    assert loaded.measure_settings().finger_relief_mm is None  # a record, not a setting
+    # the sample profile was written before the planes were recorded
+    sample = load_profile(Path(__file__).resolve().parents[2] / "data" / "sample_profile.json")
+    assert "plane_depth_mm" not in sample.vision
+
+
+@pytest.mark.parametrize("depths, field", [
+    ({"open": -1.0, "closed": 120.0, "used": "open"}, "vision.plane_depth_mm.open"),
+    ({"open": 120.0, "closed": float("nan"), "used": "open"}, "vision.plane_depth_mm.closed"),
+    ({"open": 120.0, "used": "open"}, "vision.plane_depth_mm.closed"),
+    ({"open": 120.0, "closed": 120.0, "used": "mean"}, "vision.plane_depth_mm.used"),
+    ({"open": 120.0, "closed": 120.0, "used": "open", "at": 1}, "vision.plane_depth_mm.at"),
+    ([120.0, 120.0], "vision.plane_depth_mm"),
+])
+def test_a_bad_plane_record_is_named(tmp_path: Path, depths, field: str) -> None:
+    data = make_profile().to_dict()
+    data["vision"] = {"plane_depth_mm": depths}
+    path = tmp_path / "p.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ProfileError, match=field.replace(".", r"\.")):
+        load_profile(path)
+
+
 def test_a_non_finite_number_in_the_detection_record_is_named(tmp_path: Path) -> None:
     data = json.loads((Path(__file__).resolve().parents[2] / "data" / "sample_profile.json").read_text())
     data["vision"]["detected"]["open"]["plane"]["depth_mm"] = float("nan")

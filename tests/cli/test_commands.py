@@ -793,3 +793,26 @@ def test_score_text_table_shows_quality_and_closure_probability():
     assert lines[4].split()[4:7] == ["-", "-", "-"]
     plain = _table(scene, poses, result, np.array([0]), 2).splitlines()
     assert "P(closure)" not in plain[1] and plain[2].split()[4:6] == ["1.250", "0.250"]
+
+
+# --- calibrate: the gripper plane of both frames --------------------------------------------------
+
+
+def test_calibrate_records_both_planes_and_warns_when_they_disagree(tmp_path):
+    """The closed frame shows the gripper 2 mm farther than the open one (the camera moved): the
+    command still writes the profile, with both depths, and prints the warning naming both."""
+    from benchmarks.vision_accuracy import INTRINSICS, accuracy_scenes, plane_scenes
+    from synthetic.render import render
+    from vision.frames import save_frame
+
+    scene = accuracy_scenes(2)[1]
+    opened, closed = plane_scenes(scene, "round", 1.1, closed_depth_shift_mm=2.0)
+    open_dir, closed_dir = save_frame(render(opened, INTRINSICS), tmp_path / "open"), \
+        save_frame(render(closed, INTRINSICS), tmp_path / "closed")
+    output = tmp_path / "p.json"
+    code, out, err = run_cli(["calibrate", str(closed_dir), "--open", str(open_dir), "--json", "-o", str(output)])
+    assert code == 0, err
+    depths = json.loads(out)["profile"]["vision"]["plane_depth_mm"]
+    assert depths["closed"] - depths["open"] == pytest.approx(2.0, abs=0.3) and depths["used"] == "open"
+    assert f"warning: the gripper plane is {depths['open']:.2f} mm deep in" in err
+    assert f"but {depths['closed']:.2f} mm in" in err
