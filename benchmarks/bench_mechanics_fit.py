@@ -155,7 +155,7 @@ def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int,
 
 #: (stiffness ratio, base compliance) of the grippers of ``--selection``: uniform and clamped (the
 #: paper's finger), stiffer at the base, and stiffer at the base on a compliant clamp.
-SELECTION_GRIPPERS = ((1.0, 0.0), (2.0, 0.0), (2.0, 0.3), (1.0, 0.3))
+SELECTION_GRIPPERS = ((1.0, 0.0), (2.0, 0.0), (2.0, 0.3))
 
 
 def run_selection(stiffness_ratio: float, base_compliance: float, n_links: int, n_train: int, n_test: int,

@@ -658,32 +658,39 @@ def test_cli_stiffness_flags_need_the_mechanics_estimate(frames, tmp_path: Path)
             run_cli(["--fit", *pairs, "--n-links", str(N), "--method", "geometric", *flags, "-o", str(tmp_path / "p.json")])
 
 
-@pytest.mark.parametrize("argv, parameters, method", [
-    (["--method", "mechanics"], ["theta_entire"], "mechanics"),
-    (["--method", "mechanics", "--stiffness"], ["theta_entire", "stiffness_ratio"], "mechanics"),
+@pytest.mark.parametrize("argv, parameters, method, chosen", [
+    (["--method", "mechanics"], ["theta_entire"], "mechanics", True),
+    (["--method", "mechanics", "--uniform"], ["theta_entire"], "mechanics", False),
+    (["--method", "mechanics", "--stiffness"], ["theta_entire", "stiffness_ratio"], "mechanics", False),
     (["--method", "mechanics", "--base-compliance", "--base-offset", "--stiffness"],
-     ["theta_entire", "base_offset", "stiffness_ratio", "base_compliance"], "mechanics"),
-    ([], ["theta_entire"], DEFAULT_METHOD),
-    (["--method", "geometric"], ["theta_entire"], "geometric"),
+     ["theta_entire", "base_offset", "stiffness_ratio", "base_compliance"], "mechanics", False),
+    (["--base-offset"], ["theta_entire", "base_offset"], DEFAULT_METHOD, DEFAULT_METHOD == "mechanics"),
+    (["--method", "geometric"], ["theta_entire"], "geometric", False),
 ])
 def test_cli_fit_passes_the_method_and_parameters(frames, tmp_path: Path, monkeypatch, capsys, argv, parameters,
-                                                  method) -> None:
-    """The command's wiring to calib.fit.fit (the mechanics fit itself is tested in test_fit_mechanics)."""
+                                                  method, chosen) -> None:
+    """The command's wiring to calib.fit.fit, and to calib.select.fit_stiffness_model when the
+    mechanics fit is given no stiffness flag (the fits themselves are tested in test_fit_mechanics
+    and test_select)."""
     import calib.fit
+    import calib.select
 
     calls = []
 
-    def fake_fit(observations, start, parameters, **kwargs):
-        name = kwargs["estimator"].name  # the command passes the estimator object (--method mapped once)
-        calls.append((list(parameters), name))
-        return dataclasses.replace(start, fit=FitEntry("least-squares", [o.label for o in observations],
-                                                       residual_rms_mm=0.0, estimate_method=name))
+    def fake(kind):
+        def fake_fit(observations, start, parameters, **kwargs):
+            name = kwargs["estimator"].name  # the command passes the estimator object (--method mapped once)
+            calls.append((kind, list(parameters), name))
+            return dataclasses.replace(start, fit=FitEntry("least-squares", [o.label for o in observations],
+                                                           residual_rms_mm=0.0, estimate_method=name))
+        return fake_fit
 
-    monkeypatch.setattr(calib.fit, "fit", fake_fit)
+    monkeypatch.setattr(calib.fit, "fit", fake("given"))
+    monkeypatch.setattr(calib.select, "fit_stiffness_model", fake("chosen"))
     output = tmp_path / "p.json"
     pairs = [str(p) for pair in frames["pairs"][:2] for p in pair]
     assert run_cli(["--fit", *pairs, "--n-links", str(N), *argv, "-o", str(output)]) == 0
-    assert calls == [(parameters, method)]
+    assert calls == [("chosen" if chosen else "given", parameters, method)]
     assert load_profile(output).fit.estimate_method == method
     assert f"({method} estimate)" in capsys.readouterr().out
 
