@@ -105,6 +105,11 @@ _COMPLIANCE_FLOOR = 1e-8
 #: mm: a station this close to the object keeps its row in the Newton step (see _newton_step).
 _GLUE_MM = 0.05
 
+#: The curvature-corrected step goes at most this many times as far as the Gauss-Newton step
+#: (in the norm of its model), in at most _CG_ITERATIONS conjugate directions (see _with_curvature).
+_STRETCH_MAX = 16.0
+_CG_ITERATIONS = 3
+
 
 def check_method(method: str, where: str = "method") -> None:
     """Raise a :class:`SoftgripError` unless ``method`` names an estimate."""
@@ -258,8 +263,9 @@ def _cross(a, b):
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
-def _spd_solve(s: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k"]:
-    """Solve s x = b for a small symmetric positive-definite s, unrolled (fuses under vmap)."""
+def _cholesky(s: Float[Array, "k k"]) -> list:
+    """The lower Cholesky factor of a small symmetric positive-definite s, unrolled (fuses under
+    vmap), as nested lists of scalars for :func:`_cholesky_solve`."""
     k = s.shape[0]
     low = [[None] * k for _ in range(k)]
     for j in range(k):
@@ -268,13 +274,24 @@ def _spd_solve(s: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " 
         for i in range(j + 1, k):
             off = s[i, j] - sum((low[i][p] * low[j][p] for p in range(j)), jnp.zeros((), s.dtype))
             low[i][j] = off / low[j][j]
+    return low
+
+
+def _cholesky_solve(low: list, b: Float[Array, " k"]) -> Float[Array, " k"]:
+    """Solve s x = b with the factor of :func:`_cholesky`."""
+    k = len(low)
     fwd = []
     for i in range(k):
-        fwd.append((b[i] - sum((low[i][p] * fwd[p] for p in range(i)), jnp.zeros((), s.dtype))) / low[i][i])
+        fwd.append((b[i] - sum((low[i][p] * fwd[p] for p in range(i)), jnp.zeros((), b.dtype))) / low[i][i])
     x = [None] * k
     for i in reversed(range(k)):
-        x[i] = (fwd[i] - sum((low[p][i] * x[p] for p in range(i + 1, k)), jnp.zeros((), s.dtype))) / low[i][i]
+        x[i] = (fwd[i] - sum((low[p][i] * x[p] for p in range(i + 1, k)), jnp.zeros((), b.dtype))) / low[i][i]
     return jnp.stack(x)
+
+
+def _spd_solve(s: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k"]:
+    """Solve s x = b for a small symmetric positive-definite s, unrolled (fuses under vmap)."""
+    return _cholesky_solve(_cholesky(s), b)
 
 
 def _turning_rows(g: Float[Array, "k 2"], p: Float[Array, "k 2"], joints: Float[Array, "joints 2"],
@@ -290,6 +307,93 @@ def _turning_rows(g: Float[Array, "k 2"], p: Float[Array, "k 2"], joints: Float[
     own = 0.5 * _cross(g, p - joints[link])
     past = _cross(g, p)[:, None] - _cross(g[:, None, :], mids[None, :, :])
     return jnp.where(j[None, :] < link[:, None], past, jnp.where(j[None, :] == link[:, None], own[:, None], 0.0))
+
+
+def _curvature_operator(problem: _Problem, joints, index, p, g, force) -> Callable:
+    """x -> C x: the contact terms' curvature (the Hessian's part the Gauss-Newton model leaves out,
+    see :func:`_derivatives`) applied to x (scaled variables, (N+1,)), for the K stations ``index``
+    at ``p`` (K, 2) with distance gradients ``g`` (K, 2) and ``force`` (K,) = w c_k, zero outside r.
+
+    C = sum_k force_k (alpha^T diag(cover_k (g_k . V)) alpha - J_k^T Hd_k J_k), with phi = alpha x
+    the links' turns, J_k x the station's first-order displacement (its links' turns, each about
+    the link's start, swept over the links up to it) and J_k^T v by :func:`_turning_rows`.
+    """
+    n, per_link = problem.finger.n_links, problem.config.stations_per_link
+    dtype = joints.dtype
+    per_link_scale, base_scale = problem.scales()
+    link = jnp.minimum(index // per_link, n - 1)
+    fraction = (index - link * per_link).astype(dtype) / per_link
+    i = jnp.arange(n)[None, :]
+    cover = jnp.where(i < link[:, None], 1.0, jnp.where(i == link[:, None], fraction[:, None], 0.0))  # (K, N)
+    links = joints[1:] - joints[:-1]  # (N, 2)
+    bend = jnp.sum(force[:, None] * cover * (g @ links.T), axis=0)  # (N,)
+    hess_d = jax.vmap(jax.hessian(problem.distance))(p)  # (K, 2, 2)
+
+    def apply(x):
+        turn = x[:-1] * per_link_scale
+        phi = x[-1] * base_scale + jnp.cumsum(turn) - 0.5 * turn  # psi, the turns before, half its own
+        swept = cover @ (phi[:, None] * links)  # (K, 2)
+        u = jnp.stack([swept[:, 1], -swept[:, 0]], axis=-1)  # turned by 90 degrees: J_k x
+        v = force[:, None] * jnp.einsum("kij,kj->ki", hess_d, u)
+        back = jnp.sum(_turning_rows(v, p, joints, index, per_link), axis=0) * per_link_scale
+        pull = jnp.sum(_cross(v, p)) * base_scale
+        b = bend * phi  # alpha^T b: link j's turn moves phi_i for i > j fully, its own by half
+        ahead = jnp.cumsum(b[::-1])[::-1] - 0.5 * b
+        return jnp.concatenate([ahead * per_link_scale - back, (jnp.sum(b) * base_scale - pull)[None]])
+
+    return apply
+
+
+def _with_curvature(problem: _Problem, joints, index, p, g, force, a, step) -> Float[Array, " n1"]:
+    """The Gauss-Newton ``step`` corrected for the contact terms' curvature (see _newton_step).
+
+    The step s minimises the model G . x + x^T B x / 2 with B = I + A^T A (``a``: the step's rows),
+    so G = -B s. This minimises G . x + x^T (B + C) x / 2 instead, C the contact terms' curvature
+    (:func:`_curvature_operator`), by conjugate gradients preconditioned with B (whose inverse the
+    Woodbury identity gives, as for the step): from 0, the first iterate is s stretched by the
+    model's curvature along it, and each of the _CG_ITERATIONS adds one direction. B^-1 C is small
+    but in the few directions where the contacts' curvature matters (a held tip's slide along the
+    surface), so a few suffice. Where the model curves down along a direction (past a fold, where
+    the held equilibrium has ceased to exist) or its minimum lies beyond _STRETCH_MAX times s (in
+    the B-norm), the iterate goes that far along the direction and stops (Steihaug's truncated
+    conjugate gradients).
+    """
+    curvature = _curvature_operator(problem, joints, index, p, g, force)
+    k = a.shape[0]
+    gram = _cholesky(jnp.eye(k, dtype=a.dtype) + a @ a.T)
+
+    def b_times(x):
+        return x + a.T @ (a @ x)
+
+    def b_solve(r):
+        return r - a.T @ _cholesky_solve(gram, a @ r)
+
+    bs = b_times(step)
+    sbs = jnp.dot(step, bs)
+    radius2 = _STRETCH_MAX**2 * sbs
+    tiny = jnp.asarray(1e-30, step.dtype)
+    x, bx = jnp.zeros_like(step), jnp.zeros_like(step)
+    r, d, rz = bs, step, sbs
+    running = sbs > tiny
+    for _ in range(_CG_ITERATIONS):
+        bd = b_times(d)
+        hd = bd + curvature(d)
+        dhd, dbd, xbd, xbx = jnp.dot(d, hd), jnp.dot(d, bd), jnp.dot(x, bd), jnp.dot(x, bx)
+        alpha = rz / jnp.where(dhd > 0, dhd, 1.0)
+        # Where the model curves down along d, or its minimum along d lies beyond the radius: to
+        # the radius along d (the root tau >= 0 of |x + tau d|_B^2 = radius^2), and stop.
+        beyond = (dhd <= 0) | (xbx + 2 * alpha * xbd + alpha**2 * dbd > radius2)
+        dbd_safe = jnp.maximum(dbd, tiny)
+        tau = (-xbd + jnp.sqrt(jnp.maximum(xbd**2 + dbd_safe * (radius2 - xbx), 0.0))) / dbd_safe
+        move = jnp.where(running, jnp.where(beyond, tau, alpha), 0.0)
+        x, bx = x + move * d, bx + move * bd
+        r = r - move * hd
+        z = b_solve(r)
+        rz_next = jnp.dot(r, z)
+        running = running & ~beyond & (rz_next > 1e-12 * sbs)
+        d = z + (rz_next / jnp.maximum(rz, tiny)) * d
+        rz = rz_next
+    return x
 
 
 def _newton_step(problem: _Problem, y, previous):
@@ -357,6 +461,8 @@ def _newton_step(problem: _Problem, y, previous):
     # The stations that carry contact force after the step (the model's residuals, positive: pushed
     # by the object), for the contact case (see solve_equilibrium).
     pushed = jnp.any((index[:, None] == jnp.arange(m)[None, :]) & (modelled & (lam > 0))[:, None], axis=0)
+    step = _with_curvature(problem, joints, index, p, g, weight * weight * jnp.maximum(depth, 0.0),
+                           jnp.where(modelled[:, None], a_k, 0.0), step)
 
     # Trust region on the angles.
     turns = jnp.concatenate([step[:-1] * per_link_scale, (step[-1] * base_scale)[None]])
