@@ -32,16 +32,32 @@ contact: with the K = ``active_rows`` least clear stations, the Woodbury identit
 (N+1) x (N+1) system into a K x K one per candidate (exact while at most K stations touch; a convex
 object touches a clamped elastic chain at a few points). Around that core, the step keeps stations
 that touch in the model (within 0.05 mm) as "end on the surface", drops those the model would pull
-out of the object, stops short where a station outside the model would enter the object, halves a
-step that undoes the previous one, and turns no angle by more than ``max_turn``. It is an optimistix
+out of the object, corrects the step for the contacts' curvature (below), stops short where a
+station outside the model would enter the object, halves a step that undoes the previous one, and
+turns no angle by more than ``max_turn``. It is an optimistix
 least-squares solver (:class:`ChainGaussNewton`), so ``optimistix.least_squares`` supplies the
 iteration budget (``max_steps``), a per-candidate result (``throw=False``: a candidate that misses
 its tolerances gets ``Status.MECHANICS_NOT_CONVERGED``) and derivatives by implicit
 differentiation of the optimality condition: the equilibrium's derivatives in Theta, L, r, rho, c,
-the base pose and the object never go through the iterations. From the converged point one full Newton
-step, with the energy's Hessian (contact curvature included), finishes the solve where it is small
-and lowers the energy (:func:`_polish`): near a fold the Gauss-Newton model converges slowly in the
-soft direction and would stop short by a pose-dependent amount.
+the base pose and the object never go through the iterations.
+
+The Gauss-Newton model leaves out the curvature of the contact terms (the object's curvature under
+a pressed station, and the force turning the links it acts through). Near a fold of the
+equilibrium (a held tip about to slide off a convex object) that curvature cancels most of the
+springs' stiffness in one direction, the tip's slide along the surface, and the model's step there
+is a small fraction of the way to the equilibrium; just past the fold, where the held equilibrium
+has ceased to exist but the energy still falls only slowly along the slide, the bare model crawls
+through that slow region for more steps than the budget holds, and a pose just before a slide-off
+came out not converged. So each step minimises the model with that curvature added, by a few
+conjugate-gradient iterations preconditioned with the Gauss-Newton model (whose first iterate is
+the Gauss-Newton step stretched by the curvature along it), truncated where the curvature turns
+negative (past the fold: the step then goes a bounded multiple of the Gauss-Newton step along the
+slide, and the solve reaches the equilibrium after the slide-off). Where the contacts do not bend
+the energy this is the Gauss-Newton step. The fixed point and the equilibrium are unchanged; the
+convergence test reads the corrected step, the distance to the equilibrium with the curvature
+included. From the converged point one full Newton step, with the energy's whole Hessian, finishes
+the solve where it is small and lowers the energy (:func:`_polish`): what the few conjugate
+directions leave out would otherwise stop the solve short by a pose-dependent amount.
 
 The closing path. A contact problem of this kind has several equilibria (a tip held on the object,
 or the finger pressed along its middle after the tip slid past); the estimate is the one the finger
@@ -134,7 +150,7 @@ class MechanicsConfig(eqx.Module):
             (runs of consecutive stations); an area touches when one of its stations carries
             contact force, and the case says which areas touch (see :func:`solve_equilibrium`).
             An equilibrium deeper than contact_tol inside r is not converged.
-        step_tol: mm. Converged when the Gauss-Newton step (before it is shortened) moves no joint
+        step_tol: mm. Converged when two steps in a row (before they are shortened) move no joint
             by more than this (to first order).
         max_turn: rad. A step changes no turning angle (or psi) by more than this.
         path_step: rad. The closing path raises the actuation from first touch to Theta in
@@ -397,7 +413,8 @@ def _with_curvature(problem: _Problem, joints, index, p, g, force, a, step) -> F
 
 
 def _newton_step(problem: _Problem, y, previous):
-    """The Gauss-Newton step at y and diagnostics (see the module docstring).
+    """The Gauss-Newton step at y, corrected for the contacts' curvature, and diagnostics (see the
+    module docstring).
 
     Returns (step, moved, penetration, pushed): the step in y, the largest joint displacement the
     full (unshortened) step makes (mm, to first order), the deepest station inside r at y (mm, >= 0)
@@ -461,6 +478,7 @@ def _newton_step(problem: _Problem, y, previous):
     # The stations that carry contact force after the step (the model's residuals, positive: pushed
     # by the object), for the contact case (see solve_equilibrium).
     pushed = jnp.any((index[:, None] == jnp.arange(m)[None, :]) & (modelled & (lam > 0))[:, None], axis=0)
+    # The contacts' curvature, which the model leaves out, matters near a fold (module docstring).
     step = _with_curvature(problem, joints, index, p, g, weight * weight * jnp.maximum(depth, 0.0),
                            jnp.where(modelled[:, None], a_k, 0.0), step)
 
@@ -495,6 +513,7 @@ def _newton_step(problem: _Problem, y, previous):
 class _SolverState(eqx.Module):
     previous: Float[Array, " n1"]
     moved: Float[Array, ""]
+    moved_before: Float[Array, ""]
     penetration: Float[Array, ""]
     pushed: Bool[Array, " m"]
     steps: Int[Array, ""]
@@ -515,17 +534,21 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         inf = jnp.asarray(jnp.inf, y.dtype)
         pushed = jnp.zeros(args.n_stations, bool)
-        return _SolverState(previous=jnp.zeros_like(y), moved=inf, penetration=inf, pushed=pushed,
-                            steps=jnp.array(0))
+        return _SolverState(previous=jnp.zeros_like(y), moved=inf, moved_before=inf, penetration=inf,
+                            pushed=pushed, steps=jnp.array(0))
 
     def step(self, fn, y, args, options, state, tags):
         step, moved, penetration, pushed = _newton_step(args, y, state.previous)
-        state = _SolverState(previous=step, moved=moved, penetration=penetration, pushed=pushed,
-                             steps=state.steps + 1)
+        state = _SolverState(previous=step, moved=moved, moved_before=state.moved, penetration=penetration,
+                             pushed=pushed, steps=state.steps + 1)
         return y + step, state, None
 
     def terminate(self, fn, y, args, options, state, tags):
-        done = (state.moved <= self.atol) & (state.penetration <= self.rtol)
+        # Two steps in a row within tolerance: a single small step can be an accident of a kink in
+        # the object's distance gradient (a bilinear SDFGrid's cell edges), whose other side the
+        # next step sees; near a fold, such a point lay a few tenths of a millimetre from any
+        # equilibrium.
+        done = (state.moved <= self.atol) & (state.moved_before <= self.atol) & (state.penetration <= self.rtol)
         return done, optx.RESULTS.successful
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
@@ -750,11 +773,11 @@ def _gauss_jordan(a: Float[Array, "n n"], b: Float[Array, "n k"]) -> Float[Array
 def _polish(problem: _Problem, y, newton, gradient, converged) -> Float[Array, " n1"]:
     """The full Newton step taken from the converged Gauss-Newton point, or zeros (N+1,).
 
-    The Gauss-Newton model leaves out the contact terms' curvature. Near a fold, in the soft
-    direction (a held tip's slide along the surface), it then converges slowly and stops up to
-    several ``step_tol`` short, by a different amount at neighbouring poses: steps in the estimate
-    as the pose moves. One Newton step with the full Hessian (the one the sensitivity needs)
-    removes most of that. It is taken only from a converged point, where it is small (no joint
+    The solver's steps see the contact terms' curvature only along a few conjugate directions
+    (:func:`_with_curvature`). Near a fold, in the soft direction (a held tip's slide along the
+    surface), the solve can then still stop a fraction of ``step_tol`` short, by a different
+    amount at neighbouring poses: steps in the estimate as the pose moves. One Newton step with
+    the full Hessian (the one the sensitivity needs) removes most of that. It is taken only from a converged point, where it is small (no joint
     moves more than 10 ``step_tol``: the same contacts), descends and lowers the energy.
     """
     def energy(v):
