@@ -27,8 +27,8 @@ from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 from scipy.optimize import fsolve
 
-from softgrip_jax import (CASE_NAMES, ContactCase, FingerModel, Gripper, MechanicsConfig, PolygonSDF, Status,
-                          estimate, estimate_batch, score)
+from softgrip_jax import (CASE_NAMES, ContactCase, FingerModel, Gripper, MechanicsConfig, PolygonSDF, SDFGrid,
+                          Status, estimate, estimate_batch, score)
 from synthetic.rod import RodMechanics, close_rod, observed_joints
 from synthetic.shapes import shape
 from synthetic.smooth import DiscSDF
@@ -309,16 +309,14 @@ SLIDE_OFF_CENTRES = [(0.0, 0.0), (0.0, -0.16), (-3.46, 1.50)]  # the held tip sl
 
 def vision_disc():
     """SMOOTH as vision would hand it over: an SDFGrid of 0.3 mm cells covering the finger's reach."""
-    from softgrip_jax import SDFGrid
-
     return SDFGrid.sample(SMOOTH, (-20.0, -20.0), (0.3, 0.3), (367, 234))
 
 
 def newton_distance(finger, sdf, base, psi, turning, per_link=3, penalty=1e4):
     """How far (mm, the largest joint displacement) one Newton step of the energy moves shapes
-    (B, N) hanging from ``base`` (B, 2) (the distance
-    to the energy's stationary point, to first order), where the Hessian curves up along that step
-    (B,) (a minimum, not a saddle or a fold) and the joints (B, N+1, 2) of those shapes. By autodiff of the energy written out from
+    (B, N) hanging from ``base`` (B, 2), i.e. their distance from the energy's stationary point to
+    first order; where the Hessian curves up along that step (B,) (a minimum, not a saddle or a
+    fold); and the joints (B, N+1, 2) of those shapes. By autodiff of the energy written out from
     the model (module docstring of softgrip_jax._mechanics: the springs plus the contact penalty on
     ``per_link`` chord stations per link and the tip), independent of the solver's derivatives. The
     base is clamped (the finger's base compliance 0): psi stays as given."""
