@@ -184,12 +184,17 @@ def test_the_sensitivity_is_the_tips_central_difference_and_one_for_a_free_finge
     assert not bool(free.contact.touches) and float(free.sensitivity) == 1.0
 
 
-def test_a_sweep_through_the_fold_is_continuous_wherever_nothing_is_flagged():
-    # The base moved in y by 0.002 mm across the fold where the held tip slides off the disc
-    # (about y = -0.07 here; below it the finger snaps past the disc).
+@functools.cache
+def fold_sweep():
+    """The base moved in y by 0.002 mm across the fold where the held tip slides off the disc
+    (about y = -0.07 here; below it the finger snaps past the disc): bases (201, 2) and estimates."""
     steps = np.arange(-0.2, 0.2 + 1e-9, 0.002)
     bases = np.column_stack([np.zeros_like(steps), steps]).astype(np.float32)
-    est = jax.tree_util.tree_map(np.asarray, estimate_batch(PLAIN, SMOOTH, jnp.asarray(bases), method="mechanics"))
+    return bases, estimate_batch(PLAIN, SMOOTH, jnp.asarray(bases), method="mechanics")
+
+
+def test_a_sweep_through_the_fold_is_continuous_wherever_nothing_is_flagged():
+    est = jax.tree_util.tree_map(np.asarray, fold_sweep()[1])
     tips = est.joints[:, -1]
     jump = np.linalg.norm(np.diff(tips, axis=0), axis=-1)
     held = est.valid & (est.case == ContactCase.TIP)
@@ -387,9 +392,8 @@ def slide_off_bases(centres, axes=(0, 1)):
 
 
 def test_a_sweep_through_a_slide_off_has_no_holes():
-    # The same 201 poses as the sweep through the fold above: the base moved in y by 0.002 mm.
-    bases = slide_off_bases([(0.0, 0.0)], axes=(1,))
-    est = estimate_batch(PLAIN, SMOOTH, jnp.asarray(bases), method="mechanics")
+    # The sweep through the fold above (201 poses, the base moved in y by 0.002 mm).
+    bases, est = fold_sweep()
     check_sweep_through_slide_off(SMOOTH, bases, est)
 
 
