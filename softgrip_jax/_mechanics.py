@@ -771,14 +771,15 @@ def _gauss_jordan(a: Float[Array, "n n"], b: Float[Array, "n k"]) -> Float[Array
 
 
 def _polish(problem: _Problem, y, newton, gradient, converged) -> Float[Array, " n1"]:
-    """The full Newton step taken from the converged Gauss-Newton point, or zeros (N+1,).
+    """The full Newton step taken from the converged solver point, or zeros (N+1,).
 
     The solver's steps see the contact terms' curvature only along a few conjugate directions
     (:func:`_with_curvature`). Near a fold, in the soft direction (a held tip's slide along the
     surface), the solve can then still stop a fraction of ``step_tol`` short, by a different
     amount at neighbouring poses: steps in the estimate as the pose moves. One Newton step with
-    the full Hessian (the one the sensitivity needs) removes most of that. It is taken only from a converged point, where it is small (no joint
-    moves more than 10 ``step_tol``: the same contacts), descends and lowers the energy.
+    the full Hessian (the one the sensitivity needs) removes most of that. It is taken only from
+    a converged point, where it is small (no joint moves more than 10 ``step_tol``: the same
+    contacts), descends and lowers the energy.
     """
     def energy(v):
         return 0.5 * jnp.sum(problem.residuals(v) ** 2)
