@@ -32,16 +32,32 @@ contact: with the K = ``active_rows`` least clear stations, the Woodbury identit
 (N+1) x (N+1) system into a K x K one per candidate (exact while at most K stations touch; a convex
 object touches a clamped elastic chain at a few points). Around that core, the step keeps stations
 that touch in the model (within 0.05 mm) as "end on the surface", drops those the model would pull
-out of the object, stops short where a station outside the model would enter the object, halves a
-step that undoes the previous one, and turns no angle by more than ``max_turn``. It is an optimistix
+out of the object, corrects the step for the contacts' curvature (below), stops short where a
+station outside the model would enter the object, halves a step that undoes the previous one, and
+turns no angle by more than ``max_turn``. It is an optimistix
 least-squares solver (:class:`ChainGaussNewton`), so ``optimistix.least_squares`` supplies the
 iteration budget (``max_steps``), a per-candidate result (``throw=False``: a candidate that misses
 its tolerances gets ``Status.MECHANICS_NOT_CONVERGED``) and derivatives by implicit
 differentiation of the optimality condition: the equilibrium's derivatives in Theta, L, r, rho, c,
-the base pose and the object never go through the iterations. From the converged point one full Newton
-step, with the energy's Hessian (contact curvature included), finishes the solve where it is small
-and lowers the energy (:func:`_polish`): near a fold the Gauss-Newton model converges slowly in the
-soft direction and would stop short by a pose-dependent amount.
+the base pose and the object never go through the iterations.
+
+The Gauss-Newton model leaves out the curvature of the contact terms (the object's curvature under
+a pressed station, and the force turning the links it acts through). Near a fold of the
+equilibrium (a held tip about to slide off a convex object) that curvature cancels most of the
+springs' stiffness in one direction, the tip's slide along the surface, and the model's step there
+is a small fraction of the way to the equilibrium; just past the fold, where the held equilibrium
+has ceased to exist but the energy still falls only slowly along the slide, the bare model crawls
+through that slow region for more steps than the budget holds, and a pose just before a slide-off
+came out not converged. So each step minimises the model with that curvature added, by a few
+conjugate-gradient iterations preconditioned with the Gauss-Newton model (whose first iterate is
+the Gauss-Newton step stretched by the curvature along it), truncated where the curvature turns
+negative (past the fold: the step then goes a bounded multiple of the Gauss-Newton step along the
+slide, and the solve reaches the equilibrium after the slide-off). Where the contacts do not bend
+the energy this is the Gauss-Newton step. The fixed point and the equilibrium are unchanged; the
+convergence test reads the corrected step, the distance to the equilibrium with the curvature
+included. From the converged point one full Newton step, with the energy's whole Hessian, finishes
+the solve where it is small and lowers the energy (:func:`_polish`): what the few conjugate
+directions leave out would otherwise stop the solve short by a pose-dependent amount.
 
 The closing path. A contact problem of this kind has several equilibria (a tip held on the object,
 or the finger pressed along its middle after the tip slid past); the estimate is the one the finger
@@ -105,6 +121,11 @@ _COMPLIANCE_FLOOR = 1e-8
 #: mm: a station this close to the object keeps its row in the Newton step (see _newton_step).
 _GLUE_MM = 0.05
 
+#: The curvature-corrected step goes at most this many times as far as the Gauss-Newton step
+#: (in the norm of its model), in at most _CG_ITERATIONS conjugate directions (see _with_curvature).
+_STRETCH_MAX = 16.0
+_CG_ITERATIONS = 3
+
 
 def check_method(method: str, where: str = "method") -> None:
     """Raise a :class:`SoftgripError` unless ``method`` names an estimate."""
@@ -129,7 +150,7 @@ class MechanicsConfig(eqx.Module):
             (runs of consecutive stations); an area touches when one of its stations carries
             contact force, and the case says which areas touch (see :func:`solve_equilibrium`).
             An equilibrium deeper than contact_tol inside r is not converged.
-        step_tol: mm. Converged when the Gauss-Newton step (before it is shortened) moves no joint
+        step_tol: mm. Converged when two steps in a row (before they are shortened) move no joint
             by more than this (to first order).
         max_turn: rad. A step changes no turning angle (or psi) by more than this.
         path_step: rad. The closing path raises the actuation from first touch to Theta in
@@ -258,8 +279,9 @@ def _cross(a, b):
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
-def _spd_solve(s: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k"]:
-    """Solve s x = b for a small symmetric positive-definite s, unrolled (fuses under vmap)."""
+def _cholesky(s: Float[Array, "k k"]) -> list:
+    """The lower Cholesky factor of a small symmetric positive-definite s, unrolled (fuses under
+    vmap), as nested lists of scalars for :func:`_cholesky_solve`."""
     k = s.shape[0]
     low = [[None] * k for _ in range(k)]
     for j in range(k):
@@ -268,13 +290,24 @@ def _spd_solve(s: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " 
         for i in range(j + 1, k):
             off = s[i, j] - sum((low[i][p] * low[j][p] for p in range(j)), jnp.zeros((), s.dtype))
             low[i][j] = off / low[j][j]
+    return low
+
+
+def _cholesky_solve(low: list, b: Float[Array, " k"]) -> Float[Array, " k"]:
+    """Solve s x = b with the factor of :func:`_cholesky`."""
+    k = len(low)
     fwd = []
     for i in range(k):
-        fwd.append((b[i] - sum((low[i][p] * fwd[p] for p in range(i)), jnp.zeros((), s.dtype))) / low[i][i])
+        fwd.append((b[i] - sum((low[i][p] * fwd[p] for p in range(i)), jnp.zeros((), b.dtype))) / low[i][i])
     x = [None] * k
     for i in reversed(range(k)):
-        x[i] = (fwd[i] - sum((low[p][i] * x[p] for p in range(i + 1, k)), jnp.zeros((), s.dtype))) / low[i][i]
+        x[i] = (fwd[i] - sum((low[p][i] * x[p] for p in range(i + 1, k)), jnp.zeros((), b.dtype))) / low[i][i]
     return jnp.stack(x)
+
+
+def _spd_solve(s: Float[Array, "k k"], b: Float[Array, " k"]) -> Float[Array, " k"]:
+    """Solve s x = b for a small symmetric positive-definite s, unrolled (fuses under vmap)."""
+    return _cholesky_solve(_cholesky(s), b)
 
 
 def _turning_rows(g: Float[Array, "k 2"], p: Float[Array, "k 2"], joints: Float[Array, "joints 2"],
@@ -292,8 +325,96 @@ def _turning_rows(g: Float[Array, "k 2"], p: Float[Array, "k 2"], joints: Float[
     return jnp.where(j[None, :] < link[:, None], past, jnp.where(j[None, :] == link[:, None], own[:, None], 0.0))
 
 
+def _curvature_operator(problem: _Problem, joints, index, p, g, force) -> Callable:
+    """x -> C x: the contact terms' curvature (the Hessian's part the Gauss-Newton model leaves out,
+    see :func:`_derivatives`) applied to x (scaled variables, (N+1,)), for the K stations ``index``
+    at ``p`` (K, 2) with distance gradients ``g`` (K, 2) and ``force`` (K,) = w c_k, zero outside r.
+
+    C = sum_k force_k (alpha^T diag(cover_k (g_k . V)) alpha - J_k^T Hd_k J_k), with phi = alpha x
+    the links' turns, J_k x the station's first-order displacement (its links' turns, each about
+    the link's start, swept over the links up to it) and J_k^T v by :func:`_turning_rows`.
+    """
+    n, per_link = problem.finger.n_links, problem.config.stations_per_link
+    dtype = joints.dtype
+    per_link_scale, base_scale = problem.scales()
+    link = jnp.minimum(index // per_link, n - 1)
+    fraction = (index - link * per_link).astype(dtype) / per_link
+    i = jnp.arange(n)[None, :]
+    cover = jnp.where(i < link[:, None], 1.0, jnp.where(i == link[:, None], fraction[:, None], 0.0))  # (K, N)
+    links = joints[1:] - joints[:-1]  # (N, 2)
+    bend = jnp.sum(force[:, None] * cover * (g @ links.T), axis=0)  # (N,)
+    hess_d = jax.vmap(jax.hessian(problem.distance))(p)  # (K, 2, 2)
+
+    def apply(x):
+        turn = x[:-1] * per_link_scale
+        phi = x[-1] * base_scale + jnp.cumsum(turn) - 0.5 * turn  # psi, the turns before, half its own
+        swept = cover @ (phi[:, None] * links)  # (K, 2)
+        u = jnp.stack([swept[:, 1], -swept[:, 0]], axis=-1)  # turned by 90 degrees: J_k x
+        v = force[:, None] * jnp.einsum("kij,kj->ki", hess_d, u)
+        back = jnp.sum(_turning_rows(v, p, joints, index, per_link), axis=0) * per_link_scale
+        pull = jnp.sum(_cross(v, p)) * base_scale
+        b = bend * phi  # alpha^T b: link j's turn moves phi_i for i > j fully, its own by half
+        ahead = jnp.cumsum(b[::-1])[::-1] - 0.5 * b
+        return jnp.concatenate([ahead * per_link_scale - back, (jnp.sum(b) * base_scale - pull)[None]])
+
+    return apply
+
+
+def _with_curvature(problem: _Problem, joints, index, p, g, force, a, step) -> Float[Array, " n1"]:
+    """The Gauss-Newton ``step`` corrected for the contact terms' curvature (see _newton_step).
+
+    The step s minimises the model G . x + x^T B x / 2 with B = I + A^T A (``a``: the step's rows),
+    so G = -B s. This minimises G . x + x^T (B + C) x / 2 instead, C the contact terms' curvature
+    (:func:`_curvature_operator`), by conjugate gradients preconditioned with B (whose inverse the
+    Woodbury identity gives, as for the step): from 0, the first iterate is s stretched by the
+    model's curvature along it, and each of the _CG_ITERATIONS adds one direction. B^-1 C is small
+    but in the few directions where the contacts' curvature matters (a held tip's slide along the
+    surface), so a few suffice. Where the model curves down along a direction (past a fold, where
+    the held equilibrium has ceased to exist) or its minimum lies beyond _STRETCH_MAX times s (in
+    the B-norm), the iterate goes that far along the direction and stops (Steihaug's truncated
+    conjugate gradients).
+    """
+    curvature = _curvature_operator(problem, joints, index, p, g, force)
+    k = a.shape[0]
+    gram = _cholesky(jnp.eye(k, dtype=a.dtype) + a @ a.T)
+
+    def b_times(x):
+        return x + a.T @ (a @ x)
+
+    def b_solve(r):
+        return r - a.T @ _cholesky_solve(gram, a @ r)
+
+    bs = b_times(step)
+    sbs = jnp.dot(step, bs)
+    radius2 = _STRETCH_MAX**2 * sbs
+    tiny = jnp.asarray(1e-30, step.dtype)
+    x, bx = jnp.zeros_like(step), jnp.zeros_like(step)
+    r, d, rz = bs, step, sbs
+    running = sbs > tiny
+    for _ in range(_CG_ITERATIONS):
+        bd = b_times(d)
+        hd = bd + curvature(d)
+        dhd, dbd, xbd, xbx = jnp.dot(d, hd), jnp.dot(d, bd), jnp.dot(x, bd), jnp.dot(x, bx)
+        alpha = rz / jnp.where(dhd > 0, dhd, 1.0)
+        # Where the model curves down along d, or its minimum along d lies beyond the radius: to
+        # the radius along d (the root tau >= 0 of |x + tau d|_B^2 = radius^2), and stop.
+        beyond = (dhd <= 0) | (xbx + 2 * alpha * xbd + alpha**2 * dbd > radius2)
+        dbd_safe = jnp.maximum(dbd, tiny)
+        tau = (-xbd + jnp.sqrt(jnp.maximum(xbd**2 + dbd_safe * (radius2 - xbx), 0.0))) / dbd_safe
+        move = jnp.where(running, jnp.where(beyond, tau, alpha), 0.0)
+        x, bx = x + move * d, bx + move * bd
+        r = r - move * hd
+        z = b_solve(r)
+        rz_next = jnp.dot(r, z)
+        running = running & ~beyond & (rz_next > 1e-12 * sbs)
+        d = z + (rz_next / jnp.maximum(rz, tiny)) * d
+        rz = rz_next
+    return x
+
+
 def _newton_step(problem: _Problem, y, previous):
-    """The Gauss-Newton step at y and diagnostics (see the module docstring).
+    """The Gauss-Newton step at y, corrected for the contacts' curvature, and diagnostics (see the
+    module docstring).
 
     Returns (step, moved, penetration, pushed): the step in y, the largest joint displacement the
     full (unshortened) step makes (mm, to first order), the deepest station inside r at y (mm, >= 0)
@@ -357,6 +478,9 @@ def _newton_step(problem: _Problem, y, previous):
     # The stations that carry contact force after the step (the model's residuals, positive: pushed
     # by the object), for the contact case (see solve_equilibrium).
     pushed = jnp.any((index[:, None] == jnp.arange(m)[None, :]) & (modelled & (lam > 0))[:, None], axis=0)
+    # The contacts' curvature, which the model leaves out, matters near a fold (module docstring).
+    step = _with_curvature(problem, joints, index, p, g, weight * weight * jnp.maximum(depth, 0.0),
+                           jnp.where(modelled[:, None], a_k, 0.0), step)
 
     # Trust region on the angles.
     turns = jnp.concatenate([step[:-1] * per_link_scale, (step[-1] * base_scale)[None]])
@@ -389,6 +513,7 @@ def _newton_step(problem: _Problem, y, previous):
 class _SolverState(eqx.Module):
     previous: Float[Array, " n1"]
     moved: Float[Array, ""]
+    moved_before: Float[Array, ""]
     penetration: Float[Array, ""]
     pushed: Bool[Array, " m"]
     steps: Int[Array, ""]
@@ -409,17 +534,21 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         inf = jnp.asarray(jnp.inf, y.dtype)
         pushed = jnp.zeros(args.n_stations, bool)
-        return _SolverState(previous=jnp.zeros_like(y), moved=inf, penetration=inf, pushed=pushed,
-                            steps=jnp.array(0))
+        return _SolverState(previous=jnp.zeros_like(y), moved=inf, moved_before=inf, penetration=inf,
+                            pushed=pushed, steps=jnp.array(0))
 
     def step(self, fn, y, args, options, state, tags):
         step, moved, penetration, pushed = _newton_step(args, y, state.previous)
-        state = _SolverState(previous=step, moved=moved, penetration=penetration, pushed=pushed,
-                             steps=state.steps + 1)
+        state = _SolverState(previous=step, moved=moved, moved_before=state.moved, penetration=penetration,
+                             pushed=pushed, steps=state.steps + 1)
         return y + step, state, None
 
     def terminate(self, fn, y, args, options, state, tags):
-        done = (state.moved <= self.atol) & (state.penetration <= self.rtol)
+        # Two steps in a row within tolerance: a single small step can be an accident of a kink in
+        # the object's distance gradient (a bilinear SDFGrid's cell edges), whose other side the
+        # next step sees; near a fold, such a point lay a few tenths of a millimetre from any
+        # equilibrium.
+        done = (state.moved <= self.atol) & (state.moved_before <= self.atol) & (state.penetration <= self.rtol)
         return done, optx.RESULTS.successful
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
@@ -642,14 +771,15 @@ def _gauss_jordan(a: Float[Array, "n n"], b: Float[Array, "n k"]) -> Float[Array
 
 
 def _polish(problem: _Problem, y, newton, gradient, converged) -> Float[Array, " n1"]:
-    """The full Newton step taken from the converged Gauss-Newton point, or zeros (N+1,).
+    """The full Newton step taken from the converged solver point, or zeros (N+1,).
 
-    The Gauss-Newton model leaves out the contact terms' curvature. Near a fold, in the soft
-    direction (a held tip's slide along the surface), it then converges slowly and stops up to
-    several ``step_tol`` short, by a different amount at neighbouring poses: steps in the estimate
-    as the pose moves. One Newton step with the full Hessian (the one the sensitivity needs)
-    removes most of that. It is taken only from a converged point, where it is small (no joint
-    moves more than 10 ``step_tol``: the same contacts), descends and lowers the energy.
+    The solver's steps see the contact terms' curvature only along a few conjugate directions
+    (:func:`_with_curvature`). Near a fold, in the soft direction (a held tip's slide along the
+    surface), the solve can then still stop a fraction of ``step_tol`` short, by a different
+    amount at neighbouring poses: steps in the estimate as the pose moves. One Newton step with
+    the full Hessian (the one the sensitivity needs) removes most of that. It is taken only from
+    a converged point, where it is small (no joint moves more than 10 ``step_tol``: the same
+    contacts), descends and lowers the energy.
     """
     def energy(v):
         return 0.5 * jnp.sum(problem.residuals(v) ** 2)
