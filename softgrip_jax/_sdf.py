@@ -145,7 +145,7 @@ class SDFGrid(AbstractSDF):
     origin: Float[Array, "2"] = eqx.field(converter=_as_array)
     spacing: Float[Array, "2"] = eqx.field(converter=_as_pair)
     far: float = eqx.field(static=True, default=FAR_MM)
-    interpolation: Literal["cubic", "linear"] = eqx.field(static=True, default="cubic")
+    interpolation: str = eqx.field(static=True, default="cubic")  # "cubic" or "linear", checked below
 
     def __check_init__(self):
         if self.interpolation not in ("cubic", "linear"):
