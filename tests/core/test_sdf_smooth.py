@@ -162,3 +162,44 @@ def test_interpolation_is_validated():
 
     with pytest.raises(SoftgripError, match="interpolation"):
         SDFGrid(values=np.zeros((3, 3)), origin=np.zeros(2), spacing=1.0, interpolation="quadratic")
+
+
+# ---------------------------------------------------------------------------------------------
+# The mechanics estimate on the vision SDF of a disc (slow: three compilations of the estimate)
+
+
+@pytest.mark.slow
+def test_the_mechanics_estimate_on_the_vision_sdf_moves_continuously_and_its_gradient_is_the_closures():
+    from benchmarks.bench_smooth_sdf import FINGER, vision_disc
+
+    from softgrip_jax import ContactCase, MechanicsConfig, estimate, estimate_batch
+
+    # The disc of radius 10 mm at (20, 60) that the finger's tip rests on (test_closing_path's), as
+    # vision makes it from a hard mask on 0.3 mm pixels. The solve is converged tightly so that where
+    # it stops (up to step_tol short, by a pose-dependent amount) does not pose as a step.
+    grid = vision_disc()
+    assert np.allclose(np.asarray(grid.spacing), 0.3) and grid.interpolation == "cubic"
+    tight = MechanicsConfig(step_tol=1e-5, max_steps=200)
+    sweep = np.column_stack([np.zeros(91), -0.18 + 0.002 * np.arange(91)])  # y in [-0.18, 0]: tip held
+    regular = np.array([[0.0, -0.1], [0.0, -0.03]])
+    h = 0.01
+    shifted = np.concatenate([regular[:, None] + s * h * np.eye(2)[None] for s in (1, -1)], axis=1).reshape(-1, 2)
+    bases = jnp.asarray(np.concatenate([sweep, regular, shifted]), jnp.float32)
+    est = jax.tree_util.tree_map(np.asarray, estimate_batch(FINGER, grid, bases, method="mechanics", mechanics=tight))
+    assert est.valid.all() and (est.case == ContactCase.TIP).all() and not est.event.any()
+    assert (est.sensitivity < tight.fold_sensitivity).all()  # regular poses, no fold nearby
+    # Base steps of 0.002 mm move the tip by about sensitivity (2 to 3 here) x 0.002 mm; no joint
+    # jumps. (On the bilinear lookup the same sweep has a step of 0.03 mm: the tip's normal turns
+    # at each cell edge; benchmarks/bench_smooth_sdf.py.)
+    joints = est.joints[:91]
+    step = np.linalg.norm(np.diff(joints, axis=0), axis=-1).max(axis=-1)
+    assert step.max() <= 0.01, step.max()
+    # d tip / d base from implicit differentiation (the lookup's gradient and Hessian) against
+    # central differences of the same estimates.
+    tip = lambda b: estimate(FINGER, grid, b, method="mechanics", mechanics=tight).joints[-1]  # noqa: E731
+    jacobians = np.asarray(jax.jit(jax.vmap(jax.jacrev(tip)))(jnp.asarray(regular, jnp.float32)), np.float64)
+    tips = est.joints[93:, -1].astype(np.float64).reshape(2, 4, 2)
+    central = ((tips[:, :2] - tips[:, 2:]) / (2 * h)).transpose(0, 2, 1)  # (pose, tip axis, base axis)
+    error = np.linalg.norm(jacobians - central, axis=(1, 2)) / np.linalg.norm(central, axis=(1, 2))
+    assert error.max() < 0.02, (error, jacobians, central)
+    assert np.linalg.norm(central, axis=(1, 2)).min() > 1.5  # a held tip, amplified: not the free finger's 1
