@@ -15,13 +15,15 @@ D405-like camera whose pixels are 0.3 mm in the plane), looked up bilinearly
 
 1. Base sweeps in 0.002 mm steps, one in y (x = 0, y in [-0.2, 0.1]) and one in x
    (x in [2.0, 2.3], y = 0), 151 poses each, in one ``estimate_batch`` call: the largest joint
-   step between neighbours that are both valid, unflagged (no ``event``) and of one case.
+   step between neighbours that are both valid, unflagged (no ``event``) and of one case, with
+   the default ``MechanicsConfig`` and with the solve converged tightly (``step_tol`` 1e-5 instead
+   of 0.01 mm, where it stops short by a pose-dependent amount that adds to the steps).
 2. ``jax.jacrev`` of the tip (2,) with respect to the base (2,) against central differences
-   (h = 0.01 mm) at four poses on the sweeps, with the solver converged tightly (``step_tol``
-   1e-5): the largest relative error ||J - J_central|| / ||J_central|| (Frobenius).
+   (h = 0.01 mm) at four poses on the sweeps, converged tightly: the largest relative error
+   ||J - J_central|| / ||J_central|| (Frobenius).
 3. ``--speed``: ``estimate_grasp_batch`` throughput on ``bench_touching_grid.py``'s touching grid
    (4,851 poses over a 15 mm disc as a 0.3 mm ``SDFGrid``), bilinear against bicubic lookup, best of
-   ``--repeats`` alternating runs.
+   ``--repeats`` runs of the four combinations in turn.
 """
 
 from __future__ import annotations
@@ -100,41 +102,53 @@ def worst_steps(est) -> list[tuple[float, int, int, set]]:
     return out
 
 
-def gradient_errors(sdf) -> tuple[float, list[float]]:
-    """Largest relative error of the implicit Jacobian d tip / d base against central differences
-    over GRADIENT_POSES, and the central Jacobians' norms."""
-    tip = lambda b: estimate(FINGER, sdf, b, method="mechanics", mechanics=TIGHT).joints[-1]  # noqa: E731
-    bases = jnp.asarray(GRADIENT_POSES, jnp.float32)
-    jacobians = np.asarray(jax.jit(jax.vmap(jax.jacrev(tip)))(bases), np.float64)
+def tight_sweeps_and_gradients(sdf, bases: jax.Array) -> tuple[list, float, list[float]]:
+    """:func:`worst_steps` of the sweeps converged tightly, the largest relative error of the
+    implicit Jacobian d tip / d base against central differences over GRADIENT_POSES (the shifted
+    bases estimated in the sweeps' batch), and the central Jacobians' norms."""
     h = 0.01
-    shifts = np.concatenate([np.asarray(GRADIENT_POSES)[:, None, :] + s * h * np.eye(2)[None] for s in (1, -1)], axis=1)
-    tips = np.asarray(jax.jit(jax.vmap(tip))(jnp.asarray(shifts.reshape(-1, 2), jnp.float32)), np.float64)
-    tips = tips.reshape(len(GRADIENT_POSES), 4, 2)
+    poses = np.asarray(GRADIENT_POSES, np.float32)
+    shifts = np.concatenate([poses[:, None, :] + s * h * np.eye(2)[None] for s in (1, -1)], axis=1).reshape(-1, 2)
+    est = estimate_batch(FINGER, sdf, jnp.concatenate([bases, jnp.asarray(shifts, jnp.float32)]), method="mechanics",
+                         mechanics=TIGHT)
+    n = bases.shape[0]
+    sweeps = worst_steps(jax.tree_util.tree_map(lambda x: x[:n], est))
+    tips = np.asarray(est.joints[n:, -1], np.float64).reshape(len(poses), 4, 2)
     central = ((tips[:, :2] - tips[:, 2:]) / (2 * h)).transpose(0, 2, 1)  # (P, tip axis, base axis)
+    tip = lambda b: estimate(FINGER, sdf, b, method="mechanics", mechanics=TIGHT).joints[-1]  # noqa: E731
+    jacobians = np.asarray(jax.jit(jax.vmap(jax.jacrev(tip)))(jnp.asarray(poses)), np.float64)
     norms = np.linalg.norm(central, axis=(1, 2))
-    return float((np.linalg.norm(jacobians - central, axis=(1, 2)) / norms).max()), norms.tolist()
+    return sweeps, float((np.linalg.norm(jacobians - central, axis=(1, 2)) / norms).max()), norms.tolist()
 
 
 def speed(repeats: int) -> list[str]:
-    from bench_touching_grid import gripper, pose_grid, timed
+    """Fingers per second of the geometric and the mechanics estimate on the touching grid, with the
+    bilinear and the bicubic lookup, timed alternately (best of ``repeats``) so that load from other
+    processes biases neither."""
+    import time
 
-    from softgrip_jax import Geometric, Mechanics, PolygonSDF
+    from bench_touching_grid import gripper, pose_grid
+
+    from softgrip_jax import Geometric, Mechanics, PolygonSDF, estimate_grasp_batch
 
     disc = PolygonSDF.regular((0.0, 38.0), 15.0, 128)
-    poses = pose_grid(21, 11)
-    rows = ["| lookup | estimate | fingers/s | bicubic / bilinear |", "|---|---|---|---|"]
-    best = {}
-    for interpolation in ("linear", "cubic"):
-        grid = jax.block_until_ready(SDFGrid.sample(disc, origin=(-60.0, -20.0), spacing=(0.3, 0.3), shape=(334, 400),
-                                                    interpolation=interpolation))
-        times, _ = timed({"geometric": Geometric(), "mechanics": Mechanics()}, gripper(), grid, poses, repeats)
-        best[interpolation] = times
-    for k in ("geometric", "mechanics"):
-        for interpolation, name in (("linear", "bilinear"), ("cubic", "bicubic")):
-            rate = 2 * poses.shape[0] / best[interpolation][k]
-            ratio = best["linear"][k] / best["cubic"][k]
-            rows.append(f"| {name} | {k} | {rate:,.0f} | {ratio:.2f} |" if interpolation == "cubic"
-                        else f"| {name} | {k} | {rate:,.0f} | |")
+    poses, g = pose_grid(21, 11), gripper()
+    grids = {k: jax.block_until_ready(SDFGrid.sample(disc, origin=(-60.0, -20.0), spacing=(0.3, 0.3), shape=(334, 400),
+                                                     interpolation=k)) for k in ("linear", "cubic")}
+    runs = {(k, e): (lambda k=k, est=est: jax.block_until_ready(estimate_grasp_batch(g, grids[k], poses, estimator=est)))
+            for e, est in (("geometric", Geometric()), ("mechanics", Mechanics())) for k in grids}
+    for run in runs.values():  # compilation
+        run()
+    best = dict.fromkeys(runs, float("inf"))
+    for _ in range(repeats):
+        for key, run in runs.items():
+            t0 = time.perf_counter()
+            run()
+            best[key] = min(best[key], time.perf_counter() - t0)
+    rows = ["| estimate | bilinear fingers/s | bicubic fingers/s | bicubic time / bilinear time |", "|---|---|---|---|"]
+    for e in ("geometric", "mechanics"):
+        lin, cub = best[("linear", e)], best[("cubic", e)]
+        rows.append(f"| {e} | {2 * poses.shape[0] / lin:,.0f} | {2 * poses.shape[0] / cub:,.0f} | {cub / lin:.2f} |")
     return rows
 
 
@@ -146,15 +160,17 @@ def main() -> None:
     print(f"`python benchmarks/bench_smooth_sdf.py{' --speed' if args.speed else ''}` on {describe()}\n")
     print(f"Base sweeps in {STEP} mm steps ({POSES} poses each); d tip / d base against central differences "
           f"(h = 0.01 mm) at {len(GRADIENT_POSES)} poses {list(GRADIENT_POSES)}.\n")
-    print("| object | sweep | cases | flagged | neighbours | worst joint step (mm) |")
-    print("|---|---|---|---|---|---|")
+    print("| object | sweep | cases | flagged | neighbours | worst joint step (mm) | converged tightly: "
+          "flagged, neighbours, worst joint step (mm) |")
+    print("|---|---|---|---|---|---|---|")
     bases = jnp.asarray(sweep_bases())
     gradients = {}
     for name, sdf in objects().items():
-        est = estimate_batch(FINGER, sdf, bases, method="mechanics")
-        for sweep, (worst, pairs, flagged, cases) in zip(SWEEPS, worst_steps(est)):
-            print(f"| {name} | {sweep} | {sorted(cases)} | {flagged} | {pairs} | {worst:.4f} |", flush=True)
-        gradients[name] = gradient_errors(sdf)
+        default = worst_steps(estimate_batch(FINGER, sdf, bases, method="mechanics"))
+        tight, *gradients[name] = tight_sweeps_and_gradients(sdf, bases)
+        for sweep, (worst, pairs, flagged, cases), (t_worst, t_pairs, t_flagged, _) in zip(SWEEPS, default, tight):
+            print(f"| {name} | {sweep} | {sorted(cases)} | {flagged} | {pairs} | {worst:.4f} | "
+                  f"{t_flagged}, {t_pairs}, {t_worst:.4f} |", flush=True)
     print("\n| object | d tip / d base: largest relative error against central differences | "
           "norm of the central Jacobians |")
     print("|---|---|---|")
