@@ -278,7 +278,7 @@ def _cubic_taps(values: Array, row0: Array, col0: Array) -> list[list[Array]]:
     """The 4 x 4 samples around each cell (rows row0-1 ... row0+2, columns col0-1 ... col0+2), with
     indices clamped into the grid (a clamped tap is a folded ghost and has weight 0): sixteen
     gathers by flat index, which XLA:CPU fuses with the weights (a single gather of a 4 x 4 patch,
-    or a 2-D index array, ran about ten times slower on this machine)."""
+    or of a 2-D index array, is not fused and ran much slower)."""
     h, w = values.shape
     flat = values.reshape(-1)
     rows = [jnp.clip(row0 + k, 0, h - 1).astype(jnp.uint32) * jnp.uint32(w) for k in (-1, 0, 1, 2)]
@@ -295,8 +295,8 @@ def _catmull_rom(values: Float[Array, "h w"], row: Float[Array, "*batch"], col: 
     """Bicubic Catmull-Rom lookup at grid coordinates (row, col) within [0, H-1] x [0, W-1].
 
     Its derivative (custom JVP) is the analytic one, from the same sixteen samples: left to plain
-    autodiff, the reverse pass ran about ten times slower than the lookup. Higher derivatives (the
-    Hessian the implicit differentiation of an equilibrium uses) differentiate that rule.
+    autodiff, the reverse pass ran much slower than the lookup. Higher derivatives (the Hessian the
+    implicit differentiation of an equilibrium uses) differentiate that rule.
     """
     h, w = values.shape
     row0, ty, first_r, last_r = _cubic_cell(h, row)
