@@ -91,10 +91,11 @@ def test_the_cubic_lookup_reproduces_quadratics_inside_and_linear_fields_up_to_t
     anywhere = np.concatenate([rng.uniform(lo, hi, (500, 2)), [lo, hi, [lo[0], hi[1]], [hi[0], lo[1]]]])
     for field, points in [(quadratic, inner), (linear, anywhere)]:
         grid = SDFGrid(values=field(x, y), origin=origin, spacing=spacing)
-        np.testing.assert_allclose(grid.distance(jnp.asarray(points)), field(*points.T), atol=1e-11)
+        np.testing.assert_allclose(jax.jit(lambda p: grid.distance(p))(jnp.asarray(points)), field(*points.T),  # noqa: B023
+                                   atol=1e-11)
     # ... including the Hessian the mechanics estimate's implicit derivative uses
     grid = SDFGrid(values=quadratic(x, y), origin=origin, spacing=spacing)
-    hessian = jax.vmap(jax.hessian(grid.distance))(jnp.asarray(inner[:20]))
+    hessian = jax.jit(jax.vmap(jax.hessian(lambda p: grid.distance(p))))(jnp.asarray(inner[:20]))
     np.testing.assert_allclose(hessian, np.broadcast_to([[2.0, -3.0], [-3.0, 4.0]], (20, 2, 2)), atol=1e-9)
     # A quadratic in a border cell is not reproduced (the ghost is linear): the exactness is the
     # interior's, not an accident of the field.
@@ -116,8 +117,8 @@ def test_a_disc_at_03_mm_cells_is_read_within_1e_4_mm_and_its_normal_within_1e_3
     for interpolation in ("cubic", "linear"):
         grid = SDFGrid.sample(exact, origin=(-15.0, -15.0), spacing=(0.3, 0.3), shape=(111, 111),
                               interpolation=interpolation)
-        distance_error = np.abs(np.asarray(grid.distance(points)) - offset).max()
-        normals = np.asarray(jax.vmap(lambda p: unit_gradient(grid.distance, p))(points))
+        distance_error = np.abs(np.asarray(jax.jit(lambda p: grid.distance(p))(points)) - offset).max()  # noqa: B023
+        normals = np.asarray(jax.jit(jax.vmap(lambda p: unit_gradient(grid.distance, p)))(points))  # noqa: B023
         errors[interpolation] = distance_error, np.linalg.norm(normals - radial, axis=-1).max()
     assert errors["cubic"][0] < 1e-4 and errors["cubic"][1] < 1e-3, errors
     assert errors["linear"][0] > 1e-3 and errors["linear"][1] > 1e-2, errors  # the contrast
@@ -131,11 +132,12 @@ def test_jax_grad_and_hessian_of_the_cubic_lookup_match_central_differences(x64)
     points = jnp.asarray(np.array([-1.0, 2.0]) + cells * [0.3, 0.4])
     h = 1e-6
     e = np.eye(2) * h
-    central = np.stack([(grid.distance(points + e[i]) - grid.distance(points - e[i])) / (2 * h) for i in range(2)], -1)
-    np.testing.assert_allclose(jax.vmap(jax.grad(grid.distance))(points), central, atol=1e-7)
-    grad = jax.vmap(jax.grad(grid.distance))
+    distance = jax.jit(lambda p: grid.distance(p))
+    grad = jax.jit(jax.vmap(jax.grad(grid.distance)))
+    central = np.stack([(distance(points + e[i]) - distance(points - e[i])) / (2 * h) for i in range(2)], -1)
+    np.testing.assert_allclose(grad(points), central, atol=1e-7)
     central2 = np.stack([(grad(points + e[i]) - grad(points - e[i])) / (2 * h) for i in range(2)], -1)
-    np.testing.assert_allclose(jax.vmap(jax.hessian(grid.distance))(points), central2, atol=1e-5)
+    np.testing.assert_allclose(jax.jit(jax.vmap(jax.hessian(grid.distance)))(points), central2, atol=1e-5)
     # and with respect to the grid's origin (the object's position) and samples
     point = points[7]
     by_origin = jax.grad(lambda o: SDFGrid(grid.values, o, grid.spacing).distance(point))(grid.origin)
