@@ -432,7 +432,10 @@ def test_closed_form_derivatives_match_autodiff(kind, handedness):
     assert float(penetration) > 0  # stations inside r: the contact terms are exercised
     for ours, reference in [(d.hessian, hessian), (d.mixed, mixed), (d.tip, tip)]:
         np.testing.assert_allclose(ours, reference, atol=1e-5 * float(jnp.max(jnp.abs(reference))))
-    np.testing.assert_allclose(d.gradient, gradient, atol=1e-4)
+    # The gradient nearly cancels at equilibrium: y against contact terms of lever arms up to L
+    # times the penalty weight, where float32 rounding of a 16-sample grid lookup alone reaches
+    # about 1e-4 (in float64 the test passes at atol 1e-4).
+    np.testing.assert_allclose(d.gradient, gradient, atol=3e-4)
 
 
 def test_batch_marks_bad_bases_invalid_and_leaves_the_others_unchanged():

@@ -56,9 +56,14 @@ def test_polygon_sdf_vertex_gradient_matches_finite_differences(x64):
     assert np.abs(fd).sum() > 0.5  # the point's nearest edge moves with its vertices
 
 
-def test_sdf_grid_is_bilinear_and_far_outside():
+@pytest.mark.parametrize("interpolation", ["cubic", "linear"])
+def test_sdf_grid_reproduces_a_linear_field_and_is_far_outside(interpolation):
+    # v = col + 10 row is linear: both lookups reproduce it, the cubic one up to the grid's edge
+    # (its ghost samples past the edge are extrapolated linearly). (9, 7.5) is the last corner,
+    # (6, 7.25) the middle of the first cell: 0.5 + 10 * 0.5.
     values = jnp.array([[0.0, 1.0, 2.0], [10.0, 11.0, 12.0]])
-    grid = SDFGrid(values=values, origin=jnp.array([5.0, 7.0]), spacing=jnp.array([2.0, 0.5]))
+    grid = SDFGrid(values=values, origin=jnp.array([5.0, 7.0]), spacing=jnp.array([2.0, 0.5]),
+                   interpolation=interpolation)
     pts = jnp.array([[5.0, 7.0], [9.0, 7.5], [6.0, 7.25], [4.9, 7.0], [5.0, 7.6], [100.0, 100.0]])
     d = np.asarray(grid.distance(pts))
     np.testing.assert_allclose(d[:3], [0.0, 12.0, 5.5], atol=1e-5)
@@ -102,32 +107,36 @@ def test_sdf_grid_from_numpy_with_a_scalar_spacing_matches_the_jax_grid():
         SDFGrid(values=values, origin=np.zeros(2), spacing=0.0)
 
 
-@pytest.mark.parametrize("sampled", [False, True])
+@pytest.mark.parametrize("sampled", [None, "linear", "cubic"])
 def test_surface_point_lands_in_a_concave_corner_and_on_a_circle(sampled):
     # An L-shaped object whose inner corner is the origin, free space in the quadrant x, y > 0. The
     # point (3.2, 3.1) is 3.1 from the wall y = 0 and 3.2 from x = 0: its nearest surface point is
-    # (3.2, 0). On a 0.5-mm grid it lies in a cell across the corner's bisector, where the bilinear
+    # (3.2, 0). On a 0.5-mm grid it lies 0.2 cells from the corner's bisector, where the sampled
     # gradient blends the two walls' normals: one step along it stops short of the surface, out in
-    # the corner's free space (0.38 mm here; 3 (1 - 1/sqrt(2)) = 0.88 mm from (3, 3) on the bisector).
+    # the corner's free space (3 (1 - 1/sqrt(2)) = 0.88 mm from (3, 3) on the bisector). The bilinear
+    # gradient blends over the whole cell (0.38 mm short here); the bicubic one, whose slope is
+    # continuous, over a narrower band around the bisector (0.08 mm short).
     l_shape = PolygonSDF(jnp.array([[-20.0, -20.0], [20.0, -20.0], [20.0, 0.0], [0.0, 0.0], [0.0, 20.0],
                                     [-20.0, 20.0]]))
     circle = PolygonSDF.regular(center=(0.0, 0.0), radius=10.0, n_vertices=256)
     if sampled:
-        l_shape = SDFGrid.sample(l_shape, origin=(-30.0, -30.0), spacing=(0.5, 0.5), shape=(121, 121))
-        circle = SDFGrid.sample(circle, origin=(-30.0, -30.0), spacing=(0.5, 0.5), shape=(121, 121))
+        grid = dict(origin=(-30.0, -30.0), spacing=(0.5, 0.5), shape=(121, 121), interpolation=sampled)
+        l_shape = SDFGrid.sample(l_shape, **grid)
+        circle = SDFGrid.sample(circle, **grid)
     point = jnp.array([3.2, 3.1])
     one_step = point - l_shape.distance(point) * unit_gradient(l_shape.distance, point)
     on_surface = surface_point(l_shape.distance, point)
     assert abs(float(l_shape.distance(on_surface))) < 0.02
     if sampled:
-        assert float(l_shape.distance(one_step)) > 0.3  # the single step, out in the corner's free space
+        # the single step, out in the corner's free space
+        assert float(l_shape.distance(one_step)) > (0.3 if sampled == "linear" else 0.05)
         # on the surface, in the corner's reach: not farther than the corner itself
         assert float(jnp.linalg.norm(on_surface - point)) <= float(jnp.linalg.norm(point)) + 0.02
     else:  # the exact distance has one nearest point, and the first step lands on it
         np.testing.assert_allclose(on_surface, [3.2, 0.0], atol=1e-4)
     # On a circle of radius 10 the surface point of (15 cos a, 15 sin a) is (10 cos a, 10 sin a). The
     # 256-gon's facet normals are within pi / 256 of radial, which slides the foot along the circle by
-    # up to 5 pi / 256 = 0.06 mm; the grid's bilinear gradient stays within that too.
+    # up to 5 pi / 256 = 0.06 mm; the grid's gradients stay within that too.
     a = 0.7
     foot = surface_point(circle.distance, jnp.array([15.0 * np.cos(a), 15.0 * np.sin(a)]))
     np.testing.assert_allclose(foot, [10.0 * np.cos(a), 10.0 * np.sin(a)], atol=0.07)

@@ -80,7 +80,7 @@ def _check_geometric(drawn: Drawn, est, sweep_min: np.ndarray) -> None:
     touches, n_g1 = np.asarray(c.touches), np.asarray(c.n_g1)
     graze = graze_tolerance(finger) + ROUNDING_MM
     # The estimator brackets on its own stations with a parabola between them, clamped by the
-    # distance's Lipschitz bound; on the bilinear grid it may call a touch up to half a grid step
+    # distance's Lipschitz bound; on a grid it may call a touch up to half a grid step
     # early (and place the contact point within one grid step of the dilated boundary).
     step = _grid_step(drawn)
 
@@ -143,7 +143,7 @@ def _check_mechanics(drawn: Drawn, est, geometric) -> None:
     assert np.allclose(np.asarray(est.contact.s1)[both], np.asarray(geometric.contact.s1)[both], atol=1e-5)
     # Not inside the dilated object: a converged equilibrium keeps its stations within contact_tol
     # of r; between two stations (L / (N stations_per_link) apart) the chain can cut a corner of the
-    # dilated object (radius >= r) by spacing^2 / (8 r); the bilinear grid adds up to half a step.
+    # dilated object (radius >= r) by spacing^2 / (8 r); the grid lookup adds up to half a step.
     spacing = length / (n * per_link)
     tol = MECHANICS.contact_tol + spacing**2 / (8.0 * r) + 0.5 * _grid_step(drawn) + ROUNDING_MM
     clearance = _centreline_clearance(drawn, joints)
