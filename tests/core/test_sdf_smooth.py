@@ -181,7 +181,9 @@ def test_the_mechanics_estimate_on_the_vision_sdf_moves_continuously_and_its_gra
     # it stops (up to step_tol short, by a pose-dependent amount) does not pose as a step.
     grid = vision_disc()
     assert np.allclose(np.asarray(grid.spacing), 0.3) and grid.interpolation == "cubic"
-    tight = MechanicsConfig(step_tol=1e-5, max_steps=200)
+    # (step_tol 1e-5: float32 rounding kept one pose from two such steps in a row, which the solve
+    # now needs to converge)
+    tight = MechanicsConfig(step_tol=1e-4, max_steps=200)
     sweep = np.column_stack([np.zeros(91), -0.18 + 0.002 * np.arange(91)])  # y in [-0.18, 0]: tip held
     regular = np.array([[0.0, -0.1], [0.0, -0.03]])
     h = 0.01
