@@ -40,7 +40,7 @@ import numpy as np
 
 from calib.fit import FitError, NotConvergedError, Observation, fit, profile_residuals
 from calib.profile import CalibrationProfile
-from softgrip_jax import AbstractEstimator, ContactConfig, Mechanics, Status, as_estimator
+from softgrip_jax import AbstractEstimator, ContactConfig, Status, as_estimator
 
 
 @dataclass(frozen=True)
@@ -98,7 +98,7 @@ def fit_stiffness_model(
         FitError: as :func:`calib.fit.fit` for the uniform model (no usable pair, no convergence,
             ...), or a non-mechanics estimator.
     """
-    estimator = as_estimator(estimator, None, None) if estimator is not None else Mechanics()
+    estimator = as_estimator(estimator)  # None: Mechanics()
     if estimator.name != "mechanics":
         raise FitError(f"the stiffness model only changes the mechanics estimate; the fit goes through the "
                        f"{estimator.name} estimate (fit it with calib.fit.fit, or use Mechanics())")
