@@ -35,9 +35,9 @@ Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps 
     >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames and profile
     >>> scene = frame_scene(data / "circle_open", load_profile(data / "sample_profile.json"))
     >>> print(scene.summary())
-    circle_open: gripper at x 0.0 mm, y -45.0 mm, angle -0.001 rad; object 29.3 x 29.3 mm; plane 120.0 mm deep
-    >>> print(scene.conventions["axes"], "| plane depth (mm):", scene.conventions["plane"]["depth_mm"])
-    x to the right and y down, as the image's u and v, in the gripper plane | plane depth (mm): 119.9786
+    circle_open: gripper at x 0.0 mm, y -45.1 mm, angle -0.001 rad; object 29.3 x 29.3 mm; plane 120.0 mm deep
+    >>> print(scene.conventions["axes"], "| plane depth (mm):", round(scene.conventions["plane"]["depth_mm"], 1))
+    x to the right and y down, as the image's u and v, in the gripper plane | plane depth (mm): 120.0
     >>> print({side: np.round(f["base_mm"], 1).tolist() for side, f in scene.finger_frames.items()})
     {'left': [-32.0, -45.1], 'right': [32.0, -45.0]}
     >>> # Both fingers at the frame's own pose; the first estimate compiles (seconds), later ones do not.
@@ -45,13 +45,13 @@ Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps 
     >>> for side in ("left", "right"):
     ...     f = getattr(grasp, side)
     ...     print(side, scene.case_name(grasp, side), "tip (mm):", [round(float(v), 1) for v in f.joints[-1]])
-    left other tip (mm): [-6.8, -2.2]
+    left other tip (mm): [-6.9, -2.2]
     right other tip (mm): [7.1, -2.0]
     >>> # Candidate poses as numpy (B, 3): x mm, y mm, angle rad; here the frame's pose, 4 mm left, 80 mm up.
     >>> poses = scene.pose + np.array([[0.0, 0.0, 0.0], [-4.0, 0.0, 0.0], [0.0, -80.0, 0.0]])
     >>> result = scene.score(poses, estimator=Geometric())  # numpy out; -inf where not valid
     >>> print(rank(result).tolist(), [round(float(v), 3) for v in result.score], result.valid.tolist())
-    [0, 1, 2] [0.195, 0.194, -inf] [True, True, False]
+    [0, 1, 2] [0.196, 0.194, -inf] [True, True, False]
 """
 
 from __future__ import annotations
