@@ -27,7 +27,7 @@ import numpy as np
 
 from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import FingerFrame, SoftgripError, pcc_joints
-from vision.frames import Frame
+from vision.frames import Frame, undistort_frame
 from vision.geometry import PlaneCamera
 from vision.keypoints import FingerKeypoints, finger_length, gripper_angle, theta_from_closed
 from vision.measure import (PLANE_AGREEMENT_MM, GripperMeasurement, MeasureSettings, MeasurementWarning,
@@ -166,11 +166,14 @@ def frame_measurement(frame: Frame, settings: SegmentationSettings | None = None
     (e.g. a steep camera tilt) are issued as :class:`vision.measure.MeasurementWarning`.
 
     ``center_hint`` (px) is where another frame of the same set-up put the gripper's centre line
-    (used to split fingers that touch); None to find it in this frame.
+    (used to split fingers that touch); None to find it in this frame. A frame with lens distortion
+    is undistorted first (:func:`vision.frames.undistort_frame`): the measurement's pixels are those
+    of the pinhole frame.
 
     Raises:
         SoftgripError: segmentation or keypoint failures (their messages say what to adjust).
     """
+    frame = undistort_frame(frame)  # the lens undone before any millimetre is measured (free without one)
     seg = segment(frame, settings, center_hint=center_hint)
     measurement = measure_gripper(frame, seg, measure)
     for note in measurement.warnings():

@@ -222,12 +222,12 @@ def _estimate_scene(data: Path, name: str, scene: pipe.FrameScene, profile, out:
 
 def _observed(path: Path, profile, n_links: int) -> list[np.ndarray]:
     """[left, right] observed positions (eq. 10: the closed centreline in N equal arc lengths), mm."""
-    from vision.frames import load_frame
+    from vision.frames import load_frame, undistort_frame
     from vision.measure import measure_gripper
     from vision.segmentation import segment
 
     try:
-        frame = load_frame(path)
+        frame = undistort_frame(load_frame(path))
         seg = segment(frame, pipe.segmentation_settings(profile))
         keypoints = measure_gripper(frame, seg, profile.measure_settings()).keypoints
     except SoftgripError as err:

@@ -91,6 +91,7 @@ class Intrinsics:
         model, coeffs = _check_distortion(self.model, self.coeffs)
         object.__setattr__(self, "model", model)
         object.__setattr__(self, "coeffs", coeffs)
+        _check_monotonic(self)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object of ``intrinsics.json`` (``model`` and ``coeffs`` only with a distortion)."""
@@ -199,7 +200,7 @@ class Intrinsics:
         flat = pts.reshape(-1, 1, 2)
         k, coeffs = self.matrix, np.asarray(self.coeffs, np.float64)
         if self.model == "kannala_brandt4":
-            out = cv2.fisheye.undistortPoints(flat, k, coeffs[:4], P=k)
+            out = cv2.fisheye.undistortPoints(flat, k, coeffs[:4], P=k, criteria=_UNDISTORT_CRITERIA)
         elif self.model == "inverse_brown_conrady":
             # The coefficients map distorted to undistorted: apply them forward (projectPoints) to the
             # normalised distorted rays.
@@ -207,7 +208,7 @@ class Intrinsics:
             homogeneous = np.concatenate([rays, np.ones((len(rays), 1))], axis=1)
             out, _ = cv2.projectPoints(homogeneous, np.zeros(3), np.zeros(3), k, coeffs)
         else:
-            out = cv2.undistortPoints(flat, k, coeffs, P=k)
+            out = cv2.undistortPoints(flat, k, coeffs, P=k, criteria=_UNDISTORT_CRITERIA)
         return out.reshape(pts.shape)
 
     @classmethod
@@ -254,52 +255,194 @@ def _check_distortion(model: Any, coeffs: Any) -> tuple[str, tuple[float, ...]]:
         values = tuple(float(c) for c in coeffs)
     except (TypeError, ValueError):
         raise FrameError(f"coeffs must be a list of numbers, got {coeffs!r}") from None
-    if not all(math.isfinite(c) for c in values):
-        raise FrameError(f"coeffs must be finite, got {list(values)}")
+    bad = next((index for index, value in enumerate(values) if not math.isfinite(value)), None)
+    if bad is not None:
+        raise FrameError(f"coeffs[{bad}] of the {model} lens model is {values[bad]!r}: the distortion "
+                         f"coefficients must be finite numbers (a lens without distortion: all 0)")
     if model == "none" and any(values):
         raise FrameError(f"coeffs {list(values)} given with model 'none': name the distortion model")
     if values and len(values) not in DISTORTION_MODELS[model]:
         raise FrameError(f"model {model!r} takes {' or '.join(map(str, DISTORTION_MODELS[model]))} coefficients, "
                          f"got {len(values)}")
+    names = _COEFF_NAMES.get(model, ())
+    for index, (name, value) in enumerate(zip(names, values)):
+        limit = _COEFF_LIMITS[model][name[0]]
+        if abs(value) > limit:
+            raise FrameError(
+                f"coeffs[{index}] ({name}) of the {model} lens model is {value!r}, beyond any real lens "
+                f"(|{name}| <= {limit:g} here; a RealSense D4xx colour camera has |k| < 0.1, an OpenCV calibration "
+                f"of a webcam k1 in [-1, 1]): check the coefficients' order ({', '.join(names)}) and units")
     return model, values
+
+
+#: Each model's coefficients by name, in the order of ``coeffs`` (OpenCV's and pyrealsense2's).
+_COEFF_NAMES: dict[str, tuple[str, ...]] = {
+    "brown_conrady": ("k1", "k2", "p1", "p2", "k3"),
+    "inverse_brown_conrady": ("k1", "k2", "p1", "p2", "k3"),
+    "modified_brown_conrady": ("k1", "k2", "p1", "p2", "k3"),
+    "rational_polynomial": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+    "kannala_brandt4": ("k1", "k2", "k3", "k4", "k5"),
+}
+#: Largest |coefficient| accepted, by kind (k: radial, p: tangential), far beyond real lenses so that
+#: only a mistake (units, order, a corrupted file, 1e30) is refused; whether the lens map is usable
+#: over the image is checked separately (:func:`_check_monotonic`). Real values: a RealSense D4xx
+#: colour camera |k| < 0.1 and |p| < 0.005; OpenCV calibrations of webcams and wide-angle lenses k1 in
+#: [-1, 1] with k2, k3 up to a few units (higher orders offset each other); the rational model's
+#: numerator and denominator terms reach tens together; fisheye (Kannala-Brandt) k1-k4 |k| < 1; the
+#: tangential p of an assembled lens below 0.01 (0.05 moves an image corner by about 60 px).
+_COEFF_LIMITS: dict[str, dict[str, float]] = {
+    "brown_conrady": {"k": 20.0, "p": 0.05},
+    "inverse_brown_conrady": {"k": 20.0, "p": 0.05},
+    "modified_brown_conrady": {"k": 20.0, "p": 0.05},
+    "rational_polynomial": {"k": 100.0, "p": 0.05},
+    "kannala_brandt4": {"k": 5.0},
+}
+
+
+def _radial_map(intr: Intrinsics, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The model's radial map on normalised radii ``r`` (tangential terms aside) and the
+    denominator that must stay positive: for the forward models (brown_conrady, rational,
+    modified), the distorted radius of an ideal ray at radius r (tan of its angle off axis); for
+    inverse_brown_conrady, the ideal radius of a distorted pixel at r; for kannala_brandt4, the
+    distorted radius of a ray at angle r (rad) off axis."""
+    c = np.zeros(8)
+    c[:len(intr.coeffs)] = intr.coeffs
+    r2 = r * r
+    if intr.model == "kannala_brandt4":
+        return r * (1 + c[0] * r2 + c[1] * r2**2 + c[2] * r2**3 + c[3] * r2**4), np.ones_like(r)
+    numerator = 1 + c[0] * r2 + c[1] * r2**2 + c[4] * r2**3
+    denominator = 1 + c[5] * r2 + c[6] * r2**2 + c[7] * r2**3  # 1 but for the rational model
+    return r * numerator / np.where(denominator > 0, denominator, 1.0), denominator
+
+
+def corner_radius(intr: Intrinsics) -> float:
+    """The largest normalised radius ((u - ppx) / fx, (v - ppy) / fy) of the image's corners, the
+    outer edges of the corner pixels."""
+    u = np.array([-0.5, intr.width - 0.5]) - intr.ppx
+    v = np.array([-0.5, intr.height - 0.5]) - intr.ppy
+    return float(np.sqrt(np.max(u**2) / intr.fx**2 + np.max(v**2) / intr.fy**2))
+
+
+def _check_monotonic(intr: Intrinsics) -> None:
+    """Refuse a lens model that is not invertible over the image: its radial map (:func:`_radial_map`)
+    must increase from the principal point out to the image's farthest corner, else two rays would meet at
+    one pixel (a lens does not do that, a wrong sign or coefficient order does) and undistortion has no
+    unique answer."""
+    if not intr.distorted:
+        return
+    corner = corner_radius(intr)
+    if intr.model == "inverse_brown_conrady":  # a map of distorted radii: over the image's own radii
+        r = np.linspace(0.0, corner, 4001)
+    elif intr.model == "kannala_brandt4":  # angles off axis, up to 90 degrees (beyond: no pinhole image)
+        r = np.linspace(0.0, 0.5 * math.pi, 20001)[:-1]
+    else:  # ideal radii (tan of the angle off axis) up to 89 degrees
+        r = np.linspace(0.0, math.tan(math.radians(89.0)), 100001)
+    mapped, denominator = _radial_map(intr, r)
+    if intr.model != "inverse_brown_conrady":
+        reached = np.nonzero(mapped >= corner)[0]
+        if len(reached):  # the part of the map the image shows
+            r, mapped, denominator = r[:reached[0] + 1], mapped[:reached[0] + 1], denominator[:reached[0] + 1]
+    rising = (np.diff(mapped) > 0) & (denominator[1:] > 0)
+    if not rising.all():
+        stop = float(mapped[np.argmin(rising)]) * intr.fx
+        raise FrameError(
+            f"the {intr.model} lens model with coeffs {list(intr.coeffs)} folds back {stop:.0f} px from the "
+            f"principal point, inside the image (its corners are {corner * intr.fx:.0f} px away): two rays would "
+            f"meet at one pixel, which no lens does; check the coefficients' signs and order "
+            f"({', '.join(_COEFF_NAMES[intr.model])}) and that they belong to this resolution")
+    if intr.model not in ("inverse_brown_conrady", "kannala_brandt4") and mapped[-1] < corner:
+        raise FrameError(
+            f"the {intr.model} lens model with coeffs {list(intr.coeffs)} maps no ray within 89 degrees of the "
+            f"optical axis to the image's corners ({corner * intr.fx:.0f} px from the principal point): check the "
+            f"coefficients' signs and order ({', '.join(_COEFF_NAMES[intr.model])})")
+
+
+#: OpenCV's iterative undistortion stops after 5 steps by default, up to pixels off for a strong
+#: barrel (k1 -0.4, k2 0.2: 9 px at a 640x480 image's corners); these criteria converge to 1e-9.
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 
 
 def undistort_frame(frame: Frame) -> Frame:
     """The frame as an ideal pinhole camera with the same K would see it: colour and depth remapped
-    with OpenCV (bilinear for colour, nearest for depth so no depth is invented between an edge's two
-    sides), intrinsics without distortion. A frame without distortion is returned as it is."""
+    with OpenCV (:func:`undistortion_maps` and ``cv2.remap``: bilinear for colour, nearest for the
+    registered depth so that no depth is invented between an edge's two sides), intrinsics without
+    distortion (model ``"none"``, the same K). Pixels the lens does not see (a pincushion lens's ideal
+    corners) are black with no depth reading. A frame without distortion is returned as it is, so
+    calling it again is free.
+
+    Why the whole frame, once, before segmentation (rather than the contours and keypoints later):
+    every later step (segmentation, the finger's tube fit, the plane fit on depth, the object's
+    signed-distance grid, the overlays) then works on one pinhole image in which straight edges are
+    straight, and none of them can forget the lens; the cost is one remap, a few milliseconds at
+    640x480.
+    """
     intr = frame.intrinsics
     if not intr.distorted:
         return frame
-    _check_undistortable(intr)
-    h, w = frame.depth.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    ideal = np.stack([u, v], axis=-1).reshape(-1, 2)
-    # Where each ideal pixel lies in the distorted image: project the ideal rays through the lens.
-    source = _distort_points(intr, ideal).reshape(h, w, 2).astype(np.float32)
-    color = cv2.remap(frame.color, source[..., 0], source[..., 1], cv2.INTER_LINEAR, borderValue=0)
-    depth = cv2.remap(frame.depth, source[..., 0], source[..., 1], cv2.INTER_NEAREST, borderValue=0)
+    map_x, map_y = undistortion_maps(intr)
+    color = cv2.remap(frame.color, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    depth = cv2.remap(frame.depth, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     plain = Intrinsics(**{**asdict(intr), "model": "none", "coeffs": ()})
     return Frame(color=color, depth=depth, intrinsics=plain)
 
 
+def undistortion_maps(intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """For every pixel (v, u) of the ideal pinhole image (same K and size), where the lens images it
+    in the distorted image: ``(map_x, map_y)``, each float32 (H, W) in pixels, for ``cv2.remap``.
+
+    OpenCV's ``initUndistortRectifyMap`` (``cv2.fisheye``'s for kannala_brandt4); for RealSense's
+    inverse_brown_conrady, whose polynomial maps distorted to ideal, its inverse by OpenCV's iteration.
+
+    Raises:
+        FrameError: a model this cannot undistort (modified_brown_conrady).
+    """
+    _check_undistortable(intr)
+    size, k = (intr.width, intr.height), intr.matrix
+    coeffs = np.asarray(intr.coeffs, np.float64)
+    if not intr.distorted:
+        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float32)
+        return u, v
+    if intr.model == "kannala_brandt4":
+        return cv2.fisheye.initUndistortRectifyMap(k, coeffs[:4], np.eye(3), k, size, cv2.CV_32FC1)
+    if intr.model == "inverse_brown_conrady":
+        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
+        source = distort_points(intr, np.stack([u, v], axis=-1)).astype(np.float32)
+        return source[..., 0].copy(), source[..., 1].copy()
+    return cv2.initUndistortRectifyMap(k, coeffs, None, k, size, cv2.CV_32FC1)
+
+
 def _check_undistortable(intr: Intrinsics) -> None:
-    if intr.model in _NOT_UNDISTORTED:
+    if intr.model in _NOT_UNDISTORTED and intr.distorted:
         raise FrameError(f"undistorting the {intr.model!r} lens model is not supported; give the camera's "
                          f"intrinsics in another model (e.g. from its calibration with OpenCV)")
 
 
-def _distort_points(intr: Intrinsics, points: np.ndarray) -> np.ndarray:
-    """Ideal pixel positions (n, 2) -> where the distorted camera images them."""
+def distort_points(intr: Intrinsics, points: Any) -> np.ndarray:
+    """Ideal (pinhole, same K) pixel positions (..., 2) -> where the lens images them (..., 2): the
+    inverse of :meth:`Intrinsics.undistort_points`. OpenCV's ``projectPoints`` (``cv2.fisheye.distortPoints``
+    for kannala_brandt4); without distortion, the points unchanged."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.shape[-1:] != (2,):
+        raise FrameError(f"points must have shape (..., 2), got {pts.shape}")
+    if not intr.distorted:
+        return pts.copy()
+    _check_undistortable(intr)
+    flat = pts.reshape(-1, 1, 2)
     k, coeffs = intr.matrix, np.asarray(intr.coeffs, np.float64)
-    rays = cv2.undistortPoints(points.reshape(-1, 1, 2), k, None).reshape(-1, 2)
-    if intr.model == "kannala_brandt4":
-        return cv2.fisheye.distortPoints(rays.reshape(-1, 1, 2), k, coeffs[:4]).reshape(-1, 2)
     if intr.model == "inverse_brown_conrady":  # the inverse of applying the polynomial: OpenCV's iteration
-        return cv2.undistortPoints(points.reshape(-1, 1, 2), k, coeffs, P=k).reshape(-1, 2)
+        out = cv2.undistortPoints(flat, k, coeffs, P=k, criteria=_UNDISTORT_CRITERIA)
+        return out.reshape(pts.shape)
+    rays = cv2.undistortPoints(flat, k, None).reshape(-1, 2)
+    if intr.model == "kannala_brandt4":
+        return cv2.fisheye.distortPoints(rays.reshape(-1, 1, 2), k, coeffs[:4]).reshape(pts.shape)
     homogeneous = np.concatenate([rays, np.ones((len(rays), 1))], axis=1)
     out, _ = cv2.projectPoints(homogeneous, np.zeros(3), np.zeros(3), k, coeffs)
-    return out.reshape(-1, 2)
+    return out.reshape(pts.shape)
+
+
+def _distort_points(intr: Intrinsics, points: np.ndarray) -> np.ndarray:
+    """Ideal pixel positions (n, 2) -> where the distorted camera images them (:func:`distort_points`)."""
+    return distort_points(intr, points).reshape(-1, 2)
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,7 @@ import numpy as np
 
 from softgrip_jax import SDFGrid, SoftgripError
 from vision.coverage import edge_coverage
-from vision.frames import Frame
+from vision.frames import Frame, FrameError, undistort_frame
 from vision.geometry import TILT_WARN_DEG, PlaneCamera, PlaneFit, face_offset_mm, fit_gripper_plane
 from vision.keypoints import FingerKeypoints, gripper_keypoints
 from vision.object_sdf import object_sdf
@@ -161,6 +161,7 @@ class GripperMeasurement:
         outline at the depth of its own face, read at sub-pixel level from ``frame``'s colour (the
         frame this was measured in); far everywhere without an object (:func:`vision.object_sdf.object_sdf`)."""
         mask = self.segmentation.object
+        frame = undistort_frame(frame)  # the pixels the masks are in (the frame as given: undistorted again)
         return object_sdf(mask, self.object_camera, coverage=edge_coverage(frame.color, mask))
 
     def warnings(self) -> list[str]:
@@ -214,6 +215,9 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
     from vision import plausibility
 
     settings = settings or MeasureSettings()
+    if frame.intrinsics.distorted:  # millimetres from a pinhole model need the lens undone first
+        raise FrameError(f"the frame has lens distortion ({frame.intrinsics.model}): undistort it before segmenting "
+                         f"and measuring it (vision.frames.undistort_frame), as frame_scene and frame_measurement do")
     plausibility.check_intrinsics(frame.intrinsics)  # before any millimetre is computed from them
     provisional = PlaneCamera.from_frame(frame, segmentation.fingers)  # keypoints are found in pixels
     plausibility.check_gripper_depth(provisional.depth_mm, frame.intrinsics)

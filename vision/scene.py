@@ -194,7 +194,8 @@ class Scene:
 
     Attributes:
         path: the frame folder as given (:data:`MEMORY_PATH`, ``"<memory>"``, for a frame built in memory).
-        frame: the :class:`vision.frames.Frame` (colour, depth, intrinsics).
+        frame: the :class:`vision.frames.Frame` (colour, depth, intrinsics), with the lens distortion
+            undone (:func:`vision.frames.undistort_frame`): the pixels everything else refers to.
         segmentation: its :class:`vision.segmentation.Segmentation` (gripper, fingers, object masks).
         camera: the gripper plane's :class:`vision.geometry.PlaneCamera` (px <-> mm).
         keypoints: (left, right) :class:`vision.keypoints.FingerKeypoints`.
@@ -388,7 +389,7 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
         FrameSceneError: the frame cannot be read, segmented or measured; the message starts with
             the frame's path.
     """
-    from vision.frames import load_frame
+    from vision.frames import load_frame, undistort_frame
     from vision.measure import measure_gripper
     from vision.segmentation import segment
 
@@ -396,7 +397,8 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
     label = MEMORY_PATH if isinstance(frame, Frame) else str(frame)
     settings = profile.segmentation_settings() if settings is None else settings
     try:
-        loaded = frame if isinstance(frame, Frame) else load_frame(frame)
+        # Lens distortion undone once, before anything is measured: the scene's frame is the pinhole one.
+        loaded = undistort_frame(frame if isinstance(frame, Frame) else load_frame(frame))
         seg = segment(loaded, settings)
         measured = measure_gripper(loaded, seg, profile.measure_settings())
         camera, keypoints = measured.camera, measured.keypoints
