@@ -541,6 +541,125 @@ def plane_table(n_scenes: int) -> list[str]:
     return lines
 
 
+# ---------------------------------------------------------------------------------------------
+# Lens distortion (issue 32): rendered through a lens, undistorted by the pipeline
+
+
+#: Lenses swept by ``--distortion`` (OpenCV's coefficient order; none of them folds back over a
+#: 640x480 D405 image): barrel, strong barrel held monotonic by k2, pincushion, decentring (tangential),
+#: and an equidistant fisheye (Kannala-Brandt) of mild coefficients.
+LENSES: dict[str, tuple[str, tuple[float, ...]]] = {
+    "barrel k1 -0.1": ("brown_conrady", (-0.1, 0.0, 0.0, 0.0, 0.0)),
+    "barrel k1 -0.3, k2 0.1": ("brown_conrady", (-0.3, 0.1, 0.0, 0.0, 0.0)),
+    "pincushion k1 +0.1": ("brown_conrady", (0.1, 0.0, 0.0, 0.0, 0.0)),
+    "tangential p1 = p2 = 0.005": ("brown_conrady", (0.0, 0.0, 0.005, 0.005, 0.0)),
+    "fisheye k1 0.05, k2 -0.01": ("kannala_brandt4", (0.05, -0.01, 0.0, 0.0)),
+}
+
+
+def lens_errors(scene: AccuracyScene, lens: tuple[str, tuple[float, ...]] | None,
+                corrected: bool = True) -> tuple[VariantErrors, np.ndarray]:
+    """One-frame calibration and the geometric estimate (with the object) on ``scene`` rendered
+    through ``lens`` (None: pinhole). ``corrected=False`` drops the lens from the frames' intrinsics
+    (model "none", the same K) before the pipeline sees them: what happens when distortion is
+    ignored. Returns (the calibration's :class:`VariantErrors` against the truth, without
+    ``sdf_mean_mm`` (NaN) and ``detected``; the estimate's joints (2, N+1, 2), mm)."""
+    import dataclasses
+    import warnings
+
+    from calib.one_frame import free_closure_joints, one_frame_from_frames
+    from calib.profile import FingerEntry
+    from softgrip_jax import Geometric
+    from vision.scene import frame_scene
+
+    opened, closed = variant_scenes(scene, "default")
+    if lens is not None:
+        opened, closed = (dataclasses.replace(s, distortion=lens) for s in (opened, closed))
+    frames = [render(s, INTRINSICS) for s in (opened, closed)]
+    if not corrected:
+        frames = [Frame(f.color, f.depth, dataclasses.replace(f.intrinsics, model="none", coeffs=()))
+                  for f in frames]
+    open_frame, closed_frame = frames
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        profile = one_frame_from_frames(closed_frame, open_frame, N_LINKS)
+        grasp = frame_scene(open_frame, profile).estimate(estimator=Geometric())
+    separation = float(np.hypot(*(opened.fingers[1][0] - opened.fingers[0][0])))
+    truth = FingerEntry(LENGTH_MM, scene.theta, HALF_THICKNESS_MM, N_LINKS)
+    errors: dict[str, list[float]] = {"theta": [], "length": [], "r": [], "mid": [], "tip": []}
+    for side in ("left", "right"):
+        entry = profile.fingers[side]
+        errors["theta"].append(abs(entry.theta_entire - scene.theta))
+        errors["length"].append(100.0 * abs(entry.length - LENGTH_MM) / LENGTH_MM)
+        errors["r"].append(abs(entry.half_thickness - HALF_THICKNESS_MM))
+        gap = np.hypot(*(free_closure_joints(entry, np.zeros(2), side) - free_closure_joints(truth, np.zeros(2), side)).T)
+        errors["mid"].append(float(gap[N_LINKS // 2]))
+        errors["tip"].append(float(gap[N_LINKS]))
+    result = VariantErrors(
+        theta_rad=max(errors["theta"]), length_pct=max(errors["length"]),
+        separation_pct=100.0 * abs(profile.base_separation - separation) / separation,
+        half_thickness_mm=max(errors["r"]), sdf_mean_mm=float("nan"),
+        closure_mid_mm=max(errors["mid"]), closure_tip_mm=max(errors["tip"]), detected={})
+    return result, np.stack([np.asarray(grasp.left.joints), np.asarray(grasp.right.joints)])
+
+
+def lens_shift_px(lens: tuple[str, tuple[float, ...]]) -> float:
+    """The largest distance (px) between where ``lens`` images a pixel of the 640x480 pinhole image
+    and where the pinhole camera does, over the pixels the lens still sees."""
+    import dataclasses
+
+    from vision.frames import distort_points
+
+    intr = dataclasses.replace(INTRINSICS, model=lens[0], coeffs=lens[1])
+    v, u = np.mgrid[0:INTRINSICS.height:8, 0:INTRINSICS.width:8].astype(np.float64)
+    ideal = np.stack([u, v], axis=-1).reshape(-1, 2)
+    seen = distort_points(intr, ideal)
+    inside = (seen >= -0.5).all(axis=1) & (seen[:, 0] < INTRINSICS.width - 0.5) & (seen[:, 1] < INTRINSICS.height - 0.5)
+    return float(np.hypot(*(seen - ideal)[inside].T).max())
+
+
+#: The columns of the ``--distortion`` table and their goals (as :data:`VARIANT_GOALS`); estimate_mm:
+#: the geometric estimate with the object against the pinhole frames' (0.3 mm, as the closure).
+LENS_GOALS = {"theta_rad": 0.01, "length_pct": 1.0, "separation_pct": 0.5, "closure_tip_mm": 0.3, "estimate_mm": 0.3}
+
+
+def distortion_table(n_scenes: int) -> list[str]:
+    """Markdown rows: per lens, corrected and not, the worst calibration errors against the truth,
+    and the estimate against the pinhole rendering's, over ``n_scenes`` scenes with an object."""
+    from softgrip_jax import SoftgripError
+
+    scenes = [s for s in accuracy_scenes(4 * n_scenes) if s.object_name is not None][:n_scenes]
+    references = {s.index: lens_errors(s, None) for s in scenes}
+    lines = ["| lens | largest shift (px) | distortion | " + " | ".join(LENS_GOALS) + " | failed |",
+             "| --- " * (len(LENS_GOALS) + 4) + "|",
+             "| goal | | | " + " | ".join(f"{g:g}" for g in LENS_GOALS.values()) + " | none |"]
+
+    def row(name: str, shift: str, how: str, results: list[tuple[VariantErrors, float]], failed: int) -> str:
+        cells = []
+        for field, goal in LENS_GOALS.items():
+            if not results:
+                cells.append("-")
+                continue
+            worst = max(e if field == "estimate_mm" else getattr(r, field) for r, e in results)
+            cells.append(f"{worst:.3f}" + ("" if worst <= goal else " (over)"))
+        return f"| {name} | {shift} | {how} | " + " | ".join(cells) + f" | {failed}/{len(scenes)} |"
+
+    lines.append(row("none (pinhole)", "0", "-", [(r, 0.0) for r, _ in references.values()], 0))
+    for name, lens in LENSES.items():
+        for corrected in (True, False):
+            results, failed = [], 0
+            for s in scenes:
+                try:
+                    errors, joints = lens_errors(s, lens, corrected)
+                except SoftgripError:  # the pipeline refused the frames: counted, not fatal
+                    failed += 1
+                    continue
+                results.append((errors, float(np.hypot(*(joints - references[s.index][1]).reshape(-1, 2).T).max())))
+            lines.append(row(name, f"{lens_shift_px(lens):.1f}", "undone" if corrected else "ignored",
+                             results, failed))
+    return lines
+
+
 def time_backends(frames: list[Frame], repeats: int = 3) -> dict[str, float]:
     """Best-of-``repeats`` seconds to segment ``frames`` with each backend (after one warm-up)."""
     seconds = {}
@@ -572,9 +691,23 @@ def main() -> None:
     parser.add_argument("--plane", type=int, metavar="SCENES",
                         help="instead, the plane-depth sweep (issue 31): round and flat fingers, depth smoothing, "
                              "on SCENES scenes each")
+    parser.add_argument("--distortion", type=int, metavar="SCENES",
+                        help="instead, the lens sweep (issue 32): each of LENSES rendered, undone by the pipeline "
+                             "and ignored, against the pinhole rendering, on SCENES scenes each")
     args = parser.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from _machine import describe
+
+    if args.distortion:
+        print(f"Command: `.venv/bin/python benchmarks/vision_accuracy.py --distortion {args.distortion}`\n")
+        print(f"Machine: {describe()}\n")
+        start = time.perf_counter()
+        lines = distortion_table(args.distortion)
+        print(f"#### Lens distortion: one-frame calibration and the geometric estimate on frames rendered through "
+              f"a lens, the distortion undone by the pipeline or ignored (model none), worst of {args.distortion} "
+              f"scenes per row ({time.perf_counter() - start:.0f} s)\n")
+        print("\n".join(lines))
+        return
 
     if args.plane:
         print(f"Command: `.venv/bin/python benchmarks/vision_accuracy.py --plane {args.plane}`\n")

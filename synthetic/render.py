@@ -38,6 +38,7 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -46,7 +47,7 @@ import cv2
 import numpy as np
 
 from softgrip_base import SoftgripError
-from vision.frames import Frame, Intrinsics
+from vision.frames import DISTORTION_MODELS, Frame, Intrinsics, distort_points
 
 LABEL_BACKGROUND = 0
 LABEL_OBJECT = 1
@@ -193,6 +194,11 @@ class Scene:
         light_gain: brightness factor of the whole image (exposure; 1 as given).
         light_gradient: brightness change across the image's width as a fraction (uneven lighting:
             0.3 makes the right edge 30 % brighter than the left).
+        distortion: the lens, ``(model, coeffs)`` with a model of :data:`vision.frames.DISTORTION_MODELS`
+            and OpenCV's (pyrealsense2's) coefficients, e.g. ``("brown_conrady", (-0.1, 0.0, 0.0, 0.0, 0.0))``
+            for a mild barrel; None (default) for a pinhole camera. Each pixel's ray is then the
+            lens's (OpenCV's undistortion of the pixel), so the frame is what that lens would image,
+            and its intrinsics carry the model and coefficients (see :func:`camera`).
     """
 
     fingers: list[np.ndarray]
@@ -217,6 +223,7 @@ class Scene:
     supersample: int = 1
     light_gain: float = 1.0
     light_gradient: float = 0.0
+    distortion: tuple[str, tuple[float, ...]] | None = None
 
     def __post_init__(self) -> None:
         self.fingers = [_as_polyline(f, f"fingers[{k}]", 2) for k, f in enumerate(self.fingers)]
@@ -251,6 +258,35 @@ class Scene:
             raise SoftgripError(f"at most {255 - LABEL_FIRST_FINGER} fingers, got {len(self.fingers)}")
         if self.palm and not self.fingers:
             raise SoftgripError("palm=True needs at least one finger to attach to")
+        if self.distortion is not None:
+            try:
+                model, coeffs = self.distortion
+                coeffs = tuple(float(c) for c in coeffs)
+            except (TypeError, ValueError):
+                raise SoftgripError(f"distortion must be (model, coeffs) or None, got {self.distortion!r}") from None
+            if model not in DISTORTION_MODELS:
+                raise SoftgripError(f"distortion's model must be one of {', '.join(DISTORTION_MODELS)}, got {model!r}")
+            self.distortion = (model, coeffs)
+
+
+def camera(scene: Scene, intrinsics: Intrinsics) -> Intrinsics:
+    """The intrinsics of the frames :func:`render` makes of ``scene``: ``intrinsics`` with the scene's
+    lens distortion (``Scene.distortion``), if any; the same K. Coefficients a real lens cannot have
+    are refused here (:class:`vision.frames.FrameError`, naming the coefficient).
+
+    Example:
+        >>> lens = Scene([], distortion=("brown_conrady", (-0.1, 0.0, 0.0, 0.0, 0.0)))
+        >>> intr = camera(lens, d405_intrinsics())
+        >>> intr.model, intr.coeffs[0], intr.fx
+        ('brown_conrady', -0.1, 385.0)
+    """
+    if scene.distortion is None:
+        return intrinsics
+    if intrinsics.distorted:
+        raise SoftgripError(f"the scene has a lens distortion and the intrinsics another ({intrinsics.model}); give "
+                            f"one of them")
+    model, coeffs = scene.distortion
+    return dataclasses.replace(intrinsics, model=model, coeffs=coeffs)
 
 
 def plane_rotation(tilt_deg: tuple[float, float]) -> np.ndarray:
@@ -279,7 +315,8 @@ def plane_points_3d(scene: Scene, points_mm: np.ndarray, offset_mm: float = 0.0)
 def project(scene: Scene, points_mm: np.ndarray, intrinsics: Intrinsics, offset_mm: float = 0.0) -> np.ndarray:
     """Pixels (..., 2) where the camera sees gripper-plane points (..., 2) in mm (on the parallel
     plane at ``offset_mm``, see :func:`plane_points_3d`): the ground truth of any point a frame
-    shows, e.g. the object's outline with ``offset_mm=scene.object_depth_offset_mm``.
+    shows, e.g. the object's outline with ``offset_mm=scene.object_depth_offset_mm``. With the
+    scene's lens distortion, where that lens images them.
 
     Example (untilted: the pinhole projection at the plane depth, as :func:`mm_to_px`):
         >>> scene = Scene([], plane_depth_mm=120.0)
@@ -287,8 +324,9 @@ def project(scene: Scene, points_mm: np.ndarray, intrinsics: Intrinsics, offset_
         [[324.808, 238.9]]
     """
     xyz = plane_points_3d(scene, points_mm, offset_mm)
-    return np.stack([intrinsics.fx * xyz[..., 0] / xyz[..., 2] + intrinsics.ppx,
-                     intrinsics.fy * xyz[..., 1] / xyz[..., 2] + intrinsics.ppy], axis=-1)
+    pinhole = np.stack([intrinsics.fx * xyz[..., 0] / xyz[..., 2] + intrinsics.ppx,
+                        intrinsics.fy * xyz[..., 1] / xyz[..., 2] + intrinsics.ppy], axis=-1)
+    return distort_points(camera(scene, intrinsics), pinhole)  # through the lens, if the scene has one
 
 
 class _Samples(NamedTuple):
@@ -319,10 +357,16 @@ class _Sampler:
             return None
         u = (np.arange(c0, c1) + 0.5) / f - 0.5
         v = (np.arange(r0, r1) + 0.5) / f - 0.5
-        x = (u - self.intrinsics.ppx) / self.intrinsics.fx
-        y = (v - self.intrinsics.ppy) / self.intrinsics.fy
+        intr = self.intrinsics
         rays = np.empty((len(v), len(u), 3))
-        rays[..., 0], rays[..., 1], rays[..., 2] = x[None, :], y[:, None], 1.0
+        if intr.distorted:  # the ray each sample of the distorted image sees: OpenCV's undistortion
+            grid = np.stack(np.meshgrid(u, v), axis=-1)
+            ideal = intr.undistort_points(grid)
+            rays[..., 0] = (ideal[..., 0] - intr.ppx) / intr.fx
+            rays[..., 1] = (ideal[..., 1] - intr.ppy) / intr.fy
+        else:
+            rays[..., 0], rays[..., 1] = ((u - intr.ppx) / intr.fx)[None, :], ((v - intr.ppy) / intr.fy)[:, None]
+        rays[..., 2] = 1.0
         return _Samples(slice(r0, r1), slice(c0, c1), rays)
 
 
@@ -422,16 +466,32 @@ class _Layers(NamedTuple):
     off_centre: np.ndarray
 
 
+def _dense(points_mm: np.ndarray, closed: bool, step_mm: float = 1.0) -> np.ndarray:
+    """The polyline (closed: polygon) with points added every ``step_mm`` along its edges, so that the
+    bounding box of its image through a lens (which bends straight edges) covers the edges too."""
+    p = np.asarray(points_mm, np.float64)
+    ends = np.roll(p, -1, axis=0) if closed else p[1:]
+    starts = p if closed else p[:-1]
+    out = [p]
+    for a, b in zip(starts, ends):
+        n = int(np.ceil(np.hypot(*(b - a)) / step_mm))
+        if n > 1:
+            out.append(a + (b - a) * np.linspace(0.0, 1.0, n + 1)[1:-1, None])
+    return np.concatenate(out)
+
+
 def _layers(scene: Scene, intrinsics: Intrinsics, factor: int = 1) -> _Layers:
     """Every sample's part, depth and finger shading coordinate; ``factor`` samples per pixel side."""
-    sampler = _Sampler(intrinsics, factor)
+    lens = camera(scene, intrinsics)
+    sampler = _Sampler(lens, factor)
     labels = np.full(sampler.shape, LABEL_BACKGROUND, dtype=np.uint8)
     depth = np.full(sampler.shape, scene.background_depth_mm)
     nearest = np.full(sampler.shape, np.inf)
     px_per_mm = max(intrinsics.fx, intrinsics.fy) / scene.plane_depth_mm
 
     def paint_polygon(polygon_mm: np.ndarray, offset_mm: float, label: int) -> None:
-        window = sampler.window(project(scene, polygon_mm, intrinsics, offset_mm), 2.0)
+        outline = _dense(polygon_mm, closed=True) if lens.distorted else polygon_mm
+        window = sampler.window(project(scene, outline, intrinsics, offset_mm), 2.0)
         if window is None:
             return
         xy, t = _on_plane(scene, window.rays, offset_mm)
@@ -446,7 +506,8 @@ def _layers(scene: Scene, intrinsics: Intrinsics, factor: int = 1) -> _Layers:
     r = scene.half_thickness
     flat_base = scene.base_end == "flat"
     for k, finger in enumerate(scene.fingers):
-        window = sampler.window(project(scene, finger, intrinsics), 1.5 * r * px_per_mm + 2.0)
+        line = _dense(finger, closed=False) if lens.distorted else finger
+        window = sampler.window(project(scene, line, intrinsics), 1.5 * r * px_per_mm + 2.0)
         if window is None:
             continue
         if scene.finger_section == "round":
@@ -518,7 +579,14 @@ def render(scene: Scene, intrinsics: Intrinsics) -> Frame:
 
     Returns:
         ``Frame`` with ``color`` uint8 (H, W, 3) RGB and ``depth`` uint16 (H, W) in units of
-        ``intrinsics.depth_scale`` metres, 0 where there is no reading (the holes).
+        ``intrinsics.depth_scale`` metres, 0 where there is no reading (the holes); its intrinsics
+        are :func:`camera` (``intrinsics`` with the scene's lens distortion, if any).
+
+    With ``Scene.distortion``, each pixel's ray is the lens's, found by OpenCV's undistortion of the
+    pixel (``cv2.undistortPoints``, or ``cv2.fisheye``'s), and the scene is ray-cast along it: the
+    distorted image is made directly, not warped from a pinhole image (no resampling, and a barrel
+    lens's wider view is drawn in full). Lighting, noise, depth smoothing and holes follow in the
+    distorted image, as a sensor adds them.
 
     Raises:
         SoftgripError (a ValueError): the background depth does not fit in uint16 depth units.
@@ -538,6 +606,7 @@ def render(scene: Scene, intrinsics: Intrinsics) -> Frame:
             f"depth_scale={intrinsics.depth_scale} m; use a larger depth_scale or a nearer background"
         )
     texture_rng, color_rng, depth_rng, hole_rng = np.random.default_rng(scene.seed).spawn(4)
+    lens = camera(scene, intrinsics)
     centres = _layers(scene, intrinsics)
     labels = centres.labels
     shape_hw = labels.shape
@@ -564,5 +633,5 @@ def render(scene: Scene, intrinsics: Intrinsics) -> Frame:
     return Frame(
         color=np.clip(np.rint(color), 0, 255).astype(np.uint8),
         depth=depth,
-        intrinsics=intrinsics,
+        intrinsics=lens,
     )
