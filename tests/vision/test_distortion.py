@@ -227,3 +227,29 @@ def test_distorted_renderings_calibrate_and_estimate_as_the_pinhole_one() -> Non
             ignored, joints = lens_errors(scene, model, corrected=False)
             assert ignored.length_pct > LENS_GOALS["length_pct"], name
             assert float(np.hypot(*(joints - reference).reshape(-1, 2).T).max()) > LENS_GOALS["estimate_mm"], name
+
+
+def test_fit_observations_from_distorted_frames_match_the_pinhole_ones() -> None:
+    """``calibrate --fit``'s observations (bases, the closed fingers' observed positions and the
+    object's grid) from a pair rendered through a lens agree with the pinhole pair's within one pixel
+    at the plane, as :func:`test_a_distorted_rendering_is_measured_as_the_pinhole_one`."""
+    from calib.fit import observations_from_frames
+
+    scene = accuracy_scenes(1)[0]
+    one_px_mm = scene.plane_depth_mm / INTRINSICS.fx
+    pair = variant_scenes(scene, "default")
+
+    def observed(distortion):
+        frames = [render(dataclasses.replace(s, distortion=distortion), INTRINSICS) for s in pair]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return observations_from_frames(frames[0], frames[1], None, 10)
+
+    reference, lensed = observed(None), observed(MODELS["pincushion k1 +0.1"])
+    assert np.hypot(*(lensed.bases - reference.bases).T).max() < one_px_mm
+    assert np.hypot(*(lensed.observed - reference.observed).reshape(-1, 2).T).max() < one_px_mm
+
+    def area_mm2(grid) -> float:  # the object's area inside its zero level
+        return float((np.asarray(grid.values) < 0).sum() * np.prod(np.broadcast_to(np.asarray(grid.spacing), 2)))
+
+    assert abs(area_mm2(lensed.sdf) / area_mm2(reference.sdf) - 1.0) < 0.03
