@@ -6,6 +6,7 @@ Run from the repository root:
     .venv/bin/python benchmarks/vision_accuracy.py --scenes 40
     .venv/bin/python benchmarks/vision_accuracy.py --variants 6  # the renderer variants' table
     .venv/bin/python benchmarks/vision_accuracy.py --plane 6     # plane depth on round fingers (issue 31)
+    .venv/bin/python benchmarks/vision_accuracy.py --distortion 4  # lenses undone and ignored (issue 32)
 
 and paste the printed markdown into benchmarks/RESULTS.md. Each scene is a gripper (L = 52 mm,
 r = 4 mm) rendered twice with colour and depth noise and depth holes, with ground truth from the
@@ -25,6 +26,11 @@ holes and the depth image smoothed across the fingers' outlines as a depth senso
 (:data:`PLANE_BLURS_PX`), and reports the relief and plane depth each frame measured, the one-frame
 calibration's errors, and the paper's geometric estimate without an object (from the open frame)
 against the observed closed fingers.
+
+The lens sweep (:func:`distortion_table`, ``--distortion``) renders the default variant through each
+of :data:`LENSES` (the renderer's ``Scene.distortion``) and compares the one-frame calibration (against
+the truth) and the geometric estimate with the object (against the same scene's pinhole rendering),
+with the distortion undone by the pipeline and ignored (the intrinsics' model set to none).
 
 The scene sets, :func:`measure` and :func:`variant_errors` are also what ``tests/vision`` asserts on.
 """
