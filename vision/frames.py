@@ -440,11 +440,6 @@ def distort_points(intr: Intrinsics, points: Any) -> np.ndarray:
     return out.reshape(pts.shape)
 
 
-def _distort_points(intr: Intrinsics, points: np.ndarray) -> np.ndarray:
-    """Ideal pixel positions (n, 2) -> where the distorted camera images them (:func:`distort_points`)."""
-    return distort_points(intr, points).reshape(-1, 2)
-
-
 @dataclass(frozen=True)
 class Frame:
     """One registered RGB-D frame.
