@@ -36,8 +36,11 @@ PYTEST := $(PY) -m pytest -n auto --dist loadfile
 
 # `make test` runs every test not marked slow (under 15 minutes on two cores); `make test-slow` the
 # slow ones (a fresh-machine install, the reproduction harnesses, refine's compiles); CI runs both.
+# The fast set is mostly XLA compilation: it runs with XLA's optimisations off
+# (JAX_DISABLE_MOST_OPTIMIZATIONS), which compiles in about 60 % of the time; the slow set, the
+# benchmarks and every user run compile the optimised programs users get.
 test: $(TEST_STAMP)
-	$(PYTEST) -m "not slow"
+	JAX_DISABLE_MOST_OPTIMIZATIONS=1 $(PYTEST) -m "not slow"
 
 test-fast: test
 
