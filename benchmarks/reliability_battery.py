@@ -649,7 +649,7 @@ def kinds(tmp: Path, cache: Path, rng: random.Random) -> list[Kind]:
         os.mkfifo(fifo)
         words = (["score", CIRCLE, "--profile", str(fifo) if flag == "--profile" else P]
                  + (["--poses", str(fifo)] if flag == "--poses" else []) + [*GEOMETRIC])
-        add(Kind(f"{flag} on a FIFO", words, subprocess=True, timeout=60, source="32"))
+        add(Kind(f"{flag} on a FIFO", words, subprocess=True, timeout=30, source="32"))
     sparse = b.name("sparse").with_suffix(".json")
     add(Kind("--profile a 4 GB sparse file", ["estimate", CIRCLE, "--profile", str(sparse)], subprocess=True,
              timeout=120, setup=lambda: os.truncate(sparse.touch() or sparse, 4 * 2**30), source="new"))
