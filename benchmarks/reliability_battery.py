@@ -29,7 +29,7 @@ subprocess (with a 6 GB address-space limit and a time limit). Every run uses on
 cache folder of its own (warm after the first kinds). Inputs are built in a temporary folder;
 nothing is written into the repository.
 
-Run (from the repository root; needs no camera; about 10-15 minutes on a 2-core CPU):
+Run (from the repository root; needs no camera; about 30 minutes on a shared 2-core CPU, 3 with --in-process):
 
     python benchmarks/reliability_battery.py [--json] [--only SUBSTRING] [--list] [--seed N]
 
@@ -94,7 +94,7 @@ class Kind:
     ``secret`` / ``marker``: the planted secret and payload marker file. ``subprocess``: run as
     ``python -m softgrip_cli``; then ``env`` (None unsets a variable), ``stdout`` (``pipe``,
     ``full`` = /dev/full, ``closed``, ``head`` = a pipe closed after 100 bytes), ``stdin`` (bytes),
-    ``send`` (signal, delay s), ``fsize`` (file-size limit, bytes: a full disk) and ``timeout`` (s).
+    ``send`` (signal, delay s, or ``"tmp"``: as soon as a hidden ``.*.tmp`` appears in ``watch``), ``fsize`` (file-size limit, bytes: a full disk) and ``timeout`` (s).
     ``setup``: called just before the run (heavy inputs, planted cache files). ``check``: called
     with (observation, stdout of earlier kinds by name); returns (outcome, problem) or None.
     ``max_seconds``: a refusal after longer is a wrong outcome (it must come before the work).
@@ -323,7 +323,17 @@ def run_subprocess(kind: Kind, env: dict, scratch: Path) -> Observation:
             process.stdout.close()
         code = None
         try:
-            if kind.send is not None:
+            if kind.send is not None and kind.send[1] == "tmp":
+                # The signal the moment a hidden temporary output appears (the write is under way).
+                deadline = time.monotonic() + kind.timeout
+                while code is None and time.monotonic() < deadline:
+                    if any(Path(name).name.startswith(".") and ".tmp" in Path(name).name
+                           for name in snapshot(kind.watch)):
+                        process.send_signal(kind.send[0])
+                        break
+                    time.sleep(0.005)
+                    code = process.poll()
+            elif kind.send is not None:
                 try:
                     code = process.wait(timeout=kind.send[1])
                 except subprocess.TimeoutExpired:
@@ -808,6 +818,11 @@ def kinds(tmp: Path, cache: Path, rng: random.Random) -> list[Kind]:
         add(Kind(f"{name} at {delay} s during score --top 0 -o out.json",
                  ["score", CIRCLE, "--profile", P, *GEOMETRIC, "--top", "0", "-o", str(o / "out.json")],
                  expect="signal", send=(sig, delay), subprocess=True, watch=[o], source="32"))
+    for sig, name in ((signal.SIGTERM, "SIGTERM"), (signal.SIGINT, "SIGINT")):
+        o = b.outdir()
+        add(Kind(f"{name} when the temporary file appears, score --top 0 -o out.json",
+                 ["score", CIRCLE, "--profile", P, *GEOMETRIC, "--top", "0", "-o", str(o / "out.json")],
+                 expect="signal", send=(sig, "tmp"), subprocess=True, watch=[o], source="32"))
     delay = round(rng.uniform(2.0, 10.0), 1)
     add(Kind(f"SIGTERM at {delay} s during estimate --json (stdout)", ["estimate", CIRCLE, "--profile", P, *GEOMETRIC,
                                                                        "--json"],
@@ -905,7 +920,7 @@ def kinds(tmp: Path, cache: Path, rng: random.Random) -> list[Kind]:
                                     *GEOMETRIC], message="finite|nan"))
     add(Kind("poses JSON rows of 4 numbers", ["score", CIRCLE, "--profile", P, "--poses",
                                               str(b.file("4.json", "[[1, 2, 3, 4]]")), *GEOMETRIC],
-             message="pose|value|column|number"))
+             message="x_mm|pose|value|column"))
     add(Kind("poses CSV in UTF-16 (Excel Unicode text)", ["score", CIRCLE, "--profile", P, "--poses",
                                                           str(b.file("u16.csv", ("x_mm,y_mm\n" + rows).encode("utf-16"))),
                                                           *GEOMETRIC, "--json"], expect="either", message="utf|encod"))
