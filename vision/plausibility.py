@@ -174,15 +174,34 @@ UPSIDE_DOWN_FIX = ("the camera is mounted upside down or the image was flipped: 
                    "fingers hang down the image")
 
 
+#: How much taller than a finger is wide the gripper's body must be where it joins the fingers, to
+#: be told from the bottom of one finger curled into a U (a finger's width tall there).
+BODY_MIN_HEIGHT = 1.25
+
+
 def body_below_fingers(region) -> bool:
     """Whether one gripper region (H, W) bool, whose two fingers segmentation could not cut apart,
     is joined by the gripper's body BELOW the fingers: it has no neck the right way up
-    (:func:`vision.segmentation.neck_column`) but has one flipped vertically. Then the frame is
-    upside down (a body joins the finger bases, above them, in an upright frame)."""
+    (:func:`vision.segmentation.neck_column`) but has one flipped vertically, and there the region
+    is more than :data:`BODY_MIN_HEIGHT` finger widths tall (a body, not the bottom of one finger
+    curled into a U). Then the frame is upside down (a body joins the finger bases, above them, in
+    an upright frame)."""
+    import cv2
+
     from vision.segmentation import neck_column
 
     region = np.asarray(region, bool)
-    return neck_column(region) is None and neck_column(np.ascontiguousarray(region[::-1])) is not None
+    if neck_column(region) is not None:
+        return False
+    flipped = np.ascontiguousarray(region[::-1])
+    neck = neck_column(flipped)
+    if neck is None:
+        return False
+    distance = cv2.distanceTransform(flipped.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    rows = np.flatnonzero(flipped.any(axis=1))
+    width = 2.0 * float(np.median(distance[rows].max(axis=1)))  # a finger's width (px)
+    column = flipped[:, int(round(neck))]
+    return int(column.sum()) > BODY_MIN_HEIGHT * width
 
 
 def check_orientation(keypoints, source: str | None = None) -> None:
