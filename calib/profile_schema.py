@@ -21,6 +21,11 @@ from pydantic_core import PydanticCustomError
 
 #: Largest magnitude of a number in a profile: the core computes in float32 (max 3.4e38).
 MAX_MAGNITUDE = 1e30
+#: Largest finger length and base separation (mm) and half-thickness (mm) of a profile: a gripper
+#: up to a metre (vision.plausibility measures fingers up to 1 m in a frame). Beyond that a value is
+#: a unit mistake (metres typed as micrometres) or a corrupted file, refused when it is loaded.
+MAX_SIZE_MM = 1000.0
+MAX_HALF_THICKNESS_MM = 250.0
 #: Most links a finger may have: the paper uses N <= 20, and memory grows with N^2 per candidate
 #: in the mechanics estimate.
 MAX_N_LINKS = 100
@@ -70,13 +75,14 @@ class _Object(BaseModel):
 
 
 class Gripper(_Object):
-    base_separation: number("a distance in mm > 0", gt=0)
+    base_separation: number(f"a distance in mm > 0 and <= {MAX_SIZE_MM:g}", gt=0, le=MAX_SIZE_MM)
 
 
 class Finger(_Object):
-    length: number("a length in mm > 0", gt=0)
+    length: number(f"a length in mm > 0 and <= {MAX_SIZE_MM:g}", gt=0, le=MAX_SIZE_MM)
     theta_entire: number("a number in [0, pi/2)", ge=0, lt=math.pi / 2)
-    half_thickness: number("a half-thickness in mm >= 0", ge=0)
+    half_thickness: number(f"a half-thickness in mm >= 0 and <= {MAX_HALF_THICKNESS_MM:g}", ge=0,
+                           le=MAX_HALF_THICKNESS_MM)
     n_links: Annotated[int, Field(strict=True, ge=1, le=MAX_N_LINKS),
                        _expecting(f"an integer >= 1 and <= {MAX_N_LINKS}")]
     base_offset: Annotated[list[number("a finite number of mm")],

@@ -104,10 +104,14 @@ def warn(message: str) -> None:
 
 
 def load_profile(path: str | os.PathLike[str]):
-    """The calibration profile at ``path`` (``calib.profile.load_profile``; errors name the file)."""
+    """The calibration profile at ``path`` (``calib.profile.load_profile``; errors name the file),
+    with its path as ``source``, so that a frame that does not match it names the file
+    (:func:`vision.plausibility.check_profile_match`)."""
     from calib.profile import load_profile as _load
 
-    return _load(path)
+    profile = _load(path)
+    object.__setattr__(profile, "source", str(path))  # not a field: to_dict and equality ignore it
+    return profile
 
 
 def gripper_from_profile(profile, lengths_mm: tuple[float, float] | None = None):

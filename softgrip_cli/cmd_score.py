@@ -164,6 +164,9 @@ def run(args: argparse.Namespace) -> int:
         pipe.check_output_file(output, "-o", inputs, args.force)
     check_distinct_outputs({**({"-o": output} if output else {}), **figures})
     scene = pipe.frame_scene(args.frame, profile, length_from_frame=args.length_from_frame)
+    if args.poses or args.grid:  # the user's numbers: in the units the command reads?
+        check_pose_units(poses if args.poses else grid_poses(*grid), scene,
+                         args.poses if args.poses else f"--grid {args.grid}")
     if not args.poses:
         grid = grid or default_grid(scene)
         poses = grid_poses(*grid)
@@ -209,6 +212,66 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(_table(scene, poses, result, shown, n_valid, robust=uncertainty is not None))
     return 0
+
+
+#: Positions (mm) within this of the origin may be metres: a gripper within a metre of the camera's axis.
+METRES_LIKE_MM = 1.0
+
+
+def check_pose_units(poses: np.ndarray, scene: pipe.FrameScene, source: str) -> None:
+    """Refuse poses (B, 3) that look like another unit than (mm, mm, rad), naming ``source`` (the
+    file or the flag), the pose and the fix.
+
+    - Degrees: an angle beyond pi in magnitude (a turn is 2 pi rad; in degrees, 10 means 0.1745).
+    - Metres: a position within :data:`METRES_LIKE_MM` of the origin (and not the origin itself),
+      where the gripper, read in mm, does not reach the object but, read in metres (times 1000),
+      does. The gripper reaches the object when part of the object lies in the rectangle its
+      fingers sweep (between the bases and one finger length below them, the bases' separation
+      wide, plus the finger's thickness). A pose near the origin stays legal whenever the object
+      is there (it is in reach), and the origin itself is the same in both units.
+
+    Poses are in the gripper plane's millimetres, whose origin is where the camera's optical axis
+    meets the plane (not the object): an object seen off the image centre lies tens of mm from it.
+
+    Raises:
+        PoseInputError: the first pose in another unit.
+    """
+    poses = np.asarray(poses, np.float64)
+    angles = poses[:, 2]
+    beyond = np.flatnonzero(np.abs(angles) > math.pi)
+    if beyond.size:
+        i = int(beyond[0])
+        raise PoseInputError(f"{source}, pose {i + 1}: angle_rad is radians: {angles[i]:g} looks like degrees, "
+                             f"use {math.radians(angles[i]):.4g} (radians = degrees x pi / 180)")
+    if not scene.has_object:
+        return
+    radius = np.hypot(poses[:, 0], poses[:, 1])
+    near = np.flatnonzero((radius > 0.0) & (radius <= METRES_LIKE_MM))
+    if not near.size:
+        return
+    contours, _ = cv2.findContours(scene.segmentation.object.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                   cv2.CHAIN_APPROX_NONE)
+    outline = scene.camera.px_to_mm(np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.float64))
+    gripper = scene.gripper
+    length = float(max(gripper.left.length, gripper.right.length))
+    thickness = float(max(gripper.left.half_thickness, gripper.right.half_thickness))
+    half_width = 0.5 * float(gripper.base_separation) + thickness
+
+    def reaches(xy: np.ndarray, angle: float) -> bool:
+        down = np.array([math.sin(angle), math.cos(angle)])
+        across = np.array([down[1], -down[0]])
+        d = outline - xy
+        along, side = d @ down, d @ across
+        return bool(np.any((np.abs(side) <= half_width) & (along >= -thickness) & (along <= length + thickness)))
+
+    for i in near:
+        xy, angle = poses[i, :2], float(poses[i, 2])
+        if not reaches(xy, angle) and reaches(1000.0 * xy, angle):
+            x, y = (float(v) for v in xy)
+            raise PoseInputError(f"{source}, pose {i + 1}: the position ({x:g}, {y:g}) looks like metres: x_mm and "
+                                 f"y_mm are millimetres (in mm the gripper is {float(radius[i]):.3g} mm from the "
+                                 f"origin and does not reach the object; in metres it would): use "
+                                 f"({1000 * x:g}, {1000 * y:g})")
 
 
 def _number(text, flag: str, low: float, high: float, high_open: bool = False) -> float:

@@ -56,11 +56,13 @@ from vision.segmentation import Segmentation
 
 Side = Literal["left", "right"]
 BaseEnd = Literal["rounded", "flat"]
+TipEnd = Literal["rounded", "flat", "unknown"]
 
 _STEPS = ((0, 1), (1, 0), (1, 1), (1, -1))  # half of the 8 neighbours; the graph is undirected
 _RIDGE_POWER = 4.0
 _SMOOTH_SIGMA_PX = 2.0
 _SAMPLE_STEP_PX = 0.25  # step of the line sampling
+_TIP_STRETCH = (4.0, 2.0)  # where the tip end's direction is read (arc lengths over r from the end)
 _BODY_GROWTH = 1.3  # distance transform over r at which the ridge is inside something wider: the body
 _LINES = 17  # lines across a cap or a cut end
 _CAP_REACH = 0.85  # their spread across the finger, as a fraction of r
@@ -99,6 +101,8 @@ class FingerKeypoints:
             for a flat base), to place the ends again once the finger's relief is known.
         base_direction: (2,) unit vector square to a flat base's cut (or the body's edge), into the
             finger, px; None for a rounded base.
+        tip_end: what the tip end looks like: ``"rounded"`` (a cap, as every fingertip), ``"flat"``
+            (cut square, as a base end: the frame may be upside down) or ``"unknown"``.
     """
 
     side: Side
@@ -114,6 +118,7 @@ class FingerKeypoints:
     tip_cap_px: np.ndarray | None = None
     base_cap_px: np.ndarray | None = None
     base_direction: np.ndarray | None = None
+    tip_end: TipEnd = "unknown"
 
     def with_camera(self, camera: PlaneCamera, relief_mm: float = 0.0,
                     base_relief_mm: float | None = None) -> FingerKeypoints:
@@ -345,8 +350,9 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
         contour = contour[np.abs(contour[:, 0] - cut_column) > 1.0]
     tip, tip_cap = _cap_centre(line[::-1], radius, contour, sampler, f"{side} finger's tip", cut_column)
     intr = camera.intrinsics
-    end_ = _base(sampler, line, arc, clearance, radius, rounded_base, contour, f"{side} finger's base",
-                 (np.array([intr.ppx, intr.ppy]), 0.5 * (intr.fx + intr.fy)))
+    optics = (np.array([intr.ppx, intr.ppy]), 0.5 * (intr.fx + intr.fy))
+    end_ = _base(sampler, line, arc, clearance, radius, rounded_base, contour, f"{side} finger's base", optics)
+    tip_end = _tip_end(sampler, line, radius, f"{side} finger's tip", optics, cut_column)
     base, end, body, base_cap, base_direction = end_.point, end_.kind, end_.body, end_.cap, end_.direction
     first = int(np.argmin(np.hypot(*(line - base).T)))
     last = int(np.argmin(np.hypot(*(line - tip).T)))
@@ -368,7 +374,7 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
     return FingerKeypoints(side=side, base_px=base, tip_px=tip, centreline_px=centreline,
                            half_thickness_px=half_thickness, camera=camera, base_end=end, body_in_view=body,
                            width_edges_px=edges, region=region, tip_cap_px=tip_cap, base_cap_px=base_cap,
-                           base_direction=base_direction)
+                           base_direction=base_direction, tip_end=tip_end)
 
 
 def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera, rounded_base: bool | None = None, *,
@@ -659,23 +665,16 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
         s_ridge = s_finger + 4.0 * radius
         return _End(centre(s_base), "flat", True, direction=into, lead_in=centre.stretch(s_base, s_ridge),
                     lead_in_to=s_ridge)
-    top = _at(line, arc, 0.0)
     if rounded is None or rounded:
         try:
-            points, axis = _end_points(sampler, line, arc, 2.5 * radius, radius, radius, what)
+            looks_rounded = _end_looks_rounded(sampler, line, arc, radius, what, optics)
         except KeypointError:
             if rounded:
                 raise
-            points, axis = None, None
-        if points is not None:
-            across = (points - top) @ np.array([-axis[1], axis[0]])
-            along = (points - top) @ axis
-            curvature = np.polyfit(across, along, 2)[0]
-            principal, focal = optics
-            q = max(0.0, float((top - principal) @ axis) / focal)
-            if rounded or curvature < 0.5 * (1.0 + q) * _HALF_CIRCLE_CURVATURE / radius:
-                centre, cap = _cap_centre(line, radius, contour, sampler, what)
-                return _End(centre, "rounded", False, cap=cap)
+            looks_rounded = False
+        if rounded or looks_rounded:
+            centre, cap = _cap_centre(line, radius, contour, sampler, what)
+            return _End(centre, "rounded", False, cap=cap)
     # Stations from 2.5 r on: nearer the cut the distance transform's ridge forks toward its corners
     # (more so when a round finger's cut bulges in perspective), and its direction there would
     # tilt the lines across the finger.
@@ -697,6 +696,43 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
     s_ridge = 6.0 * radius
     return _End(centre(s_base), "flat", False, direction=into, lead_in=centre.stretch(s_base, s_ridge),
                 lead_in_to=s_ridge)
+
+
+def _end_looks_rounded(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, radius: float, what: str,
+                       optics: tuple[np.ndarray, float], cut_column: float | None = None,
+                       stretch: tuple[float, float] = (2.5, 1.0)) -> bool:
+    """Whether the finger's end at ``line[0]`` looks like a rounded cap rather than a flat cut,
+    by the curvature of its outline across the finger (see :func:`_base`); the lines run along the
+    line's direction over ``stretch`` (from, to: arc lengths in units of ``radius``).
+
+    Raises:
+        KeypointError: too few points of the end's outline (cut off by the border, or hidden).
+    """
+    top = _at(line, arc, 0.0)
+    points, axis = _end_points(sampler, line, arc, stretch[0] * radius, stretch[1] * radius, radius, what,
+                               cut_column)
+    across = (points - top) @ np.array([-axis[1], axis[0]])
+    along = (points - top) @ axis
+    curvature = np.polyfit(across, along, 2)[0]
+    principal, focal = optics
+    q = max(0.0, float((top - principal) @ axis) / focal)
+    return bool(curvature < 0.5 * (1.0 + q) * _HALF_CIRCLE_CURVATURE / radius)
+
+
+def _tip_end(sampler: _Sampler, line: np.ndarray, radius: float, what: str, optics: tuple[np.ndarray, float],
+             cut_column: float | None) -> TipEnd:
+    """What the tip end at ``line[-1]`` looks like: ``"rounded"`` (a cap: every finger's tip),
+    ``"flat"`` (cut square: the base end of an upside-down frame) or ``"unknown"`` (too little of
+    its outline found, e.g. where segmentation cut it apart from the other fingertip)."""
+    reverse = line[::-1]
+    try:
+        # The ridge ends at the farthest pixel: at a flat end, one of its corners (the distance
+        # transform's ridge forks there within about r): its direction from 2 r to 4 r in.
+        rounded = _end_looks_rounded(sampler, reverse, _arc(reverse), radius, what, optics, cut_column,
+                                     stretch=_TIP_STRETCH)
+        return "rounded" if rounded else "flat"
+    except KeypointError:
+        return "unknown"
 
 
 class _CentreCurve:

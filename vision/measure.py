@@ -209,8 +209,8 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
     Raises:
         SoftgripError: keypoints that cannot be found (``vision.keypoints.KeypointError``) or no
             depth on the fingers (``vision.frames.FrameError``); implausible intrinsics, gripper
-            depth or finger sizes (``vision.plausibility``, naming the field to fix); the message
-            says what to adjust.
+            depth or finger sizes, or fingers that look upside down (``vision.plausibility``, naming
+            the field to fix); the message says what to adjust.
     """
     from vision import plausibility
 
@@ -222,6 +222,7 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
     provisional = PlaneCamera.from_frame(frame, segmentation.fingers)  # keypoints are found in pixels
     plausibility.check_gripper_depth(provisional.depth_mm, frame.intrinsics)
     keypoints = gripper_keypoints(segmentation, provisional, settings.rounded_base, color=frame.color)
+    plausibility.check_orientation(keypoints)  # bases at the gripper's body, tips free
     plane = fit_gripper_plane(frame, [k.region for k in keypoints], [k.half_thickness_px for k in keypoints],
                               settings.finger_relief_mm, centrelines_px=[k.centreline_px for k in keypoints],
                               width_edges_px=[k.width_edges_px for k in keypoints])

@@ -23,11 +23,23 @@ GRIPPER_DEPTH_MM = (5.0, 5000.0)
 #: A finger's length and the base separation (mm).
 FINGER_LENGTH_MM = (2.0, 1000.0)
 BASE_SEPARATION_MM = (2.0, 1000.0)
-#: Focal lengths (px) and the largest ratio fy / fx (or fx / fy).
+#: Focal lengths (px) and the largest ratio fy / fx (or fx / fy). Digital sensors have square
+#: pixels: factory calibrations of RealSense D400 colour streams give fx and fy within about 0.5 %
+#: (e.g. 615.0 and 615.3 px), OpenCV's chessboard calibration of its sample 640x480 camera within
+#: 0.01 %. The old analogue video formats with non-square pixels (PAL 768x576: 1.07, NTSC D1: 10/11)
+#: stay inside 1.1; fx and fy taken from two resolutions (1280x720 scaled to 640x480: 1.33) or a
+#: mistyped value do not.
 FOCAL_PX = (1.0, 1.0e5)
-MAX_ASPECT = 2.0
-#: How far outside the image the principal point may lie, as a fraction of the image's size.
+MAX_ASPECT = 1.1
+#: The old bound (how far outside the image the principal point could lie, as a fraction of the
+#: image's size); kept for callers, the check uses :data:`PRINCIPAL_OFFSET`.
 PRINCIPAL_MARGIN = 0.5
+#: How far from the image's centre the principal point may lie, as a fraction of the image's width
+#: (ppx) or height (ppy). A lens is centred on its sensor to within a few percent: RealSense D400
+#: factory values lie within 2 % (e.g. ppy 248.5 of 480), OpenCV's sample calibration 3.5 %
+#: (cx 342.4 of 640). 15 % leaves room for a cropped stream; the intrinsics of another resolution
+#: (1280x720 ones on a 640x480 frame: 50 %, 848x480 ones: 16 %) land outside.
+PRINCIPAL_OFFSET = 0.15
 
 
 def check_intrinsics(intrinsics: Intrinsics, source: str = "intrinsics.json") -> None:
@@ -58,10 +70,12 @@ def check_intrinsics(intrinsics: Intrinsics, source: str = "intrinsics.json") ->
                          f"colour camera's, at this resolution")
     for name, size in (("ppx", intrinsics.width), ("ppy", intrinsics.height)):
         value = getattr(intrinsics, name)
-        if not -PRINCIPAL_MARGIN * size <= value <= (1 + PRINCIPAL_MARGIN) * size:
-            raise FrameError(f"{source}: {name} = {value:g} px puts the principal point far outside the "
-                             f"{intrinsics.width}x{intrinsics.height} image (it lies near its centre, about "
-                             f"{size / 2:g}): are the intrinsics of another resolution or camera?")
+        if not abs(value - 0.5 * size) <= PRINCIPAL_OFFSET * size:
+            raise FrameError(f"{source}: {name} = {value:g} px puts the principal point "
+                             f"{abs(value - 0.5 * size) / size:.0%} of the image's size from the centre of the "
+                             f"{intrinsics.width}x{intrinsics.height} image (a lens is centred within "
+                             f"{PRINCIPAL_OFFSET:.0%}: about {size / 2:g}): are the intrinsics of another "
+                             f"resolution or camera?")
 
 
 def check_gripper_depth(depth_mm: float, intrinsics: Intrinsics, source: str = "intrinsics.json") -> None:
@@ -149,3 +163,130 @@ def straightness(keypoints) -> float:
     for straight (open) fingers, smaller the more they curl (closed)."""
     ratios = [k.length_mm / k.arc_length_mm for k in keypoints if k.arc_length_mm > 0]
     return float(np.mean(ratios)) if ratios else float("nan")
+
+
+# ---------------------------------------------------------------------------------------------
+# Orientation: the bases at the gripper's body, the tips free
+
+#: What to do about a frame that looks upside down (said by every orientation refusal).
+UPSIDE_DOWN_FIX = ("the camera is mounted upside down or the image was flipped: rotate color and depth by 180 "
+                   "degrees (np.rot90(image, 2)), or flip them back (np.flipud), or mount the camera so that the "
+                   "fingers hang down the image")
+
+
+#: How much taller than a finger is wide the gripper's body must be where it joins the fingers, to
+#: be told from the bottom of one finger curled into a U (a finger's width tall there).
+BODY_MIN_HEIGHT = 1.25
+
+
+def body_below_fingers(region) -> bool:
+    """Whether one gripper region (H, W) bool, whose two fingers segmentation could not cut apart,
+    is joined by the gripper's body BELOW the fingers: it has no neck the right way up
+    (:func:`vision.segmentation.neck_column`) but has one flipped vertically, and there the region
+    is more than :data:`BODY_MIN_HEIGHT` finger widths tall (a body, not the bottom of one finger
+    curled into a U). Then the frame is upside down (a body joins the finger bases, above them, in
+    an upright frame)."""
+    import cv2
+
+    from vision.segmentation import neck_column
+
+    region = np.asarray(region, bool)
+    if neck_column(region) is not None:
+        return False
+    flipped = np.ascontiguousarray(region[::-1])
+    neck = neck_column(flipped)
+    if neck is None:
+        return False
+    distance = cv2.distanceTransform(flipped.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    rows = np.flatnonzero(flipped.any(axis=1))
+    width = 2.0 * float(np.median(distance[rows].max(axis=1)))  # a finger's width (px)
+    column = flipped[:, int(round(neck))]
+    return int(column.sum()) > BODY_MIN_HEIGHT * width
+
+
+def check_orientation(keypoints, source: str | None = None) -> None:
+    """Refuse a frame whose fingers look upside down: both fingers' tip ends cut flat while their
+    base ends are rounded. A finger is cut flat where it leaves the gripper's body, and its tip is a
+    rounded cap (:attr:`vision.keypoints.FingerKeypoints.tip_end`), so that frame shows the fingers
+    hanging from their tips. (A gripper body joining the fingers below them is refused by
+    segmentation, :func:`body_below_fingers`. Fingers rounded at both ends with no body in view
+    look the same either way up: nothing in the frame tells, and nothing is refused.)
+
+    Raises:
+        FrameError: says that the frame looks upside down and how to fix it.
+    """
+    if all(k.tip_end == "flat" and k.base_end == "rounded" for k in keypoints):
+        prefix = f"{source}: " if source else ""
+        raise FrameError(f"{prefix}the frame looks upside down: both fingers end flat-cut at the bottom (where a "
+                         f"finger leaves the gripper's body) and rounded at the top (where its tip is); "
+                         f"{UPSIDE_DOWN_FIX}")
+
+
+# ---------------------------------------------------------------------------------------------
+# The profile against the frame
+
+#: How far (a fraction of the profile's value) a finger's arc length measured in an open frame may
+#: differ from the profile's length L. Calibration measures L the same way, and on the sample frames
+#: the two agree within 0.5 mm (1 %); 15 % (8 mm of a 52 mm finger) leaves room for a blurred or
+#: partly hidden tip and a plane depth off by a tenth, while another gripper's profile, a length
+#: typed in cm or inches, or a depth_scale off by a power of ten lands outside.
+LENGTH_TOLERANCE = 0.15
+#: The same for the finger's half-thickness r (blur and the edge's sub-pixel phase weigh more on a
+#: width of a few tens of pixels) and for the base separation W.
+THICKNESS_TOLERANCE = 0.30
+SEPARATION_TOLERANCE = 0.25
+
+
+class ProfileMismatchError(FrameError):
+    """A frame whose gripper does not match the calibration profile (finger length, thickness or
+    base separation beyond tolerance); the message names the profile, both values and the likely
+    mistake."""
+
+
+def _ratio(measured: float, expected: float) -> float:
+    return measured / expected if expected > 0 and math.isfinite(measured) else float("inf")
+
+
+def check_profile_match(keypoints, separation_mm: float, profile, *, source: str = "frame",
+                        profile_source: str = "the profile", lengths: bool = True) -> None:
+    """Refuse a frame whose gripper does not look like the profile's: each open finger's arc length
+    (the centreline from base to tip: the same for a finger slightly bent) against the profile's L,
+    its half-thickness against r, and the bases' distance against W, each within its tolerance
+    (:data:`LENGTH_TOLERANCE`, :data:`THICKNESS_TOLERANCE`, :data:`SEPARATION_TOLERANCE`).
+
+    Args:
+        keypoints: (left, right) :class:`~vision.keypoints.FingerKeypoints` in mm.
+        separation_mm: the measured distance between the bases, mm.
+        profile: the calibration profile (``fingers[side].length``, ``.half_thickness``,
+            ``base_separation``, mm).
+        source, profile_source: how the frame and the profile are named in the message.
+        lengths: compare the finger lengths (False when the frame's own lengths are used).
+
+    Raises:
+        ProfileMismatchError: the first value out of tolerance, with the profile's value, the
+            frame's, and the likely mistake: every size off by about one factor says the frame's
+            scale is wrong (depth_scale, fx, fy), one size alone another gripper's profile.
+    """
+    checks = []  # (what, measured, profile's, tolerance)
+    for k in keypoints:
+        finger = profile.fingers[k.side]
+        if lengths:
+            checks.append((f"the {k.side} finger's length", k.arc_length_mm, float(finger.length), LENGTH_TOLERANCE))
+        checks.append((f"the {k.side} finger's half-thickness", k.half_thickness_mm, float(finger.half_thickness),
+                       THICKNESS_TOLERANCE))
+    checks.append(("the base separation", separation_mm, float(profile.base_separation), SEPARATION_TOLERANCE))
+    ratios = [_ratio(measured, expected) for _, measured, expected, _ in checks]
+    for (what, measured, expected, tolerance), ratio in zip(checks, ratios):
+        if expected <= 0 or abs(ratio - 1.0) <= tolerance:
+            continue
+        finite = [r for r in ratios if math.isfinite(r) and r > 0]
+        common = float(np.exp(np.mean(np.log(finite)))) if finite else float("nan")
+        if finite and all(abs(r / common - 1.0) <= 0.15 for r in finite) and abs(common - 1.0) > 0.3:
+            ten = "; about 10 times: a D435's 0.001 on a D405 frame" if 7.0 < common < 14.0 else ""
+            hint = (f"every size in the frame is {common:.3g} times the profile's, so the frame's scale is wrong: "
+                    f"check depth_scale (metres per depth unit: D405 0.0001, D415/D435 0.001{ten}) and fx, fy")
+        else:
+            hint = (f"is {profile_source} for another gripper (or a value in it mistyped)? calibrate this gripper "
+                    f"(softgrip calibrate), or check the frame's depth_scale and fx, fy")
+        raise ProfileMismatchError(f"{source}: {what} measures {measured:.4g} mm but {profile_source} says "
+                                   f"{expected:.4g} mm (more than {tolerance:.0%} apart): {hint}")

@@ -386,8 +386,10 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
             :class:`SceneWarning`).
 
     Raises:
-        FrameSceneError: the frame cannot be read, segmented or measured; the message starts with
-            the frame's path.
+        FrameSceneError: the frame cannot be read, segmented or measured, or its gripper does not
+            match the profile (finger length, thickness, base separation:
+            :func:`vision.plausibility.check_profile_match`, which names the profile by its
+            ``source`` attribute when it has one); the message starts with the frame's path.
     """
     from vision.frames import load_frame, undistort_frame
     from vision.measure import measure_gripper
@@ -421,6 +423,15 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
         warn(f"{label}: the frame is {intrinsics.width}x{intrinsics.height} px but the profile was "
              f"made with {recorded.get('width')}x{recorded.get('height')} px frames: is it the same camera setup?")
     separation = float(np.hypot(*(bases[1] - bases[0])))
+    if hasattr(profile, "fingers"):  # a CalibrationProfile: its sizes against the frame's
+        from vision.plausibility import check_profile_match
+
+        try:
+            check_profile_match(keypoints, separation, profile, source=label,
+                                profile_source=getattr(profile, "source", None) or "the profile",
+                                lengths=not length_from_frame)
+        except SoftgripError as err:
+            raise FrameSceneError(str(err)) from None
     if abs(separation - profile.base_separation) > SEPARATION_WARN_MM:
         warn(f"{label}: the finger bases are {separation:.1f} mm apart but the profile says "
              f"{profile.base_separation:.1f} mm: is the profile for this gripper and camera distance?")

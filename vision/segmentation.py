@@ -485,6 +485,12 @@ def _components(frame: Frame, settings: SegmentationSettings, cutoff_mm: float, 
             else:  # no hint, or one that would cut through a finger (e.g. fingers of unequal Theta)
                 neck = neck_column(region)
                 if neck is None:
+                    from vision.plausibility import UPSIDE_DOWN_FIX, body_below_fingers
+
+                    if body_below_fingers(region):
+                        raise SegmentationError(
+                            f"the frame looks upside down: the gripper's body joins the fingers below them "
+                            f"({where}), where it joins their bases above them; {UPSIDE_DOWN_FIX}")
                     hint_note = "" if center_hint is None else (
                         f", and center_hint={center_hint:g} does not cut it where two fingers could meet")
                     raise SegmentationError(
