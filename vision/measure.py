@@ -193,6 +193,10 @@ class GripperMeasurement:
         sides = ("left", "right")
         return {
             "base_end": {side: k.base_end for side, k in zip(sides, self.keypoints)},
+            # Where the fingers lay in the image (px): a frame later compared against them tells a
+            # camera turned upside down even when the fingers look the same either way up.
+            "base_px": {side: np.round(k.base_px, 1).tolist() for side, k in zip(sides, self.keypoints)},
+            "tip_px": {side: np.round(k.tip_px, 1).tolist() for side, k in zip(sides, self.keypoints)},
             "body_in_view": self.body_in_view,
             "plane": self.camera.to_dict(),
             "mixed_band_px": round(self.plane.mixed_band_px, 2),

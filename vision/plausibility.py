@@ -222,6 +222,65 @@ def check_orientation(keypoints, source: str | None = None) -> None:
                          f"{UPSIDE_DOWN_FIX}")
 
 
+#: A frame is upside down against its calibration when each of its tips lies within this fraction
+#: of the finger's length (in the image) of a base the calibration's open frame found, mirrored as a
+#: flipped or turned image would show it, and each of its bases at least SWAPPED_FAR from every
+#: calibrated base. A camera fixed to the gripper (the
+#: paper's set-up) sees the bases where calibration did; a camera that sees the gripper move
+#: around would need the fingers to land tip for base by chance, within a fifth of their length.
+SWAPPED_NEAR = 0.2
+SWAPPED_FAR = 0.5
+
+
+def check_orientation_against_calibration(keypoints, detected_open: dict | None, size: tuple[int, int],
+                                          source: str | None = None, profile_source: str = "the profile") -> None:
+    """Refuse a frame that shows the calibrated gripper upside down: its finger tips lie where the
+    calibration's open frame had the bases once that frame is flipped vertically or turned 180
+    degrees, and its bases lie far from the calibrated bases. Fingers rounded at both ends with no
+    gripper body in view look the same either way up (:func:`check_orientation` cannot tell), but a
+    camera fixed to the gripper sees the bases where calibration did.
+
+    Args:
+        keypoints: the frame's two :class:`~vision.keypoints.FingerKeypoints` (px).
+        size: the image's (width, height), px (the same as the calibration frames').
+        detected_open: the profile's ``vision.detected.open`` (its ``base_px`` and ``tip_px``, px);
+            profiles written before they were recorded have neither, and are not checked.
+
+    Raises:
+        FrameError: names the profile, the pixel positions and the fix.
+    """
+    if not isinstance(detected_open, dict):
+        return
+    try:
+        bases = np.array([detected_open["base_px"][side] for side in ("left", "right")], np.float64)
+        tips = np.array([detected_open["tip_px"][side] for side in ("left", "right")], np.float64)
+    except (KeyError, TypeError, ValueError):
+        return
+    if bases.shape != (2, 2) or not np.isfinite(bases).all() or not np.isfinite(tips).all():
+        return
+    length_px = float(np.mean(np.linalg.norm(tips - bases, axis=1)))
+    if length_px <= 0:
+        return
+    frame_bases = np.stack([np.asarray(k.base_px, np.float64) for k in keypoints])
+    frame_tips = np.stack([np.asarray(k.tip_px, np.float64) for k in keypoints])
+
+    def nearest(points, targets):  # (2,) distance of each point to the nearest target, px
+        return np.linalg.norm(points[:, None, :] - targets[None, :, :], axis=-1).min(axis=1)
+
+    width, height = size
+    if (nearest(frame_bases, bases) < SWAPPED_FAR * length_px).any():
+        return
+    for turned, how in ((np.stack([bases[:, 0], height - 1 - bases[:, 1]], axis=1), "flipped vertically"),
+                        ((width - 1, height - 1) - bases, "turned 180 degrees")):
+        if (nearest(frame_tips, turned) <= SWAPPED_NEAR * length_px).all():
+            prefix = f"{source}: " if source else ""
+            found = ", ".join(f"({u:.0f}, {v:.0f})" for u, v in frame_tips)
+            calibrated = ", ".join(f"({u:.0f}, {v:.0f})" for u, v in bases)
+            raise FrameError(f"{prefix}the frame looks upside down against {profile_source}: the fingers' ends "
+                             f"at {found} px are where calibration's finger bases, at {calibrated} px, fall in an "
+                             f"image {how}; {UPSIDE_DOWN_FIX}")
+
+
 # ---------------------------------------------------------------------------------------------
 # The profile against the frame
 

@@ -424,9 +424,14 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
              f"made with {recorded.get('width')}x{recorded.get('height')} px frames: is it the same camera setup?")
     separation = float(np.hypot(*(bases[1] - bases[0])))
     if hasattr(profile, "fingers"):  # a CalibrationProfile: its sizes against the frame's
-        from vision.plausibility import check_profile_match
+        from vision.plausibility import check_orientation_against_calibration, check_profile_match
 
         try:
+            if not recorded or (recorded.get("width"), recorded.get("height")) == (intrinsics.width, intrinsics.height):
+                detected = (getattr(profile, "vision", None) or {}).get("detected") or {}
+                check_orientation_against_calibration(keypoints, detected.get("open"),
+                                                      (intrinsics.width, intrinsics.height), source=label,
+                                                      profile_source=getattr(profile, "source", None) or "the profile")
             check_profile_match(keypoints, separation, profile, source=label,
                                 profile_source=getattr(profile, "source", None) or "the profile",
                                 lengths=not length_from_frame)

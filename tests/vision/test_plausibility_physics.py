@@ -274,3 +274,53 @@ def test_score_exits_2_with_one_line_for_poses_in_degrees(tmp_path: Path, capsys
     assert code == 2 and "Traceback" not in err
     last = err.splitlines()[-1]
     assert str(poses) in last and "looks like degrees" in last and "0.1745" in last
+
+
+# ---------------------------------------------------------------------------------------------
+# Upside down against the calibration: fingers that look the same either way up
+
+def _fingers(bases, tips):
+    from types import SimpleNamespace
+
+    return [SimpleNamespace(base_px=np.asarray(b, float), tip_px=np.asarray(t, float)) for b, t in zip(bases, tips)]
+
+
+_CALIBRATED = {"base_px": {"left": [219.0, 94.0], "right": [424.0, 94.0]},
+               "tip_px": {"left": [219.0, 262.0], "right": [424.0, 262.0]}}
+
+
+@pytest.mark.parametrize("turn", ["flipud", "rot180"])
+def test_a_frame_turned_against_its_calibration_is_refused(turn):
+    # The calibrated gripper in a 640x480 image turned over: what the frame's (upper) ends are is
+    # derived by hand from v' = 479 - v (and u' = 639 - u for the 180-degree turn).
+    from vision.plausibility import check_orientation_against_calibration
+
+    def turned(u, v):
+        return (u, 479 - v) if turn == "flipud" else (639 - u, 479 - v)
+
+    true_bases = [turned(219, 94), turned(424, 94)]
+    true_tips = [turned(219, 262), turned(424, 262)]
+    # The pipeline takes the upper ends as bases: the real tips; its "tips" are the real bases.
+    with pytest.raises(FrameError, match="upside down against p.json"):
+        check_orientation_against_calibration(_fingers(true_tips, true_bases), _CALIBRATED, (640, 480),
+                                              profile_source="p.json")
+
+
+@pytest.mark.parametrize("shift", [(0, 0), (0, 60), (120, -40), (-150, 100)])
+def test_an_upright_or_moved_gripper_is_not_refused(shift):
+    # Upright at the calibrated place, or moved in the image (a camera not fixed to the gripper):
+    # either the bases are near the calibrated ones, or the tips are nowhere near a mirrored base.
+    from vision.plausibility import check_orientation_against_calibration
+
+    du, dv = shift
+    bases = [(219 + du, 94 + dv), (424 + du, 94 + dv)]
+    tips = [(219 + du, 262 + dv), (424 + du, 262 + dv)]
+    check_orientation_against_calibration(_fingers(bases, tips), _CALIBRATED, (640, 480))
+
+
+def test_a_profile_without_recorded_positions_is_not_checked():
+    from vision.plausibility import check_orientation_against_calibration
+
+    fingers = _fingers([(219, 217), (424, 217)], [(219, 385), (424, 385)])
+    for detected in (None, {}, {"base_px": {"left": [1, 2]}}, {"base_px": "x", "tip_px": None}):
+        check_orientation_against_calibration(fingers, detected, (640, 480))
