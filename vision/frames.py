@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import io
 import json
+import stat
 import math
 import os
 import shutil
@@ -391,11 +392,15 @@ def load_frame(path: str | os.PathLike[str]) -> Frame:
         ((480, 640, 3), 'uint16', 385.0, 0.0001)
     """
     folder = Path(path)
-    if not folder.exists():
+    try:
+        mode = os.stat(folder).st_mode
+    except (FileNotFoundError, NotADirectoryError):
         raise FrameError(f"frame folder {folder} does not exist: give a folder written by "
                          f"'softgrip capture' (or one with {COLOR_FILE}, {DEPTH_FILE}, "
-                         f"{INTRINSICS_FILE})")
-    if not folder.is_dir():
+                         f"{INTRINSICS_FILE})") from None
+    except OSError as err:  # a name too long, a loop of links, no permission: named, not a traceback
+        raise FrameError(f"cannot open the frame folder {folder}: {input_guard.os_error_reason(err)}") from None
+    if not stat.S_ISDIR(mode):
         raise FrameError(f"{folder} is not a folder: a frame is a folder with {COLOR_FILE}, "
                          f"{DEPTH_FILE} and {INTRINSICS_FILE}")
     color_path, intr_path = folder / COLOR_FILE, folder / INTRINSICS_FILE
