@@ -640,11 +640,12 @@ def _read_json(path: Path) -> Any:
 MAX_FILE_BYTES = input_guard.MAX_FRAME_FILE_BYTES
 
 
-def _read_file(path: Path, max_bytes: int = MAX_FILE_BYTES) -> bytes:
+def _read_file(path: Path, max_bytes: int | None = None) -> bytes:
     """The bytes of a frame file, through the input guard (``softgrip_base.input_guard``): a regular
-    file (never a folder, FIFO or device) of at most ``max_bytes``."""
+    file (never a folder, FIFO or device) of at most ``max_bytes`` (default :data:`MAX_FILE_BYTES`)."""
+    limit = MAX_FILE_BYTES if max_bytes is None else max_bytes
     return input_guard.read_user_file(
-        path, what="the frame file", max_bytes=max_bytes, error=FrameError,
+        path, what="the frame file", max_bytes=limit, error=FrameError,
         missing=f"missing: a frame folder needs {COLOR_FILE}, {DEPTH_FILE} and {INTRINSICS_FILE}")
 
 
