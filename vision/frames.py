@@ -423,23 +423,35 @@ def load_frame(path: str | os.PathLike[str]) -> Frame:
     return Frame(color=color, depth=depth, intrinsics=intrinsics)
 
 
-#: A colour image whose three channels nowhere differ by more than this (of 255) is greyscale.
+#: A colour image whose three channels nowhere differ by more than this (of 255) is greyscale...
 GREY_TOLERANCE = 2
+#: ... when its grey levels span more than this: a picture (a flat fill is refused by segmentation as
+#: "no gripper found" anyway).
+GREY_MIN_CONTRAST = 16
+_GREY_WHY = ("the gripper is told from the object by colour saturation: give the camera's colour image, not a "
+             "greyscale or infrared one")
 
 
-def _refuse_greyscale(color: np.ndarray, path: Path) -> None:
-    """Refuse a greyscale ``color.png`` (one channel, or three equal ones) with that cause: segmentation
-    tells the white fingers from the object by colour saturation, which a grey image does not have."""
-    why = ("the gripper is told from the object by colour saturation: give the camera's colour image, not a "
-           "greyscale or infrared one")
+def greyscale_problem(color: np.ndarray) -> str | None:
+    """What makes ``color`` (H, W[, C]) a greyscale image ("is greyscale (1 channel); ...": one
+    channel, or three equal ones with some contrast), or None for a colour image. Segmentation tells
+    the white fingers from the object by colour saturation, which a grey image does not have."""
     if color.ndim == 2 or (color.ndim == 3 and color.shape[2] in (1, 2)):
-        raise FrameError(f"{path} is greyscale (1 channel); softgrip needs 8-bit colour with 3 channels (RGB): {why}")
-    if color.ndim == 3 and color.shape[2] == 3 and color.dtype == np.uint8:
+        return f"is greyscale (1 channel); softgrip needs 8-bit colour with 3 channels (RGB): {_GREY_WHY}"
+    if color.ndim == 3 and color.shape[2] == 3 and color.dtype == np.uint8 and color.size:
         signed = color.astype(np.int16)
         spread = max(int(np.abs(signed[..., 0] - signed[..., 1]).max()),
                      int(np.abs(signed[..., 1] - signed[..., 2]).max()))
-        if spread <= GREY_TOLERANCE:
-            raise FrameError(f"{path} is greyscale (its 3 channels are equal); softgrip needs colour: {why}")
+        if spread <= GREY_TOLERANCE and int(signed[..., 1].max()) - int(signed[..., 1].min()) > GREY_MIN_CONTRAST:
+            return f"is greyscale (its 3 channels are equal); softgrip needs colour: {_GREY_WHY}"
+    return None
+
+
+def _refuse_greyscale(color: np.ndarray, path: Path) -> None:
+    """Refuse a one-channel ``color.png`` with that cause (three equal channels are refused where the
+    frame is segmented: :func:`vision.segmentation.segment_batch`)."""
+    if color.ndim == 2 or (color.ndim == 3 and color.shape[2] in (1, 2)):
+        raise FrameError(f"{path} {greyscale_problem(color)}")
 
 
 def _depth_file(folder: Path) -> Path:

@@ -314,5 +314,5 @@ def test_a_greyscale_colour_image_is_named_as_such(tmp_path: Path, how: str) -> 
     frame = frame_copy(tmp_path)
     grey = cv2.cvtColor(cv2.imread(str(frame / "color.png")), cv2.COLOR_BGR2GRAY)
     cv2.imwrite(str(frame / "color.png"), grey if how == "one channel" else cv2.merge([grey] * 3))
-    err = refused(estimate(frame), str(frame / "color.png"), "greyscale", "colour")
+    err = refused(estimate(frame), str(frame), "color.png", "greyscale", "colour")
     assert "gripper's body" not in err
