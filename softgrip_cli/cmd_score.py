@@ -528,15 +528,15 @@ def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
     separated by :func:`_csv_delimiter`, an optional header. A bad row is quoted in the message only
     when most rows are pose rows (:func:`_mostly_pose_rows`): a file of other data is named by line
     and column, never echoed."""
-    delimiter = _csv_delimiter(text, file)
-    show = ";" if delimiter == ";" else "," if delimiter == "," else "\t"
+    delimiter = _csv_delimiter(text)
+    sep = "<tab>" if delimiter == "\t" else delimiter
 
     def bad(line_no: int, problem: str, cells: list[str], column: int | None = None) -> PoseInputError:
         """The error for a bad row; ``problem`` has a ``{}`` where the row is quoted."""
         if _mostly_pose_rows(text, delimiter):
-            return PoseInputError(f"{file}, line {line_no}: " + problem.format(repr(show.join(cells))))
+            return PoseInputError(f"{file}, line {line_no}: " + problem.format(repr(delimiter.join(cells))))
         where = f"line {line_no}" + (f", column {column}" if column else "")
-        return PoseInputError(f"{file}, {where}: not a pose file (most rows are not x_mm{show}y_mm[{show}angle_rad] "
+        return PoseInputError(f"{file}, {where}: not a pose file (most rows are not x_mm{sep}y_mm[{sep}angle_rad] "
                               f"numbers): is it the right file?")
 
     poses, columns = [], None
@@ -576,7 +576,7 @@ def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
     return poses
 
 
-def _csv_delimiter(text: str, file: Path) -> str:
+def _csv_delimiter(text: str) -> str:
     """The separator of CSV ``text`` among :data:`CSV_DELIMITERS`: the one that splits the first
     rows (comments and blank lines left out) into 2 or 3 cells each; ',' when none or several do.
     A ';' file whose numbers use a decimal comma is then refused by :func:`_csv_poses`, never read
