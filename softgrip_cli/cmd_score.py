@@ -532,7 +532,13 @@ def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
     sep = "<tab>" if delimiter == "\t" else delimiter
 
     def bad(line_no: int, problem: str, cells: list[str], column: int | None = None) -> PoseInputError:
-        """The error for a bad row; ``problem`` has a ``{}`` where the row is quoted."""
+        """The error for a bad row; ``problem`` has a ``{}`` where the row is quoted. A number with a
+        decimal comma is named as the cause first (checked only here: rows that read are not slowed)."""
+        comma = next((k for k, c in enumerate(cells) if _DECIMAL_COMMA.fullmatch(c)), None)
+        if comma is not None:
+            return PoseInputError(f"{file}, line {line_no}, column {comma + 1}: a decimal comma; softgrip reads "
+                                  f"numbers with a decimal point (0.5, not 0,5): save the file with '.' as the "
+                                  f"decimal separator")
         if _mostly_pose_rows(text, delimiter):
             return PoseInputError(f"{file}, line {line_no}: " + problem.format(repr(delimiter.join(cells))))
         where = f"line {line_no}" + (f", column {column}" if column else "")
@@ -544,11 +550,6 @@ def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
         cells = [c.strip() for c in row]
         if not any(cells) or cells[0].startswith("#"):
             continue
-        comma = next((k for k, c in enumerate(cells) if _DECIMAL_COMMA.fullmatch(c)), None)
-        if comma is not None:
-            raise PoseInputError(f"{file}, line {line_no}, column {comma + 1}: a decimal comma; softgrip reads "
-                                 f"numbers with a decimal point (0.5, not 0,5): save the file with '.' as the "
-                                 f"decimal separator")
         if columns is None and not poses and not _numeric(cells[0]):
             names = [c.lower() for c in cells]
             bad_names = [n for n in names if n not in _COLUMN_NAMES]
