@@ -131,6 +131,26 @@ def read_user_file(path: str | os.PathLike[str], *, what: str, max_bytes: int, e
     return b"".join(chunks)
 
 
+def check_user_file(path: str | os.PathLike[str], *, what: str, error: type[Exception],
+                    missing: str | None = None) -> os.stat_result:
+    """Check, without reading it, that ``path`` is a regular file (for a file that another library
+    opens, e.g. a RealSense recording); its ``os.stat`` result.
+
+    Raises:
+        error: as :func:`read_user_file` (missing, not a regular file, a path that cannot be opened).
+    """
+    name = os.fspath(path)
+    try:
+        st = os.stat(name)
+    except (FileNotFoundError, NotADirectoryError):
+        raise error(f"{name}: {missing or 'no such file'}") from None
+    except OSError as err:
+        raise error(f"cannot open {what} {name}: {os_error_reason(err)}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise error(f"{what} {name} is {file_kind(st.st_mode)}, not a file: give the file itself")
+    return st
+
+
 def read_user_stream(stream: BinaryIO, *, what: str, max_bytes: int, error: type[Exception]) -> bytes:
     """At most ``max_bytes`` bytes of a binary ``stream`` (standard input), to its end.
 

@@ -127,6 +127,15 @@ def test_standard_input_is_size_limited(monkeypatch) -> None:
     np.testing.assert_array_equal(read_poses("-"), POSES[:2])
 
 
+def test_a_recording_that_is_a_fifo_or_a_long_name_is_refused(tmp_path: Path) -> None:
+    fifo = tmp_path / "rec.db3"
+    os.mkfifo(fifo)
+    refused(["capture", "--bag", str(fifo), "--out", str(tmp_path / "out")], str(fifo), "FIFO")
+    refused(["capture", "--bag", str(tmp_path / ("a" * 300 + ".db3")), "--out", str(tmp_path / "out")],
+            "ENAMETOOLONG")
+    assert not (tmp_path / "out").exists()
+
+
 def test_read_user_file_reads_at_most_the_limit_plus_one(tmp_path: Path) -> None:
     small = tmp_path / "small"
     small.write_bytes(b"12345")
