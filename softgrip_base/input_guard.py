@@ -42,8 +42,8 @@ import os
 import stat
 from typing import BinaryIO
 
-#: Largest pose file (bytes): a million poses (the most one call takes) as CSV are about 30 MB, as
-#: the candidates of ``softgrip score --json`` a few times that.
+#: Largest pose file (bytes): a million poses (the most one call takes) as CSV are about 20 MiB; the
+#: rest leaves room for ``softgrip score --json`` output read back as poses.
 MAX_POSE_BYTES = 256 * 1024 * 1024
 #: Largest calibration profile (bytes); a profile of hundreds of calibration frames is under 1 MB.
 MAX_PROFILE_BYTES = 16 * 1024 * 1024
