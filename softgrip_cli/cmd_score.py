@@ -24,6 +24,7 @@ from vision import documents
 from vision import scene as scene_api
 from vision.plots import TOP_GRASPS
 from softgrip_base import input_guard, user_json
+from softgrip_base.input_guard import one_line
 
 EPILOG = """examples:
   softgrip score data/circle_open --profile data/sample_profile.json --heatmap heat.png
@@ -675,7 +676,7 @@ def _table(scene: pipe.FrameScene, poses: np.ndarray, result, shown: np.ndarray,
     from softgrip_jax import CASE_NAMES
 
     extra = f" {'P(closure)':>10}" if robust else ""
-    lines = [f"{scene.path}: {len(poses)} candidate poses, {n_valid} valid; "
+    lines = [f"{one_line(scene.path)}: {len(poses)} candidate poses, {n_valid} valid; "
              f"{int(np.sum(result.force_closure))} in force closure; best first",
              f"{'rank':>4}  {'x (mm)':>8} {'y (mm)':>8} {'angle':>7}  {'score':>7} {'quality':>7}{extra}  "
              f"{'left':<14} {'right':<14} status"]
