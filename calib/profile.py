@@ -66,7 +66,7 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from softgrip_jax import FingerModel, Gripper, SoftgripError
-from softgrip_base import user_json
+from softgrip_base import input_guard, user_json
 from calib import profile_schema
 from calib.profile_schema import MAX_MAGNITUDE, MAX_N_LINKS, show_value  # noqa: F401 - the limits are this module's API too
 from softgrip_base.atomic_write import write_atomic
@@ -324,13 +324,32 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
         ('one-frame', 52.2)
     """
     path = Path(path)
-    text = user_json.read_text(path, ProfileError, "no such calibration profile; make one with `softgrip calibrate`",
-                               "the profile")
+    text = input_guard.read_user_text(path, what="the profile", max_bytes=input_guard.MAX_PROFILE_BYTES,
+                                      error=ProfileError,
+                                      missing="no such calibration profile; make one with `softgrip calibrate`")
     try:
         data = user_json.loads(text)
     except json.JSONDecodeError as err:
         raise ProfileError(f"{path}: not valid JSON ({err.msg} at line {err.lineno}, column {err.colno})") from None
+    # Values are quoted in messages only from a file that looks like a profile: JSON of other data
+    # (a token, a key store) named by mistake is never echoed.
+    if not isinstance(data, dict):
+        raise ProfileError(f"{path}: expected a JSON object (a calibration profile), got a JSON "
+                           f"{_json_kind(data)}: is it the right file? Make one with `softgrip calibrate`")
+    if not _PROFILE_KEYS & set(data):
+        raise ProfileError(f"{path}: not a calibration profile (it has none of the fields "
+                           f"{', '.join(sorted(_PROFILE_KEYS))}): is it the right file? Make one with "
+                           f"`softgrip calibrate`")
     return _parse(data, str(path))
+
+
+#: The top-level fields of a profile: a JSON object with none of them is some other file.
+_PROFILE_KEYS = frozenset({"version", "gripper", "fingers", "camera", "fit"})
+
+
+def _json_kind(data: Any) -> str:
+    """The JSON type of ``data`` in words (``"list"``, ``"string"``, ...), never its content."""
+    return {list: "list", str: "string", bool: "true/false", type(None): "null"}.get(type(data), "number")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -83,9 +83,15 @@ def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.Path
     Raises:
         OutputRefusedError: the policy refuses ``path``.
     """
+    from softgrip_base.input_guard import os_error_reason
+
     given = Path(path)
     target = given
-    if given.is_symlink():
+    try:
+        is_link = given.is_symlink()
+    except OSError as err:  # e.g. a name longer than the file system allows (ENAMETOOLONG)
+        raise OutputRefusedError(f"{what} {given}: cannot write there: {os_error_reason(err)}") from None
+    if is_link:
         if not force:
             raise OutputRefusedError(
                 f"{what} {given} is a symbolic link (to {os.readlink(given)}); softgrip does not write through "
@@ -104,7 +110,7 @@ def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.Path
     except FileNotFoundError:
         return target
     except OSError as err:
-        raise OutputRefusedError(f"{what} {given}: cannot check the file ({err.strerror})") from None
+        raise OutputRefusedError(f"{what} {given}: cannot check the file: {os_error_reason(err)}") from None
     if stat.S_ISDIR(st.st_mode):
         raise OutputRefusedError(f"{what} {given} is a folder, not a file: add a file name, e.g. {given / 'out'}")
     if not stat.S_ISREG(st.st_mode):

@@ -22,6 +22,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from softgrip_base import input_guard
+
 #: Integers with more digits than this are read as floats (+-inf beyond 1.8e308): no JSON field
 #: of a frame, profile or pose file needs an integer that large.
 _MAX_INT_DIGITS = 300
@@ -44,10 +46,13 @@ def loads(text: str) -> Any:
         raise json.JSONDecodeError("nested too deeply to read", text, 0) from None
 
 
-def read_text(path: Path, error: type[Exception], missing: str, what: str) -> str:
-    """The UTF-8 text of the file a person named, for :func:`loads` or a CSV reader: a missing file
-    raises ``error("<path>: <missing>")`` and one that cannot be read (a folder, no permission, not
-    UTF-8) ``error("<path>: cannot read <what> (<reason>)")``.
+def read_text(path: Path, error: type[Exception], missing: str, what: str, *,
+              max_bytes: int = input_guard.MAX_POSE_BYTES) -> str:
+    """The UTF-8 text of the file a person named, for :func:`loads` or a CSV reader, read through
+    the input guard (:func:`softgrip_base.input_guard.read_user_text`: a regular file of at most
+    ``max_bytes`` bytes, a byte-order mark dropped). A missing file raises
+    ``error("<path>: <missing>")``; one that cannot be read (a folder, a FIFO or device, too large,
+    no permission, not UTF-8) an ``error`` naming ``what``, the path and the cause.
 
     Example:
         >>> read_text(Path("no-such.json"), ValueError, "no such pose file", "the pose file")
@@ -55,9 +60,4 @@ def read_text(path: Path, error: type[Exception], missing: str, what: str) -> st
         ...
         ValueError: no-such.json: no such pose file
     """
-    try:
-        return path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise error(f"{path}: {missing}") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise error(f"{path}: cannot read {what} ({err})") from None
+    return input_guard.read_user_text(path, what=what, max_bytes=max_bytes, error=error, missing=missing)

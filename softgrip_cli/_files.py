@@ -55,7 +55,9 @@ def ensure_dir(path: str | os.PathLike[str], what: str) -> Path:
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise SoftgripError(f"cannot create the {what} {folder}: {err.strerror}") from None
+        from softgrip_base.input_guard import os_error_reason
+
+        raise SoftgripError(f"cannot create the {what} {folder}: {os_error_reason(err)}") from None
     if not folder.is_dir():
         raise SoftgripError(f"the {what} {folder} is not a folder")
     return folder

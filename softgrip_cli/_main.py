@@ -58,8 +58,26 @@ def version() -> str:
 
 def one_line(text: str) -> str:
     """``text`` with line breaks and other unprintable characters (from file names, JSON keys, ...)
-    escaped as in a Python string literal, so that an error message stays on one line."""
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    escaped as in a Python string literal, so that an error message stays on one line
+    (:func:`softgrip_base.input_guard.one_line`, which every message printed goes through)."""
+    from softgrip_base.input_guard import one_line as _one_line
+
+    return _one_line(text)
+
+
+def safe_streams() -> None:
+    """Make standard output and error unable to fail on a character their encoding lacks (an ASCII
+    terminal with ``LC_ALL=C PYTHONIOENCODING=ascii``, a file name with bytes that were not UTF-8):
+    such characters are written as backslash escapes (``\\xe9``) instead of raising
+    ``UnicodeEncodeError``. JSON on stdout is ASCII anyway (``json.dumps`` escapes the rest).
+    Streams that are not text files (captured, replaced) are left as they are."""
+    for stream in (sys.stdout, sys.stderr):
+        if getattr(stream, "errors", None) not in ("strict", "surrogateescape"):
+            continue
+        try:
+            stream.reconfigure(errors="backslashreplace")
+        except (AttributeError, OSError, ValueError):
+            pass
 
 
 def _command_named(argv: Sequence[str]) -> str | None:
@@ -87,6 +105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     # programs with callbacks never enter the compilation cache. Read once, when equinox is imported,
     # so it is set before anything below imports it; a value the user set (e.g. "raise") is kept.
     os.environ.setdefault("EQX_ON_ERROR", "nan")
+    safe_streams()
     try:
         previous = signal.signal(signal.SIGINT, _interrupted_while_starting)
     except ValueError:  # not the main thread: signals are not ours to handle

@@ -7,6 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from softgrip_base.input_guard import ascii_text
 from vision.documents import SIDES, finger_contacts_mm
 
 
@@ -38,8 +39,10 @@ def grasp_overlay(rgb: np.ndarray, grasp, camera, observed_px=(), label: str | N
 def caption(image: np.ndarray, text: str, origin: tuple[int, int], scale: float = 0.45,
             bottom: bool = False) -> None:
     """Write lines of ``text`` in white on a dark box, in place: ``origin`` is the box's top-left
-    corner (px), or its bottom-left corner with ``bottom=True``."""
-    lines = text.splitlines()
+    corner (px), or its bottom-left corner with ``bottom=True``. OpenCV's Hershey fonts draw ASCII
+    only (and crash on some other text): each line is drawn as :func:`~softgrip_base.input_guard.ascii_text`
+    makes it, other characters escaped (``\\xe9``)."""
+    lines = [ascii_text(line) for line in text.splitlines()] or [""]
     font, thick = cv2.FONT_HERSHEY_SIMPLEX, 1
     sizes = [cv2.getTextSize(line, font, scale, thick)[0] for line in lines]
     step = max(h for _, h in sizes) + 6

@@ -16,6 +16,7 @@ import os
 import sys
 from pathlib import Path
 
+from softgrip_base.input_guard import one_line
 from softgrip_cli._files import add_force_argument, check_output_file, ensure_dir, frame_inputs, unique_png_names
 from softgrip_cli._pictures import caption, grasp_overlay
 from vision.documents import (SIDES, candidate_json, components_json, failed_frame_json, finger_contacts_mm,
@@ -59,11 +60,13 @@ LOG = logging.getLogger("softgrip_cli")
 
 class _StderrHandler(logging.Handler):
     """Writes each record to the ``sys.stderr`` of the moment (a stream redirected or captured after
-    the handler was made is honoured), warnings as ``warning: ...``."""
+    the handler was made is honoured), warnings as ``warning: ...``, each line escaped by
+    :func:`softgrip_base.input_guard.one_line` (a file name's ESC, newline or invalid UTF-8 bytes
+    never reach the terminal raw)."""
 
     def emit(self, record: logging.LogRecord) -> None:
         prefix = "warning: " if record.levelno >= logging.WARNING else ""
-        print(prefix + record.getMessage(), file=sys.stderr)
+        print(prefix + one_line(record.getMessage()), file=sys.stderr)
 
 
 def configure_output(quiet: bool = False, verbose: bool = False) -> None:

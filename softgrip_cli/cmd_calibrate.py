@@ -8,6 +8,7 @@ import sys
 import warnings
 from pathlib import Path
 
+from softgrip_base.input_guard import one_line
 from softgrip_jax import SoftgripError
 from softgrip_cli._args import add_method_argument, positive_int, resolve_estimator
 
@@ -323,21 +324,23 @@ def _recorded_free_closure(start, profile_path: Path) -> tuple[Path, Path] | Non
     label = fit.free_closure or (fit.frames[0] if fit.method == "one-frame" and len(fit.frames) == 1 else None)
     splits = [] if label is None else [(label[:i], label[i + 3:]) for i in range(len(label)) if label[i:i + 3] == " + "]
     if not splits:
-        print(f"softgrip calibrate: note: {profile_path} does not name the frames of a pair closed without an object; "
-              f"give them with --empty OPEN CLOSED so that the fit keeps the free closure", file=sys.stderr)
+        print(one_line(f"softgrip calibrate: note: {profile_path} does not name the frames of a pair closed without "
+                       f"an object; give them with --empty OPEN CLOSED so that the fit keeps the free closure"),
+              file=sys.stderr)
         return None
     for open_name, closed_name in splits:
         for folder in (Path(), profile_path.parent):  # relative paths: from here, else next to the profile
             pair = (folder / open_name, folder / closed_name)
             if all(p.is_dir() for p in pair):
-                print(f"softgrip calibrate: including the free-closure pair {pair[0]} + {pair[1]} that "
-                      f"{profile_path} records (the gripper closed without an object) in the fit",
+                print(one_line(f"softgrip calibrate: including the free-closure pair {pair[0]} + {pair[1]} that "
+                               f"{profile_path} records (the gripper closed without an object) in the fit"),
                       file=sys.stderr)
                 return pair
     missing = " and ".join(splits[0])
-    print(f"softgrip calibrate: warning: {profile_path} records its free-closure pair {label}, but the folders "
-          f"{missing} do not exist (here or next to the profile): fitting without it, so the fit may make the "
-          f"closure without an object worse; give the pair with --empty OPEN CLOSED", file=sys.stderr)
+    print(one_line(f"softgrip calibrate: warning: {profile_path} records its free-closure pair {label}, but the "
+                   f"folders {missing} do not exist (here or next to the profile): fitting without it, so the fit may "
+                   f"make the closure without an object worse; give the pair with --empty OPEN CLOSED"),
+          file=sys.stderr)
     return None
 
 
@@ -374,12 +377,12 @@ def _warn_if_free_closure_worse(profile, start_method: str | None) -> None:
     if report is None or not report["worse"]:
         return
     start = "the one-frame calibration" if start_method == "one-frame" else "the start values"
-    print(f"softgrip calibrate: warning: the fit made the free closure ({report['frame']}) worse: residual RMS "
-          f"{report['residual_rms_mm']:.3f} mm against {report['start_residual_rms_mm']:.3f} mm at {start} "
+    print(one_line(f"softgrip calibrate: warning: the fit made the free closure ({report['frame']}) worse: residual "
+          f"RMS {report['residual_rms_mm']:.3f} mm against {report['start_residual_rms_mm']:.3f} mm at {start} "
           f"(+{report['change_mm']:.3f} mm). The pairs with objects pull Theta away from what the gripper shows "
           f"closed without an object: likely L, r or the base separation are measured wrong (check the frames' "
           f"measurement: the profile's vision.detected, --base-end, --finger-relief), or the estimate cannot "
-          f"match both closures with one Theta (with --method geometric, try --method mechanics)", file=sys.stderr)
+          f"match both closures with one Theta (with --method geometric, try --method mechanics)"), file=sys.stderr)
 
 
 def _print_summary(profile, output: Path, start_method: str | None = None) -> None:
@@ -437,4 +440,4 @@ def _print_warning(message, category, filename, lineno, file=None, line=None) ->
     from softgrip_cli import _pipeline
 
     if not _pipeline.quiet():
-        print(f"softgrip calibrate: warning: {message}", file=sys.stderr)
+        print(f"softgrip calibrate: warning: {one_line(str(message))}", file=sys.stderr)

@@ -93,7 +93,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"softgrip capture: warning: {message}", file=sys.stderr)
+    from softgrip_base.input_guard import one_line
+
+    print(f"softgrip capture: warning: {one_line(str(message))}", file=sys.stderr)
 
 
 def _ignore_warning(message, category, filename, lineno, file=None, line=None) -> None:

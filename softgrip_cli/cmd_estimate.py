@@ -191,7 +191,7 @@ def _file_errors(context, path: str):
 
 def _table(scene: pipe.FrameScene, record: dict) -> str:
     x, y, angle = scene.pose
-    lines = [f"{scene.path}: {record['method']} estimate, N = {record['n_links']}, "
+    lines = [f"{one_line(scene.path)}: {record['method']} estimate, N = {record['n_links']}, "
              f"gripper at x {x:.1f} mm, y {y:.1f} mm, "
              f"angle {angle:.3f} rad"]
     for finger in record["fingers"]:

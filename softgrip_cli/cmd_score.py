@@ -23,7 +23,8 @@ from softgrip_jax._quality import DEFAULT_MU
 from vision import documents
 from vision import scene as scene_api
 from vision.plots import TOP_GRASPS
-from softgrip_base import user_json
+from softgrip_base import input_guard, user_json
+from softgrip_base.input_guard import one_line
 
 EPILOG = """examples:
   softgrip score data/circle_open --profile data/sample_profile.json --heatmap heat.png
@@ -41,7 +42,9 @@ Poses:
   --grid      X0:X1:NX,Y0:Y1:NY,A0:A1:NA  (inclusive ranges: NX values from X0 to X1, ...)
   --poses     FILE.json: [[x, y, angle], ...], [{"x_mm", "y_mm", "angle_rad"}, ...], {"poses": [...]}
               or this command's own --json output; FILE.csv: rows x_mm,y_mm[,angle_rad], optional
-              header naming the columns; angle 0 when left out
+              header naming the columns; angle 0 when left out. Values separated by ',', ';' or tab
+              (as spreadsheets save CSV; a UTF-8 byte-order mark is fine); a decimal comma (0,5) is
+              refused: save with a decimal point
 
 With --json (or -o FILE), one JSON document (schema: schemas/score.schema.json): {"format":
 "softgrip-score/2", "kind": "score", "units", "conventions" (origin, axes, units, the gripper plane's
@@ -414,7 +417,9 @@ def default_grid(scene: pipe.FrameScene) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def read_poses(path: str) -> np.ndarray:
-    """(B, 3) poses from a .json or .csv file (formats in EPILOG).
+    """(B, 3) poses from a .json or .csv file (formats in EPILOG), or standard input for ``"-"``,
+    read through the input guard (``softgrip_base.input_guard``: a regular file, at most
+    ``input_guard.MAX_POSE_BYTES``).
 
     Raises:
         PoseInputError: a missing or unreadable file, or a bad entry (named by its line).
@@ -422,14 +427,12 @@ def read_poses(path: str) -> np.ndarray:
     if path == "-":
         return _stdin_poses()
     file = Path(path)
-    text = user_json.read_text(file, PoseInputError, "no such pose file", "the pose file")
     suffix = file.suffix.lower()
-    if suffix == ".json":
-        poses = _json_poses(text, file)
-    elif suffix == ".csv":
-        poses = _csv_poses(text, file)
-    else:
+    if suffix not in (".json", ".csv"):
         raise PoseInputError(f"{file}: a pose file must be .json or .csv, got {suffix or 'no suffix'!r}")
+    text = input_guard.read_user_text(file, what="the pose file", max_bytes=input_guard.MAX_POSE_BYTES,
+                                      error=PoseInputError, missing="no such pose file")
+    poses = _json_poses(text, file) if suffix == ".json" else _csv_poses(text, file)
     if len(poses) == 0:
         raise PoseInputError(f"{file}: no poses in the file")
     if len(poses) > MAX_POSES:
@@ -438,12 +441,23 @@ def read_poses(path: str) -> np.ndarray:
 
 
 def _stdin_poses() -> np.ndarray:
-    """Poses from standard input: JSON when it starts with '[' or '{', else CSV."""
+    """Poses from standard input (at most ``input_guard.MAX_POSE_BYTES``): JSON when it starts with
+    '[' or '{', else CSV."""
     label = Path("<stdin>")
-    try:
-        text = sys.stdin.read()
-    except (OSError, UnicodeDecodeError) as err:
-        raise PoseInputError(f"--poses -: cannot read standard input ({err})") from None
+    stream = getattr(sys.stdin, "buffer", None)
+    if stream is not None:
+        data = input_guard.read_user_stream(stream, what="--poses - (standard input)",
+                                            max_bytes=input_guard.MAX_POSE_BYTES, error=PoseInputError)
+        text = input_guard.decode_user_text(data, "-", what="--poses", error=PoseInputError)
+    else:  # a text stream without bytes beneath (replaced in-process)
+        try:
+            text = sys.stdin.read(input_guard.MAX_POSE_BYTES + 1)
+        except (OSError, UnicodeDecodeError) as err:
+            raise PoseInputError(f"--poses -: cannot read standard input ({err})") from None
+        if len(text) > input_guard.MAX_POSE_BYTES:
+            raise PoseInputError(f"--poses -: standard input holds more than {input_guard.MAX_POSE_BYTES} "
+                                 f"characters, more than softgrip reads there (split it)")
+        text = text.removeprefix("\ufeff")
     poses = _json_poses(text, label) if text.lstrip()[:1] in ("[", "{") else _csv_poses(text, label)
     if len(poses) == 0:
         raise PoseInputError(f"{label}: no poses on standard input")
@@ -461,8 +475,9 @@ def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]] | np.
     if isinstance(data, dict):
         key = next((k for k in ("poses", "candidates") if isinstance(data.get(k), list)), None)
         if key is None:
+            # The keys are not quoted: a JSON file of other data (a token, a key store) stays unprinted.
             raise PoseInputError(f'{file}, line 1: expected a list of poses, or an object with a "poses" list, '
-                                 f'got an object with keys {", ".join(map(json.dumps, sorted(data))) or "(none)"}')
+                                 f'got an object with {len(data)} other key(s): is it the right file?')
         items = data[key]
     elif isinstance(data, list):
         items = data
@@ -476,12 +491,29 @@ def _json_poses(text: str, file: Path) -> list[tuple[float, float, float]] | np.
         try:
             poses.append(_json_pose(item, f"{file}, pose {i + 1}"))
         except PoseInputError as err:
+            if not _mostly_json_poses(items):  # other data: say where, never what
+                err = PoseInputError(f"{file}, pose {i + 1}: not a pose file (most entries are not poses: "
+                                     f"expected [x_mm, y_mm(, angle_rad)] or {{\"x_mm\", \"y_mm\", "
+                                     f"\"angle_rad\"}}): is it the right file?")
             # Name the line: found only now, as scanning for every element's line is slow.
             lines = _element_lines(text, key, len(items))
             if lines is None:
-                raise
+                raise err from None
             raise PoseInputError(str(err).replace(f"{file}, pose {i + 1}", f"{file}, line {lines[i]}", 1)) from None
     return poses
+
+
+def _mostly_json_poses(items: list) -> bool:
+    """Whether at least half of ``items`` (and at least one) are poses: only then is a bad entry
+    quoted in a message (a JSON file of other data is never echoed)."""
+    good = 0
+    for item in items:
+        try:
+            _json_pose(item, "")
+        except PoseInputError:
+            continue
+        good += 1
+    return good >= 1 and 2 * good >= len(items)
 
 
 def _numeric_rows(items: list) -> np.ndarray | None:
@@ -548,30 +580,60 @@ def _element_lines(text: str, key: str | None, count: int) -> list[int] | None:
 _COLUMN_NAMES = {"x_mm": 0, "x": 0, "y_mm": 1, "y": 1, "angle_rad": 2, "angle": 2}
 
 
+#: The separators a pose CSV may use: ',' (softgrip's own), ';' (spreadsheets in locales with a decimal
+#: comma) and tab.
+CSV_DELIMITERS = (",", ";", "\t")
+_DECIMAL_COMMA = re.compile(r"[+-]?\d+,\d+")
+_SAMPLE_ROWS = 50
+
+
 def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
+    """Poses from CSV ``text`` (file name ``file`` for messages): rows of x_mm,y_mm[,angle_rad]
+    separated by :func:`_csv_delimiter`, an optional header. A bad row is quoted in the message only
+    when most rows are pose rows (:func:`_mostly_pose_rows`): a file of other data is named by line
+    and column, never echoed."""
+    delimiter = _csv_delimiter(text)
+    sep = "<tab>" if delimiter == "\t" else delimiter
+
+    def bad(line_no: int, problem: str, cells: list[str], column: int | None = None) -> PoseInputError:
+        """The error for a bad row; ``problem`` has a ``{}`` where the row is quoted. A number with a
+        decimal comma is named as the cause first (checked only here: rows that read are not slowed)."""
+        comma = next((k for k, c in enumerate(cells) if _DECIMAL_COMMA.fullmatch(c)), None)
+        if comma is not None:
+            return PoseInputError(f"{file}, line {line_no}, column {comma + 1}: a decimal comma; softgrip reads "
+                                  f"numbers with a decimal point (0.5, not 0,5): save the file with '.' as the "
+                                  f"decimal separator")
+        if _mostly_pose_rows(text, delimiter):
+            return PoseInputError(f"{file}, line {line_no}: " + problem.format(repr(delimiter.join(cells))))
+        where = f"line {line_no}" + (f", column {column}" if column else "")
+        return PoseInputError(f"{file}, {where}: not a pose file (most rows are not x_mm{sep}y_mm[{sep}angle_rad] "
+                              f"numbers): is it the right file?")
+
     poses, columns = [], None
-    for line_no, row in _csv_rows(text, file):
+    for line_no, row in _csv_rows(text, file, delimiter):
         cells = [c.strip() for c in row]
         if not any(cells) or cells[0].startswith("#"):
             continue
         if columns is None and not poses and not _numeric(cells[0]):
             names = [c.lower() for c in cells]
-            bad = [n for n in names if n not in _COLUMN_NAMES]
-            if bad or len({_COLUMN_NAMES[n] for n in names}) != len(names) or not {0, 1} <= {_COLUMN_NAMES[n] for n in names}:
-                raise PoseInputError(f"{file}, line {line_no}: a header must name the columns x_mm, y_mm and "
-                                     f"optionally angle_rad, got {','.join(cells)!r}")
+            bad_names = [n for n in names if n not in _COLUMN_NAMES]
+            if bad_names or len({_COLUMN_NAMES[n] for n in names}) != len(names) \
+                    or not {0, 1} <= {_COLUMN_NAMES[n] for n in names}:
+                raise bad(line_no, "a header must name the columns x_mm, y_mm and optionally angle_rad, got {}",
+                          cells, 1 + names.index(bad_names[0]) if bad_names else None)
             columns = [_COLUMN_NAMES[n] for n in names]
             continue
         expected = len(columns) if columns else None
         if (expected and len(cells) != expected) or (not expected and len(cells) not in (2, 3)):
             want = f"{expected} values" if expected else "2 or 3 values (x_mm, y_mm[, angle_rad])"
-            raise PoseInputError(f"{file}, line {line_no}: expected {want}, got {len(cells)}: {','.join(cells)!r}")
+            raise bad(line_no, f"expected {want}, got {len(cells)}: {{}}", cells)
         try:
             values = [float(c) for c in cells]
         except ValueError:
-            raise PoseInputError(f"{file}, line {line_no}: not a number in {','.join(cells)!r}") from None
+            column = next(k for k, c in enumerate(cells) if not _numeric(c)) + 1
+            raise bad(line_no, "not a number in {}", cells, column) from None
         if not all(math.isfinite(v) for v in values):
-            raise PoseInputError(f"{file}, line {line_no}: pose values must be finite, got {','.join(cells)!r}")
+            raise bad(line_no, "pose values must be finite, got {}", cells)
         pose = [0.0, 0.0, 0.0]
         for index, value in zip(columns or range(len(values)), values):
             pose[index] = value
@@ -579,9 +641,43 @@ def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
     return poses
 
 
-def _csv_rows(text: str, file: Path):
+def _csv_delimiter(text: str) -> str:
+    """The separator of CSV ``text`` among :data:`CSV_DELIMITERS`: the one that splits the first
+    rows (comments and blank lines left out) into 2 or 3 cells each; ',' when none or several do.
+    A ';' file whose numbers use a decimal comma is then refused by :func:`_csv_poses`, never read
+    as more columns."""
+    lines = []
+    for line in io.StringIO(text):
+        stripped = line.strip()
+        if stripped and not stripped.startswith("#"):
+            lines.append(stripped)
+            if len(lines) == _SAMPLE_ROWS:
+                break
+    if not lines:
+        return ","
+    fits = [d for d in CSV_DELIMITERS if all(2 <= len(line.split(d)) <= 3 for line in lines[1:] or lines)]
+    if "," in fits and len(fits) > 1 and any(";" in line or "\t" in line for line in lines):
+        fits.remove(",")  # "0,5;1,2" splits into 2 both ways: the decimal comma is the trap
+    return fits[0] if len(fits) == 1 else ","
+
+
+def _mostly_pose_rows(text: str, delimiter: str) -> bool:
+    """Whether at least half of the rows of ``text`` (a header, comments and blank lines left out;
+    at least one) are 2 or 3 numbers: a file that looks like a pose file."""
+    try:
+        rows = [[c.strip() for c in row] for row in csv.reader(io.StringIO(text), delimiter=delimiter)]
+    except csv.Error:
+        return False
+    rows = [row for row in rows if any(row) and not row[0].startswith("#")]
+    if rows and not _numeric(rows[0][0]):
+        rows = rows[1:]  # a header
+    good = sum(2 <= len(row) <= 3 and all(_numeric(c) for c in row) for row in rows)
+    return good >= 1 and 2 * good >= len(rows)
+
+
+def _csv_rows(text: str, file: Path, delimiter: str = ","):
     """(line number, cells) of each row; a row the csv module cannot split is a PoseInputError."""
-    reader = csv.reader(io.StringIO(text))
+    reader = csv.reader(io.StringIO(text), delimiter=delimiter)
     while True:
         try:
             row = next(reader)
@@ -643,7 +739,7 @@ def _table(scene: pipe.FrameScene, poses: np.ndarray, result, shown: np.ndarray,
     from softgrip_jax import CASE_NAMES
 
     extra = f" {'P(closure)':>10}" if robust else ""
-    lines = [f"{scene.path}: {len(poses)} candidate poses, {n_valid} valid; "
+    lines = [f"{one_line(scene.path)}: {len(poses)} candidate poses, {n_valid} valid; "
              f"{int(np.sum(result.force_closure))} in force closure; best first",
              f"{'rank':>4}  {'x (mm)':>8} {'y (mm)':>8} {'angle':>7}  {'score':>7} {'quality':>7}{extra}  "
              f"{'left':<14} {'right':<14} status"]

@@ -220,8 +220,11 @@ def profile_identity(profile, path: str | os.PathLike[str] | None = None) -> dic
     ``n_links``)."""
     digest = None
     if path is not None:
-        try:
-            digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        from softgrip_base import input_guard
+
+        try:  # through the input guard: the file may have been swapped for a FIFO or device since
+            digest = hashlib.sha256(input_guard.read_user_file(
+                path, what="the profile", max_bytes=input_guard.MAX_PROFILE_BYTES, error=OSError)).hexdigest()
         except OSError:
             digest = None
     fingers = {side: {"length": number_json(f.length, 4), "theta_entire": number_json(f.theta_entire, 6),

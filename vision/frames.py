@@ -21,10 +21,10 @@ from __future__ import annotations
 
 import io
 import json
+import stat
 import math
 import os
 import shutil
-import stat
 import uuid
 import zlib
 from dataclasses import asdict, dataclass
@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from softgrip_base.errors import SoftgripError
-from softgrip_base import user_json
+from softgrip_base import input_guard, user_json
 
 COLOR_FILE = "color.png"
 DEPTH_FILE = "depth.png"
@@ -530,15 +530,20 @@ def load_frame(path: str | os.PathLike[str]) -> Frame:
         ((480, 640, 3), 'uint16', 385.0, 0.0001)
     """
     folder = Path(path)
-    if not folder.exists():
+    try:
+        mode = os.stat(folder).st_mode
+    except (FileNotFoundError, NotADirectoryError):
         raise FrameError(f"frame folder {folder} does not exist: give a folder written by "
                          f"'softgrip capture' (or one with {COLOR_FILE}, {DEPTH_FILE}, "
-                         f"{INTRINSICS_FILE})")
-    if not folder.is_dir():
+                         f"{INTRINSICS_FILE})") from None
+    except OSError as err:  # a name too long, a loop of links, no permission: named, not a traceback
+        raise FrameError(f"cannot open the frame folder {folder}: {input_guard.os_error_reason(err)}") from None
+    if not stat.S_ISDIR(mode):
         raise FrameError(f"{folder} is not a folder: a frame is a folder with {COLOR_FILE}, "
                          f"{DEPTH_FILE} and {INTRINSICS_FILE}")
     color_path, intr_path = folder / COLOR_FILE, folder / INTRINSICS_FILE
     color = _read_png(color_path)
+    _refuse_greyscale(color, color_path)
     if color.ndim == 3 and color.shape[2] == 3:
         color = cv2.cvtColor(color, cv2.COLOR_BGR2RGB)
     intrinsics = Intrinsics.from_dict(_read_json(intr_path), source=str(intr_path))
@@ -554,6 +559,37 @@ def load_frame(path: str | os.PathLike[str]) -> Frame:
         depth = depth_from_metres(metres, intrinsics.depth_scale, name=str(depth_path))
     _check_frame(color, depth, intrinsics, str(color_path), str(depth_path), str(intr_path))
     return Frame(color=color, depth=depth, intrinsics=intrinsics)
+
+
+#: A colour image whose three channels nowhere differ by more than this (of 255) is greyscale...
+GREY_TOLERANCE = 2
+#: ... when its grey levels span more than this: a picture (a flat fill is refused by segmentation as
+#: "no gripper found" anyway).
+GREY_MIN_CONTRAST = 16
+_GREY_WHY = ("the gripper is told from the object by colour saturation: give the camera's colour image, not a "
+             "greyscale or infrared one")
+
+
+def greyscale_problem(color: np.ndarray) -> str | None:
+    """What makes ``color`` (H, W[, C]) a greyscale image ("is greyscale (1 channel); ...": one
+    channel, or three equal ones with some contrast), or None for a colour image. Segmentation tells
+    the white fingers from the object by colour saturation, which a grey image does not have."""
+    if color.ndim == 2 or (color.ndim == 3 and color.shape[2] in (1, 2)):
+        return f"is greyscale (1 channel); softgrip needs 8-bit colour with 3 channels (RGB): {_GREY_WHY}"
+    if color.ndim == 3 and color.shape[2] == 3 and color.dtype == np.uint8 and color.size:
+        signed = color.astype(np.int16)
+        spread = max(int(np.abs(signed[..., 0] - signed[..., 1]).max()),
+                     int(np.abs(signed[..., 1] - signed[..., 2]).max()))
+        if spread <= GREY_TOLERANCE and int(signed[..., 1].max()) - int(signed[..., 1].min()) > GREY_MIN_CONTRAST:
+            return f"is greyscale (its 3 channels are equal); softgrip needs colour: {_GREY_WHY}"
+    return None
+
+
+def _refuse_greyscale(color: np.ndarray, path: Path) -> None:
+    """Refuse a one-channel ``color.png`` with that cause (three equal channels are refused where the
+    frame is segmented: :func:`vision.segmentation.segment_batch`)."""
+    if color.ndim == 2 or (color.ndim == 3 and color.shape[2] in (1, 2)):
+        raise FrameError(f"{path} {greyscale_problem(color)}")
 
 
 def _depth_file(folder: Path) -> Path:
@@ -733,32 +769,34 @@ def _png_damage(data: bytes) -> str | None:
 
 
 def _read_json(path: Path) -> Any:
+    """The JSON object of ``intrinsics.json``. Its values are quoted in later messages only when it
+    looks like intrinsics (an object with at least one of the fields): other JSON named by mistake
+    is never echoed."""
     try:
-        return user_json.loads(_read_file(path).decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        data = user_json.loads(_read_file(path, input_guard.MAX_INTRINSICS_BYTES).decode("utf-8-sig"))
+    except UnicodeDecodeError as err:  # the offset only: the bytes are not quoted
+        raise FrameError(f"{path} is not valid JSON (not UTF-8 text: invalid byte at offset {err.start}): it "
+                         f"must be an object with keys {', '.join(_FIELDS)}") from None
+    except json.JSONDecodeError as err:
         raise FrameError(f"{path} is not valid JSON ({err}): it must be an object with keys "
                          f"{', '.join(_FIELDS)}") from None
+    if not isinstance(data, dict) or not set(_FIELDS) & set(data):
+        raise FrameError(f"{path} is not camera intrinsics: expected a JSON object with keys {', '.join(_FIELDS)}; "
+                         f"write it again, e.g. with 'softgrip capture'")
+    return data
 
 
 #: Largest frame file read (bytes): a 1920x1080 16-bit PNG without compression is about 4 MB.
-MAX_FILE_BYTES = 256 * 1024 * 1024
+MAX_FILE_BYTES = input_guard.MAX_FRAME_FILE_BYTES
 
 
-def _read_file(path: Path) -> bytes:
-    try:
-        st = path.stat()
-        if not stat.S_ISREG(st.st_mode):
-            raise FrameError(f"{path} is not a regular file (a folder, FIFO or device): a frame folder needs the "
-                             f"files {COLOR_FILE}, {DEPTH_FILE} and {INTRINSICS_FILE}")
-        if st.st_size > MAX_FILE_BYTES:
-            raise FrameError(f"{path} is {st.st_size / 2**20:.0f} MiB, more than a frame file can be "
-                             f"({MAX_FILE_BYTES // 2**20} MiB): is it the right file?")
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise FrameError(f"{path} is missing: a frame folder needs {COLOR_FILE}, {DEPTH_FILE} and "
-                         f"{INTRINSICS_FILE}") from None
-    except OSError as err:
-        raise FrameError(f"cannot read {path}: {err.strerror}") from None
+def _read_file(path: Path, max_bytes: int | None = None) -> bytes:
+    """The bytes of a frame file, through the input guard (``softgrip_base.input_guard``): a regular
+    file (never a folder, FIFO or device) of at most ``max_bytes`` (default :data:`MAX_FILE_BYTES`)."""
+    limit = MAX_FILE_BYTES if max_bytes is None else max_bytes
+    return input_guard.read_user_file(
+        path, what="the frame file", max_bytes=limit, error=FrameError,
+        missing=f"missing: a frame folder needs {COLOR_FILE}, {DEPTH_FILE} and {INTRINSICS_FILE}")
 
 
 def _encode_png(image: np.ndarray, name: Path) -> bytes:

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from softgrip_base.input_guard import one_line
 from softgrip_jax import SoftgripError
 from softgrip_jax._quality import DEFAULT_MU
 
@@ -117,6 +118,12 @@ def quality_cells(result, grid, robust: bool = False) -> tuple[np.ndarray, np.nd
     ``robust``: the best probability of force closure instead."""
     quality, valid = closure_quality(result, robust)
     return _best_over_angles(quality, grid), np.isfinite(_best_over_angles(np.where(valid, 0.0, np.nan), grid))
+
+
+def _plain(name: str) -> str:
+    """A frame's name as matplotlib draws it literally: control characters and bytes that were not
+    UTF-8 escaped (:func:`softgrip_base.input_guard.one_line`), and '$' not read as mathtext."""
+    return one_line(name).replace("$", r"\$")
 
 
 def quality_label(mu: float) -> str:
@@ -259,7 +266,7 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
         subtitle = f"best: x {x:.1f} mm, y {y:.1f} mm, angle {angle:.2f} rad"
     else:
         subtitle = "no valid candidate"
-    ax.set_title(title or f"{scene.name}: grasp quality at each gripper-centre position\n{subtitle}",
+    ax.set_title(title or f"{_plain(scene.name)}: grasp quality at each gripper-centre position\n{subtitle}",
                  fontsize="medium")
     return figure
 
@@ -363,8 +370,8 @@ def grasps_figure(scene, poses: np.ndarray, result, order=None, *, top: int = TO
             middle = 0.5 * (max(spans) + min(spans))
             spans += [middle - half, middle + half]
     _finish_axes(ax, spans_x, spans_y, margin=cone_mm + 3.0)
-    head = (f"{scene.name}: the top {len(drawn)} valid grasp{'s' if len(drawn) != 1 else ''}, mu = {mu:g}"
-            if drawn else f"{scene.name}: no valid grasp")
+    head = (f"{_plain(scene.name)}: the top {len(drawn)} valid grasp{'s' if len(drawn) != 1 else ''}, mu = {mu:g}"
+            if drawn else f"{_plain(scene.name)}: no valid grasp")
     body = "\n".join(("quality: " if j == 0 else "") + ", ".join(lines[j:j + 3]) for j in range(0, len(lines), 3))
     ax.set_title(title or (head + ("\n" + body if body else "")), fontsize="medium")
     return figure

@@ -273,8 +273,10 @@ def capture_from_recording(
     if path.suffix.lower() not in RECORDING_SUFFIXES:
         raise CameraError(f"{path} is not a RealSense recording: expected a .db3 file (or a "
                           f"legacy .bag), as written by realsense-viewer")
-    if not path.is_file():
-        raise CameraError(f"recording {path} does not exist (or is not a file): check the path")
+    from softgrip_base.input_guard import check_user_file
+
+    check_user_file(path, what="the recording", error=CameraError,
+                    missing="the recording does not exist: check the path")
     if count is not None and (not isinstance(count, int) or count < 1):
         raise CameraError(f"count must be an integer >= 1, got {count!r}")
     try:

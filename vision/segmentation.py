@@ -51,7 +51,7 @@ import cv2
 import numpy as np
 
 from softgrip_jax import SoftgripError
-from vision.frames import Frame
+from vision.frames import COLOR_FILE, Frame, greyscale_problem
 
 Backend = Literal["opencv", "kornia"]
 Split = Literal["components", "center_column", "center_hint", "neck"]
@@ -227,8 +227,9 @@ def segment(frame: Frame, settings: SegmentationSettings | None = None, *,
             and 1/4 of each other's area, else the frame is refused.
 
     Raises:
-        SegmentationError: no gripper, only one finger, no depth in the gripper region, or a
-            region of interest outside the frame; the message names the setting to adjust.
+        SegmentationError: a greyscale colour image, no gripper, only one finger, no depth in the
+            gripper region, or a region of interest outside the frame; the message names the setting
+            to adjust.
 
     Example (masks are bool (H, W); the cut-off is in mm):
         >>> from pathlib import Path
@@ -282,6 +283,10 @@ def segment_batch(
     settings = SegmentationSettings() if settings is None else settings
     frames = list(frames)
     hints = _check_hints(center_hints, len(frames))
+    for index, frame in enumerate(frames):  # no saturation: the object could not be told from the gripper
+        grey = greyscale_problem(frame.color)
+        if grey is not None:
+            raise SegmentationError(("" if len(frames) == 1 else f"frame {index}: ") + f"{COLOR_FILE} {grey}")
     cutoffs = [background_cutoff_mm(frame, settings) for frame in frames]
     rois = [_roi_mask(frame.depth.shape, settings.roi) for frame in frames]
     if backend == "opencv":
