@@ -251,7 +251,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         from softgrip_base import OutputRefusedError, SoftgripError
 
         words = sys.argv[1:] if argv is None else list(argv)
-        parser = build_parser(only=_command_named(words))
+        named = _command_named(words)
+        if named != "capture":  # every other command imports equinox, which reads them once
+            try:
+                check_equinox_environment()  # before equinox is imported: its own error is a traceback
+            except SoftgripError as err:
+                print(f"softgrip{'' if named is None else ' ' + named}: error: {one_line(str(err))}",
+                      file=sys.stderr)
+                return EXIT_USER_ERROR
+        parser = build_parser(only=named)
         try:
             args = parser.parse_args(words)
         except StdoutError as err:  # --help or --version onto a full disk
@@ -260,11 +268,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_USER_ERROR
         uses_jax = getattr(args, "uses_jax", True)  # every command but capture
         if uses_jax:
-            try:
-                check_equinox_environment()  # before equinox is imported: its own error is a traceback
-            except SoftgripError as err:
-                print(f"softgrip {args.command}: error: {one_line(str(err))}", file=sys.stderr)
-                return EXIT_USER_ERROR
             from softgrip_cli import _pipeline  # imported here, under the handlers above
         import warnings
 
