@@ -84,5 +84,6 @@ def estimate(
         ('none', (11, 2))
     """
     check_finger(finger)
+    check_sdf(sdf)
     frame = FingerFrame.hanging_from(jnp.asarray(base, finger.length.dtype))
     return estimate_in_frame(finger, sdf, frame, config, estimator=estimator, method=method, mechanics=mechanics)
