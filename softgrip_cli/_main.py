@@ -136,6 +136,25 @@ def _restore_handlers(previous: dict) -> None:
         signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
 
 
+def _protect_stderr() -> None:
+    """Standard error closed (``2>&-``): point file descriptor 2 at ``/dev/null``. Otherwise the
+    next file opened (an output's temporary file) would get descriptor 2, and whatever a library
+    writes to stderr would land in it; and ``print(file=sys.stderr)`` with no ``sys.stderr`` would
+    print diagnostics into the results on stdout."""
+    try:
+        os.fstat(2)
+    except OSError:
+        try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            if null != 2:
+                os.dup2(null, 2)
+                os.close(null)
+        except OSError:  # pragma: no cover - no /dev/null
+            return
+    if sys.stderr is None:
+        sys.stderr = open(2, "w", closefd=False)  # noqa: SIM115 - the process's own stderr, never closed
+
+
 def _stdout_closed_message() -> str | None:
     """Why standard output cannot take the results, before any work: closed (``>&-``; Python
     then has no ``sys.stdout``) or not open for writing. None when it is usable (or not a file
@@ -233,10 +252,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from softgrip_base.atomic_write import GuardedStdout, StdoutError
 
+    _protect_stderr()
     closed = _stdout_closed_message()
     if closed is not None:  # before any work: the results would be lost
-        if sys.stderr is not None:
-            print(f"softgrip: error: {closed}", file=sys.stderr)
+        print(f"softgrip: error: {closed}", file=sys.stderr)
         return EXIT_USER_ERROR
     # equinox's runtime checks (inside optimistix's and lineax's solves) as NaNs, not host callbacks:
     # programs with callbacks never enter the compilation cache. Read once, when equinox is imported,

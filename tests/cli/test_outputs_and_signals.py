@@ -173,6 +173,13 @@ def test_closed_stdout_is_refused_before_any_work(tmp_path: Path) -> None:
     assert os.listdir(out) == []  # the work (which would write out.json) never ran
 
 
+def test_closed_stderr_never_puts_diagnostics_into_stdout(tmp_path: Path) -> None:
+    run = subprocess.run([sys.executable, "-m", "softgrip_cli", "capture", "--bag", str(tmp_path / "none.db3"), "-o",
+                          str(tmp_path / "out")], cwd=ROOT, capture_output=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)}, preexec_fn=lambda: os.close(2))
+    assert run.returncode == 2 and run.stdout == b"", run.stdout
+
+
 def test_guarded_stdout_turns_a_failed_write_into_stdout_error() -> None:
     class Full(io.StringIO):
         def write(self, text):
