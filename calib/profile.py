@@ -245,6 +245,22 @@ class CalibrationProfile:
         return np.asarray(bases_mm, np.float64).reshape(2, 2) + offsets
 
 
+def check_profile(profile: Any, name: str = "profile") -> None:
+    """Raise :class:`ProfileError` unless ``profile`` is a :class:`CalibrationProfile`; the message
+    says how to make one from what was given (a path, a plain dict read from a profile file)."""
+    if isinstance(profile, CalibrationProfile):
+        return
+    from softgrip_jax._checks import describe
+
+    if isinstance(profile, dict):
+        fix = "make one with calib.profile.CalibrationProfile.from_dict(d) (it checks every field)"
+    elif isinstance(profile, (str, os.PathLike)):
+        fix = "load the file with calib.profile.load_profile(path)"
+    else:
+        fix = "load one with calib.profile.load_profile(path), or make one with CalibrationProfile.from_dict(d)"
+    raise ProfileError(f"{name}: got {describe(profile)}; a CalibrationProfile is needed: {fix}")
+
+
 def to_gripper(profile: CalibrationProfile) -> Gripper:
     """The core's :class:`~softgrip_jax.Gripper` of a profile (base offsets are not part of it:
     apply them to detected bases with :meth:`CalibrationProfile.corrected_bases`).
@@ -257,6 +273,7 @@ def to_gripper(profile: CalibrationProfile) -> Gripper:
         >>> round(float(gripper.base_separation), 1), gripper.left.n_links, round(float(gripper.left.theta_entire), 2)
         (64.0, 20, 0.55)
     """
+    check_profile(profile)
     return Gripper(left=profile.fingers["left"].model(), right=profile.fingers["right"].model(),
                    base_separation=profile.base_separation)
 
@@ -297,6 +314,7 @@ def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str], *, i
         >>> copy.to_dict() == profile.to_dict()
         True
     """
+    check_profile(profile)
     path = Path(path)
     data = profile.to_dict()
     _parse(data, str(path))  # the same checks as loading: never write a profile that cannot be read

@@ -141,8 +141,8 @@ def atomic_open(path: str | os.PathLike[str], *, inputs: Iterable[str | os.PathL
     except FileNotFoundError:
         mode = None
     temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex[:12]}.tmp")
-    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-    try:
+    try:  # the file is created inside the try: a signal turned exception right after it removes it too
+        fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         if mode is not None:
             os.fchmod(fd, mode)
         with os.fdopen(fd, "wb") as handle:
@@ -173,3 +173,124 @@ def write_atomic(path: str | os.PathLike[str], data: bytes, *, inputs: Iterable[
     with atomic_open(path, inputs=inputs, force=force, what=what) as handle:
         handle.write(data)
     return target
+
+
+def probe_folder(folder: str | os.PathLike[str], *, what: str = "output") -> None:
+    """Check that a file can be created in ``folder`` (or, if it does not exist yet, in its nearest
+    existing parent, where it would be created) by creating and removing an empty hidden file
+    there, before any work: permission bits alone do not tell (a process running as root
+    passes ``os.access`` on a read-only folder, and a read-only mount refuses even root).
+
+    Raises:
+        OutputRefusedError: the file could not be created; the message names ``what``, the folder
+            and the cause.
+    """
+    folder = Path(folder)
+    while not folder.exists() and folder.parent != folder:  # not created yet: where it would be
+        folder = folder.parent
+    probe = folder / f".softgrip-probe.{uuid.uuid4().hex[:12]}.tmp"
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except OSError as err:
+        cause = err.strerror or str(err)
+        raise OutputRefusedError(f"{what}: cannot create a file in the folder {folder} ({cause}); make it writable "
+                                 f"or choose another folder") from None
+    os.close(fd)
+    probe.unlink(missing_ok=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# Standard output: complete or absent
+
+
+def _is_append(fd: int) -> bool:
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not a POSIX system
+        return False
+    return bool(fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_APPEND)
+
+
+class StdoutError(Exception):
+    """Standard output failed while a command wrote its results (a full disk, ``/dev/full``, an
+    I/O error, a descriptor not open for writing). Not an ``OSError``, so that a command's handling
+    of its own files' errors cannot mistake it for one; the command line prints one line and exits
+    with 2. (A reader that went away, ``BrokenPipeError``, is not this: it stays an ``OSError``.)"""
+
+
+class GuardedStdout:
+    """Standard output for one command: a text stream that wraps ``stream`` (``sys.stdout``) and
+    turns a failed write or flush into :class:`StdoutError`, and :meth:`discard`, which makes the
+    command's output absent rather than partial.
+
+    When stdout is a regular file (``> out.json``) that stderr does not share, the offset where the
+    command began writing is recorded, and :meth:`discard` truncates the file back to it. On a pipe
+    or a terminal what was written stays written (the reader sees the nonzero exit status), but what
+    is still buffered is dropped. Everything else (``encoding``, ``isatty``, ``fileno``, ...) is
+    ``stream``'s own.
+    """
+
+    def __init__(self, stream) -> None:
+        self.stream = stream
+        self._start = None
+        try:
+            fd = stream.fileno()
+            st = os.fstat(fd)
+            shared = False
+            try:
+                err = os.fstat(2)
+                shared = (err.st_dev, err.st_ino) == (st.st_dev, st.st_ino)
+            except OSError:
+                pass
+            if stat.S_ISREG(st.st_mode) and not shared:
+                stream.flush()  # anything written before the command belongs to the caller
+                # Opened with >> (O_APPEND), every write goes to the end, whatever the offset says.
+                append = _is_append(fd)
+                self._start = (fd, os.fstat(fd).st_size if append else os.lseek(fd, 0, os.SEEK_CUR))
+        except (AttributeError, OSError, ValueError):  # captured (io.StringIO), closed, ...
+            pass
+
+    def __getattr__(self, name: str):
+        return getattr(self.stream, name)
+
+    def _guarded(self, operation, *args):
+        try:
+            return operation(*args)
+        except BrokenPipeError:
+            raise
+        except OSError as err:
+            cause = err.strerror or str(err)
+            raise StdoutError(f"cannot write the results to standard output ({cause}); nothing complete was "
+                              f"written there: free some space or redirect it elsewhere (or use -o FILE)") from None
+
+    def write(self, text: str) -> int:
+        return self._guarded(self.stream.write, text)
+
+    def writelines(self, lines) -> None:
+        return self._guarded(self.stream.writelines, lines)
+
+    def flush(self) -> None:
+        return self._guarded(self.stream.flush)
+
+    def discard(self) -> None:
+        """Make this command's output absent: truncate a regular file back to where the command
+        began, and point file descriptor 1 at ``/dev/null`` so that what is still buffered goes
+        nowhere when the interpreter flushes it at exit (never a traceback there)."""
+        try:
+            fd = self.stream.fileno()
+        except (AttributeError, OSError, ValueError):
+            return
+        if fd != 1:  # not the process's standard output (a stream a caller put in its place)
+            return
+        if self._start is not None and self._start[0] == fd:
+            try:
+                os.ftruncate(fd, self._start[1])
+                os.lseek(fd, self._start[1], os.SEEK_SET)  # whoever writes next to the file continues there
+            except OSError:
+                pass
+        try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, fd)
+            os.close(null)
+        except OSError:
+            pass

@@ -23,14 +23,17 @@ def unique_png_names(scenes_paths: list[str]) -> list[str]:
 def check_output_file(path: str | os.PathLike[str], what: str, inputs=(), force: bool = False) -> Path:
     """Refuse, before any work, an output file ``path`` that cannot or must not be written (the
     output policy of ``softgrip_base.atomic_write``: one of the command's ``inputs``, a folder, a FIFO or
-    device, a link or read-only file without ``force``), or one whose folder does not exist (the
-    message names ``what``, e.g. ``"-o"``, and the path)."""
-    from softgrip_base.atomic_write import check_output
+    device, a link or read-only file without ``force``), or one whose folder does not exist or does
+    not take a new file (read-only, a read-only mount: found by creating and removing an empty file
+    there, as permission bits do not tell a process running as root). The message names ``what``,
+    e.g. ``"-o"``, and the path."""
+    from softgrip_base.atomic_write import check_output, probe_folder
 
     target = check_output(path, inputs=inputs, force=force, what=what)
     if not target.parent.is_dir():
         raise SoftgripError(f"{what} {path}: the folder {target.parent} does not exist (or is not a folder); "
                             f"create it first")
+    probe_folder(target.parent, what=f"{what} {path}")
     return Path(path)
 
 
@@ -50,7 +53,10 @@ def add_force_argument(parser) -> None:
 
 
 def ensure_dir(path: str | os.PathLike[str], what: str) -> Path:
-    """Create folder ``path`` (and parents) or raise a ``SoftgripError`` naming it."""
+    """Create folder ``path`` (and parents) or raise a ``SoftgripError`` naming it; refuse (an
+    ``OutputRefusedError``) a folder in which no file can be created, before any work."""
+    from softgrip_base.atomic_write import probe_folder
+
     folder = Path(path)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -60,4 +66,5 @@ def ensure_dir(path: str | os.PathLike[str], what: str) -> Path:
         raise SoftgripError(f"cannot create the {what} {folder}: {os_error_reason(err)}") from None
     if not folder.is_dir():
         raise SoftgripError(f"the {what} {folder} is not a folder")
+    probe_folder(folder, what=f"the {what} {folder}")
     return folder

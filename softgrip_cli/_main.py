@@ -8,10 +8,12 @@ import sys
 from collections.abc import Sequence
 
 # Exit codes: 0 success, 1 unexpected failure (a bug: traceback shown), 2 user error (bad input,
-# message only), 130 interrupted, 141 output pipe closed early (as `yes | head` gives).
+# message only; also standard output closed or full), 130 interrupted (Ctrl-C), 143 terminated
+# (SIGTERM; 129 SIGHUP), 141 output pipe closed early (as `yes | head` gives).
 EXIT_USER_ERROR = 2
 EXIT_BROKEN_PIPE = 141
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
 
 
 #: The commands in the order of ``softgrip --help``, each the name of its module ``softgrip_cli.cmd_<name>``.
@@ -87,67 +89,271 @@ def _command_named(argv: Sequence[str]) -> str | None:
     return words[0] if words and words[0] in COMMANDS else None
 
 
-def _interrupted_while_starting(signum, frame) -> None:
-    """Ctrl-C while JAX and OpenCV are imported: nothing is written yet, so leave at once. (A
-    KeyboardInterrupt raised in the middle of an extension module's import can leave it half set
-    up, and the interpreter then crashes on the way out.)"""
-    os.write(2, b"interrupted\n")
-    os._exit(EXIT_INTERRUPTED)
+#: The signals that stop a command as Ctrl-C does: every output complete or absent, one line on
+#: stderr, exit 128 + the signal's number (130 SIGINT, 143 SIGTERM, 129 SIGHUP).
+STOP_SIGNALS = ("SIGINT", "SIGTERM", "SIGHUP")
+
+#: The values equinox accepts in ``EQX_ON_ERROR`` (it raises a ValueError at import otherwise).
+EQX_ON_ERROR_VALUES = ("raise", "nan", "breakpoint", "off")
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP, raised in the main thread as Python raises KeyboardInterrupt for SIGINT:
+    the ``with`` blocks and ``finally`` clauses on the way out run, so an output being written
+    (``softgrip_base.atomic_write.atomic_open``) removes its temporary file. Derives from
+    BaseException, as KeyboardInterrupt does: ``except Exception`` does not swallow it."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _stop_message(signum: int) -> bytes:
+    import signal
+
+    return b"interrupted\n" if signum == signal.SIGINT else b"terminated\n"
+
+
+def _stopped_while_starting(signum, frame) -> None:
+    """Ctrl-C, SIGTERM or SIGHUP while JAX and OpenCV are imported: nothing is written yet, so
+    leave at once. (An exception raised in the middle of an extension module's import can leave it
+    half set up, and the interpreter then crashes on the way out.)"""
+    os.write(2, _stop_message(signum))
+    os._exit(128 + signum)
+
+
+def _raise_terminated(signum, frame) -> None:
+    """SIGTERM or SIGHUP while a command runs: :class:`Terminated` in the main thread."""
+    raise Terminated(signum)
+
+
+def _set_handlers(handler, names=STOP_SIGNALS) -> dict:
+    """Install ``handler`` for the signals ``names`` (those this platform has, and not ignored by
+    whoever started us, e.g. ``nohup`` ignores SIGHUP) and return {signal: previous handler}; empty
+    when not called from the main thread (signals are then not ours to handle)."""
+    import signal
+
+    previous = {}
+    for name in names:
+        signum = getattr(signal, name, None)
+        if signum is None:
+            continue
+        try:
+            if signal.getsignal(signum) == signal.SIG_IGN:
+                continue
+            previous[signum] = signal.signal(signum, handler)
+        except ValueError:  # not the main thread
+            return previous
+    return previous
+
+
+def _restore_handlers(previous: dict) -> None:
+    import signal
+
+    for signum, handler in previous.items():
+        signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+
+
+def _protect_stderr() -> None:
+    """Standard error closed (``2>&-``): point file descriptor 2 at ``/dev/null``. Otherwise the
+    next file opened (an output's temporary file) would get descriptor 2, and whatever a library
+    writes to stderr would land in it; and ``print(file=sys.stderr)`` with no ``sys.stderr`` would
+    print diagnostics into the results on stdout."""
+    try:
+        os.fstat(2)
+    except OSError:
+        try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            if null != 2:
+                os.dup2(null, 2)
+                os.close(null)
+        except OSError:  # pragma: no cover - no /dev/null
+            return
+    if sys.stderr is None:
+        sys.stderr = open(2, "w", closefd=False)  # noqa: SIM115 - the process's own stderr, never closed
+
+
+def _stdout_closed_message() -> str | None:
+    """Why standard output cannot take the results, before any work: closed (``>&-``; Python
+    then has no ``sys.stdout``) or not open for writing. None when it is usable (or not a file
+    descriptor at all, e.g. captured)."""
+    import errno
+
+    if sys.stdout is None:
+        return "standard output is closed (>&-); softgrip writes its results there: redirect it instead " \
+               "(> FILE, or > /dev/null to discard them)"
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):
+        return None
+    try:
+        os.fstat(fd)
+    except OSError as err:
+        if err.errno == errno.EBADF:
+            return "standard output is closed (>&-); softgrip writes its results there: redirect it instead " \
+                   "(> FILE, or > /dev/null to discard them)"
+    return None
+
+
+def check_equinox_environment() -> None:
+    """Refuse, with one line naming the variable, an ``EQX_ON_ERROR`` or
+    ``EQX_ON_ERROR_BREAKPOINT_FRAMES`` that equinox would reject with a traceback when imported."""
+    from softgrip_base import SoftgripError
+
+    value = os.environ.get("EQX_ON_ERROR")
+    if value is not None and value not in EQX_ON_ERROR_VALUES:
+        raise SoftgripError(f"the environment variable EQX_ON_ERROR={one_line(value)!r} is not one of equinox's "
+                            f"values ({', '.join(EQX_ON_ERROR_VALUES)}): unset it (softgrip then uses nan) or set "
+                            f"one of them")
+    frames = os.environ.get("EQX_ON_ERROR_BREAKPOINT_FRAMES")
+    if frames is not None:
+        try:
+            int(frames)
+        except ValueError:
+            raise SoftgripError(f"the environment variable EQX_ON_ERROR_BREAKPOINT_FRAMES={one_line(frames)!r} is "
+                                f"not a whole number: unset it or set a number of frames, e.g. 1") from None
+
+
+def check_jax_environment(warn) -> dict:
+    """Make JAX usable by a command whatever the environment says, before its first computation.
+
+    * ``JAX_PLATFORMS`` (or ``JAX_PLATFORM_NAME``) naming a platform this machine lacks (``cuda``
+      on a CPU machine): a SoftgripError naming the variable, its value and the fix.
+    * ``JAX_DEBUG_NANS`` / ``JAX_DEBUG_INFS``: turned off for this command, with one warning
+      (through ``warn``) naming the variable: invalid candidates are NaN and -inf by design, and
+      would make JAX raise FloatingPointError.
+
+    Returns the JAX settings changed, {name: previous value}, for :func:`restore_jax_settings`.
+    """
+    import jax
+
+    from softgrip_base import SoftgripError
+
+    try:
+        jax.devices()
+    except (RuntimeError, AssertionError) as err:
+        for name in ("JAX_PLATFORMS", "JAX_PLATFORM_NAME"):
+            value = os.environ.get(name)
+            if value:
+                raise SoftgripError(f"the environment variable {name}={one_line(value)!r} names a platform JAX "
+                                    f"cannot use on this machine; unset it (JAX then picks what is there) or set "
+                                    f"{name}=cpu") from None
+        raise err
+    changed = {}
+    for option, variable in (("jax_debug_nans", "JAX_DEBUG_NANS"), ("jax_debug_infs", "JAX_DEBUG_INFS")):
+        if getattr(jax.config, option):
+            changed[option] = True
+            jax.config.update(option, False)
+            given = os.environ.get(variable)
+            source = f"{variable}={one_line(given)}" if given is not None else option
+            warn(f"{source} is ignored for this command: invalid candidates are NaN or -inf by design (they come "
+                 f"back valid: false), which JAX's {'NaN' if option.endswith('nans') else 'inf'} checks would "
+                 f"stop on")
+    return changed
+
+
+def restore_jax_settings(changed: dict) -> None:
+    """Undo :func:`check_jax_environment`'s changes (``main`` runs in-process too, e.g. in tests)."""
+    if changed:
+        import jax
+
+        for option, value in changed.items():
+            jax.config.update(option, value)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    # Ctrl-C at any moment, also while JAX and OpenCV are being imported (the first second or so),
-    # ends with "interrupted" and exit 130, never a traceback. This module imports nothing heavy
-    # at its top, so that the handler below covers those imports.
+    # Ctrl-C, SIGTERM and SIGHUP at any moment, also while JAX and OpenCV are being imported (the
+    # first second or so), end with "interrupted" / "terminated" and exit 128 + the signal's number,
+    # never a traceback, and leave no output partial or temporary file behind. This module imports
+    # nothing heavy at its top, so that the handlers below cover those imports.
     import signal
 
+    from softgrip_base.atomic_write import GuardedStdout, StdoutError
+
+    _protect_stderr()
+    closed = _stdout_closed_message()
+    if closed is not None:  # before any work: the results would be lost
+        print(f"softgrip: error: {closed}", file=sys.stderr)
+        return EXIT_USER_ERROR
     # equinox's runtime checks (inside optimistix's and lineax's solves) as NaNs, not host callbacks:
     # programs with callbacks never enter the compilation cache. Read once, when equinox is imported,
     # so it is set before anything below imports it; a value the user set (e.g. "raise") is kept.
     os.environ.setdefault("EQX_ON_ERROR", "nan")
     safe_streams()
-    try:
-        previous = signal.signal(signal.SIGINT, _interrupted_while_starting)
-    except ValueError:  # not the main thread: signals are not ours to handle
-        previous = None
+    # Every write to stdout through a guard: a full disk or an I/O error is one line and exit 2, and
+    # an interrupted command's output is made absent (GuardedStdout.discard), never left partial.
+    stdout = sys.stdout = GuardedStdout(sys.stdout)
+    original = _set_handlers(_stopped_while_starting)
+    jax_changed: dict = {}
     try:
         from softgrip_base import OutputRefusedError, SoftgripError
 
         words = sys.argv[1:] if argv is None else list(argv)
-        parser = build_parser(only=_command_named(words))
-        args = parser.parse_args(words)
-        uses_jax = getattr(args, "uses_jax", True)  # every command but capture
-        if uses_jax:  # imported here, under the handler above, as the command modules are
-            from softgrip_cli import _pipeline
-    finally:
-        if previous is not None:  # from here Ctrl-C is a KeyboardInterrupt: writes clean up after it
-            signal.signal(signal.SIGINT, previous)
-    import warnings
-
-    try:
-        with warnings.catch_warnings():
-            if uses_jax:
-                _pipeline.configure_output(quiet=bool(args.quiet), verbose=bool(args.verbose))
-                # Python warnings (e.g. a cache file ignored) as the command's own: one escaped line.
-                warnings.showwarning = lambda message, *_, **__: _pipeline.warn(one_line(str(message)))
-                _pipeline.enable_compilation_cache()  # compiled programs persist across runs
-            return int(args.func(args) or 0)
-    except (SoftgripError, OutputRefusedError) as err:
-        if args.debug:
-            raise
-        print(f"softgrip {args.command}: error: {one_line(str(err))}", file=sys.stderr)
-        return EXIT_USER_ERROR
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except BrokenPipeError:
-        # The reader of our standard output went away (`softgrip score ... | head`): not an error of
-        # ours. Point stdout at /dev/null so that flushing it at exit cannot raise again.
+        named = _command_named(words)
+        if named != "capture":  # every other command imports equinox, which reads them once
+            try:
+                check_equinox_environment()  # before equinox is imported: its own error is a traceback
+            except SoftgripError as err:
+                print(f"softgrip{'' if named is None else ' ' + named}: error: {one_line(str(err))}",
+                      file=sys.stderr)
+                return EXIT_USER_ERROR
+        parser = build_parser(only=named)
         try:
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        except (OSError, ValueError):  # stdout without a file descriptor (captured, replaced)
-            pass
-        return EXIT_BROKEN_PIPE
+            args = parser.parse_args(words)
+        except StdoutError as err:  # --help or --version onto a full disk
+            stdout.discard()
+            print(f"softgrip: error: {one_line(str(err))}", file=sys.stderr)
+            return EXIT_USER_ERROR
+        uses_jax = getattr(args, "uses_jax", True)  # every command but capture
+        if uses_jax:
+            from softgrip_cli import _pipeline  # imported here, under the handlers above
+        import warnings
+
+        try:
+            # From here Ctrl-C is a KeyboardInterrupt and SIGTERM / SIGHUP a Terminated: the outputs
+            # being written clean up after them.
+            for signum in original:
+                signal.signal(signum, original[signum] if signum == signal.SIGINT else _raise_terminated)
+            with warnings.catch_warnings():
+                if uses_jax:
+                    _pipeline.configure_output(quiet=bool(args.quiet), verbose=bool(args.verbose))
+                    # Python warnings (e.g. a cache file ignored) as the command's own: one escaped line.
+                    warnings.showwarning = lambda message, *_, **__: _pipeline.warn(one_line(str(message)))
+                    jax_changed = check_jax_environment(_pipeline.warn)
+                    _pipeline.enable_compilation_cache()  # compiled programs persist across runs
+                code = int(args.func(args) or 0)
+                stdout.flush()  # a full disk is found here, not at the interpreter's exit
+                return code
+        except (SoftgripError, OutputRefusedError) as err:
+            if args.debug:
+                raise
+            print(f"softgrip {args.command}: error: {one_line(str(err))}", file=sys.stderr)
+            return EXIT_USER_ERROR
+        except StdoutError as err:
+            stdout.discard()
+            print(f"softgrip {args.command}: error: {one_line(str(err))}", file=sys.stderr)
+            return EXIT_USER_ERROR
+        except KeyboardInterrupt:
+            stdout.discard()
+            print("interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        except Terminated as stop:
+            stdout.discard()
+            print(_stop_message(stop.signum).decode().strip(), file=sys.stderr)
+            return 128 + stop.signum
+        except BrokenPipeError:
+            # The reader of our standard output went away (`softgrip score ... | head`): not an error of
+            # ours. Point stdout at /dev/null so that flushing it at exit cannot raise again.
+            try:
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            except (OSError, ValueError):  # stdout without a file descriptor (captured, replaced)
+                pass
+            return EXIT_BROKEN_PIPE
+    finally:
+        if sys.stdout is stdout:
+            sys.stdout = stdout.stream
+        restore_jax_settings(jax_changed)
+        _restore_handlers(original)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -62,6 +62,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     """Capture as ``args`` says, print the folders written; 0 on success."""
+    from softgrip_base.atomic_write import probe_folder
+
+    probe_folder(args.out, what=f"-o {args.out}")  # before the camera or the recording: a read-only folder
     if args.bag is not None:
         camera_only = [f"--{name}" for name in ("serial", "width", "height", "fps")
                        if getattr(args, name) is not None]

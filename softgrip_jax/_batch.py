@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import ArrayLike, Float
 
+from softgrip_jax._checks import check_finger, check_gripper, check_sdf
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._concurrent import pad_rows, run_in_parts
 from softgrip_jax._contact import ContactConfig, sweep_parts
@@ -205,6 +206,8 @@ def estimate_batch(
         >>> est.joints.shape, [CASE_NAMES[int(c)] for c in est.case[:2]], est.valid.tolist()
         ((3, 11, 2), ['other', 'none'], [True, True, False])
     """
+    check_finger(finger)
+    check_sdf(sdf)
     estimator = as_estimator(estimator, method, mechanics)
     bases = as_candidates(bases, 2, finger.length.dtype, "estimate_batch: bases")
     return run_batch(_estimate_batch, _estimate_sharded, (finger, sdf), bases, (config,), chunk_size, workers, estimator)
@@ -244,6 +247,8 @@ def estimate_grasp_batch(
         >>> g.left.joints.shape, g.valid.tolist()
         ((2, 11, 2), [True, True])
     """
+    check_gripper(gripper)
+    check_sdf(sdf)
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "estimate_grasp_batch: poses")
     return run_batch(_estimate_grasp_batch, _estimate_grasp_sharded, (gripper, sdf), poses, (config,), chunk_size,

@@ -295,6 +295,10 @@ def predict_contact(
         >>> CASE_NAMES[int(c.case)], bool(c.touches), round(float(c.n_g1), 1)  # N_g1: links to P_g1
         ('other', True, 7.6)
     """
+    from softgrip_jax._checks import check_finger, check_sdf
+
+    check_finger(finger)
+    check_sdf(sdf)
     base = jnp.asarray(base, finger.length.dtype)
     contact = predict_contact_local(finger, lambda q: sdf.distance(q + base), config)
     return eqx.tree_at(lambda c: (c.p_g1, c.p_o1, c.p_o2), contact,

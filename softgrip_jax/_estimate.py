@@ -12,6 +12,7 @@ from jaxtyping import ArrayLike, Float
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._estimators import AbstractEstimator, as_estimator
 from softgrip_jax._frames import FingerFrame
+from softgrip_jax._checks import check_finger, check_sdf
 from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import FingerModel
 from softgrip_jax._sdf import AbstractSDF
@@ -46,6 +47,8 @@ def estimate_in_frame(
         >>> bool(est.joints[-1, 0] < 0), est.joints.shape  # tip left of the base; (N+1, 2) mm
         (True, (11, 2))
     """
+    check_finger(finger)
+    check_sdf(sdf)
     estimator = as_estimator(estimator, method, mechanics)
     stage = geometric_stage(finger, sdf, frame, config, estimator)
     return estimator.deform(finger, sdf, stage, config)
@@ -80,5 +83,7 @@ def estimate(
         >>> CASE_NAMES[int(est.case)], est.joints.shape  # joints: (N+1, 2) mm, base first
         ('none', (11, 2))
     """
+    check_finger(finger)
+    check_sdf(sdf)
     frame = FingerFrame.hanging_from(jnp.asarray(base, finger.length.dtype))
     return estimate_in_frame(finger, sdf, frame, config, estimator=estimator, method=method, mechanics=mechanics)

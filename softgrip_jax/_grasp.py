@@ -12,6 +12,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from softgrip_jax._checks import check_gripper, check_sdf
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._estimate import estimate_in_frame
 from softgrip_jax._estimators import AbstractEstimator, as_estimator
@@ -42,6 +43,7 @@ def finger_frames(gripper: Gripper, pose: Float[ArrayLike, "3"]) -> tuple[Finger
         >>> left.origin.tolist(), right.origin.tolist(), float(right.handedness)
         ([-20.0, 5.0], [20.0, 5.0], -1.0)
     """
+    check_gripper(gripper)
     dtype = gripper.base_separation.dtype
     pose = jnp.asarray(pose, dtype)
     center, angle = pose[:2], pose[2]
@@ -85,6 +87,8 @@ def estimate_grasp(
         >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
         ['tip', 'tip']
     """
+    check_gripper(gripper)
+    check_sdf(sdf)
     estimator = as_estimator(estimator, method, mechanics)
     left_frame, right_frame = finger_frames(gripper, pose)
     left = estimate_in_frame(gripper.left, sdf, left_frame, config, estimator=estimator)

@@ -40,6 +40,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks, run_batch
+from softgrip_jax._checks import check_gripper, check_sdf
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._errors import SoftgripError, check_number_fields
@@ -210,6 +211,8 @@ def score_pose(
         >>> bool(centred.score > missing.score)
         True
     """
+    check_gripper(gripper)
+    check_sdf(sdf)
     estimator = as_estimator(estimator, method, mechanics)
     if uncertainty is not None and uncertainty.linear:
         def at(z):
@@ -454,6 +457,8 @@ def score(
         left tip first contact on the object (mm): [-14.8, 40.2] tip (mm): [-19.2, 38.6]
         right tip first contact on the object (mm): [14.8, 40.2] tip (mm): [19.2, 38.6]
     """
+    check_gripper(gripper)
+    check_sdf(sdf)
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
     return run_batch(_score_one_device, _score_sharded, (gripper, sdf), poses, (weights, config, uncertainty),
@@ -560,6 +565,8 @@ def refine(
 
     Example: :func:`score`'s example refines the best pose of a scored grid.
     """
+    check_gripper(gripper)
+    check_sdf(sdf)
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(pose, 3, gripper.base_separation.dtype, "refine: pose", single=True)
     return _refine_batch(gripper, sdf, poses, weights, config, uncertainty, max_steps,

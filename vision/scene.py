@@ -395,6 +395,11 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
     from vision.measure import measure_gripper
     from vision.segmentation import segment
 
+    if isinstance(profile, (dict, str, os.PathLike)) or not callable(getattr(profile, "gripper", None)):
+        from softgrip_jax._checks import describe
+
+        raise FrameSceneError(f"profile: got {describe(profile)}; pass a calib.profile.CalibrationProfile: "
+                              f"load_profile(path), or CalibrationProfile.from_dict(d) for a dict read from a profile")
     warn = warn or _default_warn
     label = MEMORY_PATH if isinstance(frame, Frame) else str(frame)
     settings = profile.segmentation_settings() if settings is None else settings
