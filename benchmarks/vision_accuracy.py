@@ -365,18 +365,12 @@ def variant_scenes(scene: AccuracyScene, variant: str) -> tuple[Scene, Scene]:
     return opened, closed
 
 
-def variant_errors(scene: AccuracyScene, variant: str) -> VariantErrors:
-    """Render the scene as ``variant``, calibrate from it (one frame) and compare with the truth.
-
-    A segmentation or keypoint error is not caught: it fails the run (and the tests) loudly.
-    """
-    from calib.one_frame import frame_measurement, free_closure_joints, one_frame_from_frames
+def profile_errors(profile, scene) -> dict[str, list[float]]:
+    """Each finger's calibration errors against the renderer's truth: Theta (rad), L (%), r (mm),
+    and the free closure's mid-finger and tip joints (mm), as lists [left, right]."""
+    from calib.one_frame import free_closure_joints
     from calib.profile import FingerEntry
 
-    opened, closed = variant_scenes(scene, variant)
-    open_frame, closed_frame = render(opened, INTRINSICS), render(closed, INTRINSICS)
-    profile = one_frame_from_frames(closed_frame, open_frame, N_LINKS)
-    separation = float(np.hypot(*(opened.fingers[1][0] - opened.fingers[0][0])))
     truth = FingerEntry(LENGTH_MM, scene.theta, HALF_THICKNESS_MM, N_LINKS)
     errors: dict[str, list[float]] = {"theta": [], "length": [], "r": [], "mid": [], "tip": []}
     for side in ("left", "right"):
@@ -387,6 +381,21 @@ def variant_errors(scene: AccuracyScene, variant: str) -> VariantErrors:
         gap = np.hypot(*(free_closure_joints(entry, np.zeros(2), side) - free_closure_joints(truth, np.zeros(2), side)).T)
         errors["mid"].append(float(gap[N_LINKS // 2]))
         errors["tip"].append(float(gap[N_LINKS]))
+    return errors
+
+
+def variant_errors(scene: AccuracyScene, variant: str) -> VariantErrors:
+    """Render the scene as ``variant``, calibrate from it (one frame) and compare with the truth.
+
+    A segmentation or keypoint error is not caught: it fails the run (and the tests) loudly.
+    """
+    from calib.one_frame import frame_measurement, one_frame_from_frames
+
+    opened, closed = variant_scenes(scene, variant)
+    open_frame, closed_frame = render(opened, INTRINSICS), render(closed, INTRINSICS)
+    profile = one_frame_from_frames(closed_frame, open_frame, N_LINKS)
+    separation = float(np.hypot(*(opened.fingers[1][0] - opened.fingers[0][0])))
+    errors = profile_errors(profile, scene)
     measured = frame_measurement(open_frame)
     outline = opened.object_polygon
     samples = resample_polyline(np.vstack([outline, outline[:1]]), 4096)
@@ -573,8 +582,7 @@ def lens_errors(scene: AccuracyScene, lens: tuple[str, tuple[float, ...]] | None
     import dataclasses
     import warnings
 
-    from calib.one_frame import free_closure_joints, one_frame_from_frames
-    from calib.profile import FingerEntry
+    from calib.one_frame import one_frame_from_frames
     from softgrip_jax import Geometric
     from vision.scene import frame_scene
 
@@ -591,16 +599,7 @@ def lens_errors(scene: AccuracyScene, lens: tuple[str, tuple[float, ...]] | None
         profile = one_frame_from_frames(closed_frame, open_frame, N_LINKS)
         grasp = frame_scene(open_frame, profile).estimate(estimator=Geometric())
     separation = float(np.hypot(*(opened.fingers[1][0] - opened.fingers[0][0])))
-    truth = FingerEntry(LENGTH_MM, scene.theta, HALF_THICKNESS_MM, N_LINKS)
-    errors: dict[str, list[float]] = {"theta": [], "length": [], "r": [], "mid": [], "tip": []}
-    for side in ("left", "right"):
-        entry = profile.fingers[side]
-        errors["theta"].append(abs(entry.theta_entire - scene.theta))
-        errors["length"].append(100.0 * abs(entry.length - LENGTH_MM) / LENGTH_MM)
-        errors["r"].append(abs(entry.half_thickness - HALF_THICKNESS_MM))
-        gap = np.hypot(*(free_closure_joints(entry, np.zeros(2), side) - free_closure_joints(truth, np.zeros(2), side)).T)
-        errors["mid"].append(float(gap[N_LINKS // 2]))
-        errors["tip"].append(float(gap[N_LINKS]))
+    errors = profile_errors(profile, scene)
     result = VariantErrors(
         theta_rad=max(errors["theta"]), length_pct=max(errors["length"]),
         separation_pct=100.0 * abs(profile.base_separation - separation) / separation,
