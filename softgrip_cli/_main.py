@@ -214,6 +214,24 @@ def check_equinox_environment() -> None:
                                 f"not a whole number: unset it or set a number of frames, e.g. 1") from None
 
 
+def _check_xla_flags(error: type[Exception]) -> None:
+    """Start JAX's backend in a child process under this environment; raise ``error`` naming
+    ``XLA_FLAGS`` if XLA aborts it (an unknown or malformed flag)."""
+    import subprocess
+
+    try:
+        child = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], capture_output=True,
+                               text=True, errors="replace", timeout=300)
+    except (OSError, subprocess.TimeoutExpired):
+        return  # could not tell: the command goes on as before
+    if child.returncode == 0:
+        return
+    lines = [line for line in child.stderr.splitlines() if "flag" in line.lower()] or child.stderr.splitlines()[-1:]
+    said = one_line(lines[0].split("] ", 1)[-1]) if lines else f"exit {child.returncode}"
+    raise error(f"the environment variable XLA_FLAGS={one_line(os.environ['XLA_FLAGS'])!r} stops XLA from "
+                f"starting ({said}); remove the flag XLA does not know, or unset XLA_FLAGS")
+
+
 def check_jax_environment(warn) -> dict:
     """Make JAX usable by a command whatever the environment says, before its first computation.
 
@@ -223,11 +241,17 @@ def check_jax_environment(warn) -> dict:
       (through ``warn``) naming the variable: invalid candidates are NaN and -inf by design, and
       would make JAX raise FloatingPointError.
 
+    * ``XLA_FLAGS`` with a flag XLA does not know: XLA aborts the whole process when JAX starts its
+      backend, so a command given ``XLA_FLAGS`` first starts JAX in a child process (a second or
+      two) and, if that dies, is a SoftgripError quoting XLA's complaint and naming the variable.
+
     Returns the JAX settings changed, {name: previous value}, for :func:`restore_jax_settings`.
     """
-    import jax
-
     from softgrip_base import SoftgripError
+
+    if os.environ.get("XLA_FLAGS", "").strip():
+        _check_xla_flags(SoftgripError)
+    import jax
 
     try:
         jax.devices()

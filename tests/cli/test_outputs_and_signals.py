@@ -338,6 +338,14 @@ def test_jax_platforms_naming_an_absent_platform_is_one_line(tmp_path: Path) -> 
     one_error_line(run.stderr, "JAX_PLATFORMS='cuda'", "JAX_PLATFORMS=cpu")
 
 
+def test_xla_flags_with_a_flag_xla_does_not_know_is_one_line_not_an_abort(tmp_path: Path) -> None:
+    # XLA aborts the process (SIGABRT, a fatal log line) on an unknown flag when the backend starts.
+    run = run_fake(tmp_path, "nan", ["estimate", str(DATA / "circle_open"), "--profile", str(PROFILE)],
+                   env={"XLA_FLAGS": "--xla_no_such_flag=1"})
+    assert run.returncode == 2, run.stderr
+    one_error_line(run.stderr, "XLA_FLAGS='--xla_no_such_flag=1'", "Unknown flag")
+
+
 @pytest.mark.parametrize(("name", "value", "named"), [
     ("EQX_ON_ERROR", "foo", "raise, nan, breakpoint, off"),
     ("EQX_ON_ERROR_BREAKPOINT_FRAMES", "many", "whole number"),
