@@ -21,7 +21,10 @@ from vision.frames import FrameError, Intrinsics
 #: Depth (mm) of the gripper plane from the camera: "a few millimetres to a few metres".
 GRIPPER_DEPTH_MM = (5.0, 5000.0)
 #: A finger's length and the base separation (mm).
-FINGER_LENGTH_MM = (2.0, 1000.0)
+#: Soft grippers' fingers run from a few mm (micro-grippers) to about 20 cm; 300 mm leaves room
+#: while a depth_scale ten times too large (a D435's 0.001 on a D405 frame, whose unit is 0.0001)
+#: turns a 50 mm finger into 500 mm, which calibration would otherwise take as it is.
+FINGER_LENGTH_MM = (2.0, 300.0)
 BASE_SEPARATION_MM = (2.0, 1000.0)
 #: Focal lengths (px) and the largest ratio fy / fx (or fx / fy). Digital sensors have square
 #: pixels: factory calibrations of RealSense D400 colour streams give fx and fy within about 0.5 %
@@ -99,6 +102,14 @@ def check_gripper_depth(depth_mm: float, intrinsics: Intrinsics, source: str = "
                      f"a gripper between {lo:g} mm and {hi / 1000:g} m is expected{hint or ': check depth_scale and the depth image'}")
 
 
+def _ten_times_hint(length: float, hi: float, intrinsics: Intrinsics) -> str:
+    """The likeliest scale mistake behind fingers too long: a D405 frame read with a D435's unit."""
+    if math.isfinite(length) and hi < length <= 10 * hi and intrinsics.depth_scale >= 0.001:
+        return ("; a D405 frame's depth_scale is 0.0001 m per unit, and a D435's 0.001 on it makes every size 10 "
+                "times too large")
+    return ""
+
+
 def check_gripper_size(lengths_mm, separation_mm: float, intrinsics: Intrinsics,
                        source: str = "intrinsics.json") -> None:
     """Refuse fingers and a base separation whose millimetres are implausible: the frame's scale
@@ -113,7 +124,7 @@ def check_gripper_size(lengths_mm, separation_mm: float, intrinsics: Intrinsics,
             raise FrameError(f"{source}: the {side} finger measures {length:.4g} mm (expected {lo:g} mm to "
                              f"{hi / 1000:g} m): the frame's scale is wrong; check depth_scale "
                              f"({intrinsics.depth_scale:g} m per unit) and fx, fy ({intrinsics.fx:g}, "
-                             f"{intrinsics.fy:g} px)")
+                             f"{intrinsics.fy:g} px){_ten_times_hint(length, hi, intrinsics)}")
     lo, hi = BASE_SEPARATION_MM
     if not (math.isfinite(separation_mm) and lo <= separation_mm <= hi):
         raise FrameError(f"{source}: the finger bases lie {separation_mm:.4g} mm apart (expected {lo:g} mm to "

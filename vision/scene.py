@@ -74,6 +74,9 @@ SIDES: tuple[str, str] = ("left", "right")
 SEPARATION_WARN_MM = 3.0
 #: Warn when an "open" finger is bent by more than this (rad, eq. 4 on the frame itself).
 OPEN_BEND_WARN = 0.15
+#: A frame whose fingers are both bent by more than this fraction of the profile's full closure
+#: (theta_entire) shows the closed gripper, not the open one the estimate starts from: refused.
+CLOSED_FRACTION = 0.5
 #: Smallest padded batch of :meth:`Scene.score`: every batch of up to this many poses shares one
 #: compilation (with the persistent cache, across runs too).
 MIN_BATCH = 2048
@@ -451,6 +454,14 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
         warn(f"{label}: a finger's tip is not below its base; the estimate expects a frame of the open "
              f"gripper, fingers hanging down the image")
     else:
+        closure = [getattr(profile.fingers[side], "theta_entire", float("nan")) for side in ("left", "right")] \
+            if hasattr(profile, "fingers") else []
+        if closure and all(abs(b) > CLOSED_FRACTION * c and abs(b) > OPEN_BEND_WARN for b, c in zip(bends, closure)):
+            raise FrameSceneError(
+                f"{label}: the fingers are bent by {bends[0]:.2f} and {bends[1]:.2f} rad (eq. 4), more than "
+                f"{CLOSED_FRACTION:g} of the profile's full closure ({closure[0]:.2f}, {closure[1]:.2f} rad): this is a "
+                f"frame of the closed gripper; estimate and score predict the closure from a frame of the open "
+                f"gripper, taken before it closes")
         if max(abs(b) for b in bends) > OPEN_BEND_WARN:
             warn(f"{label}: the fingers look bent ({bends[0]:.2f} and {bends[1]:.2f} rad by eq. 4); the "
                  f"estimate expects a frame of the open gripper before it closes")

@@ -126,7 +126,7 @@ def _with_intrinsics(frame: Frame, **changes) -> Frame:
 
 
 @pytest.mark.parametrize(("changes", "named"), [
-    ({"depth_scale": 0.001}, ["10 times", "depth_scale", "D435"]),   # a D435's unit on a D405 frame
+    ({"depth_scale": 0.001}, ["10", "depth_scale", "D435", "D405"]),   # a D435's unit on a D405 frame
     ({"fx": 430.0, "fy": 800.0}, ["fx = 430", "fy = 800", "differ"]),
     ({"fx": 385.0, "fy": 440.0}, ["differ by a factor 1.14"]),
     ({"ppx": 600.0, "ppy": 450.0}, ["ppx = 600", "principal point"]),
@@ -324,3 +324,23 @@ def test_a_profile_without_recorded_positions_is_not_checked():
     fingers = _fingers([(219, 217), (424, 217)], [(219, 385), (424, 385)])
     for detected in (None, {}, {"base_px": {"left": [1, 2]}}, {"base_px": "x", "tip_px": None}):
         check_orientation_against_calibration(fingers, detected, (640, 480))
+
+
+def test_a_frame_of_the_closed_gripper_is_refused_and_the_open_one_is_not():
+    # data/circle_closed's fingers are bent by about the profile's full closure (0.55 rad).
+    profile = load_profile(Path(__file__).resolve().parents[2] / "data" / "sample_profile.json")
+    data = Path(__file__).resolve().parents[2] / "data"
+    with pytest.raises(FrameSceneError, match="frame of the closed gripper"):
+        frame_scene(data / "circle_closed", profile, warn=lambda message: None)
+    assert frame_scene(data / "circle_open", profile, warn=lambda message: None).keypoints
+
+
+def test_fingers_ten_times_too_long_are_refused_as_a_scale_mistake():
+    # A 52 mm finger through a depth_scale ten times too large measures 522 mm.
+    from vision.frames import Intrinsics
+    from vision.plausibility import check_gripper_size
+
+    intrinsics = Intrinsics(640, 480, 385.0, 385.0, 320.0, 240.0, 0.001)
+    check_gripper_size((52.2, 52.1), 64.0, intrinsics)
+    with pytest.raises(FrameError, match="left finger measures 522 mm"):
+        check_gripper_size((522.0, 521.0), 640.0, intrinsics)
