@@ -205,6 +205,13 @@ def check_equinox_environment() -> None:
         raise SoftgripError(f"the environment variable EQX_ON_ERROR={one_line(value)!r} is not one of equinox's "
                             f"values ({', '.join(EQX_ON_ERROR_VALUES)}): unset it (softgrip then uses nan) or set "
                             f"one of them")
+    if value == "breakpoint":
+        # equinox then stops in a debugger inside the compiled solves, which softgrip runs as exported
+        # programs: they cannot hold the debugger's host callback.
+        raise SoftgripError("the environment variable EQX_ON_ERROR='breakpoint' (equinox's interactive debugger) "
+                            "is not supported by the softgrip command, whose solvers run as compiled exported "
+                            "programs: unset it (softgrip then uses nan), or set EQX_ON_ERROR=raise to stop on "
+                            "the first failed check")
     frames = os.environ.get("EQX_ON_ERROR_BREAKPOINT_FRAMES")
     if frames is not None:
         try:

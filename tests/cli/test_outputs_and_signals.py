@@ -349,6 +349,7 @@ def test_xla_flags_with_a_flag_xla_does_not_know_is_one_line_not_an_abort(tmp_pa
 @pytest.mark.parametrize(("name", "value", "named"), [
     ("EQX_ON_ERROR", "foo", "raise, nan, breakpoint, off"),
     ("EQX_ON_ERROR_BREAKPOINT_FRAMES", "many", "whole number"),
+    ("EQX_ON_ERROR", "breakpoint", "EQX_ON_ERROR=raise"),
 ])
 def test_an_equinox_variable_equinox_rejects_is_one_line(tmp_path: Path, name: str, value: str, named: str) -> None:
     run = run_fake(tmp_path, "nan", ["estimate", str(DATA / "circle_open"), "--profile", str(PROFILE)],
