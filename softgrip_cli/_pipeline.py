@@ -89,17 +89,17 @@ def quiet() -> bool:
 
 def note(message: str) -> None:
     """A summary line on stderr (how many, how long); silent with ``-q``."""
-    LOG.info(message)
+    LOG.info(one_line(message))  # escaped here too: other handlers (a caller's, pytest's) get it
 
 
 def info(message: str) -> None:
     """A detail on stderr, printed with ``-v`` only."""
-    LOG.debug(message)
+    LOG.debug(one_line(message))  # escaped here too: other handlers (a caller's, pytest's) get it
 
 
 def warn(message: str) -> None:
     """One diagnostic line on stderr (stdout is reserved for results); silent with ``-q``."""
-    LOG.warning(message)
+    LOG.warning(one_line(message))  # escaped here too: other handlers (a caller's, pytest's) get it
 
 
 # ---------------------------------------------------------------------------------------------
