@@ -434,8 +434,9 @@ def test_closed_form_derivatives_match_autodiff(kind, handedness):
         np.testing.assert_allclose(ours, reference, atol=1e-5 * float(jnp.max(jnp.abs(reference))))
     # The gradient nearly cancels at equilibrium: y against contact terms of lever arms up to L
     # times the penalty weight, where float32 rounding of a 16-sample grid lookup alone reaches
-    # about 1e-4 (in float64 the test passes at atol 1e-4).
-    np.testing.assert_allclose(d.gradient, gradient, atol=3e-4)
+    # about 1e-4 (in float64 the test passes at atol 1e-4); compiled without XLA's optimisations
+    # (make test) the two sums round in another order, and the tip's entry differed by 6.3e-4.
+    np.testing.assert_allclose(d.gradient, gradient, atol=1e-3)
 
 
 def test_batch_marks_bad_bases_invalid_and_leaves_the_others_unchanged():
