@@ -143,7 +143,7 @@ def test_sigterm_during_a_real_score_leaves_no_temporary_file(tmp_path: Path) ->
         time.sleep(0.01)
     _, err = process.communicate(timeout=300)
     assert process.returncode == 143, err
-    one_error_line(err, "terminated")
+    assert "Traceback" not in err and err.strip().splitlines()[-1] == "terminated", err  # a summary may come first
     assert os.listdir(tmp_path) == []
 
 
