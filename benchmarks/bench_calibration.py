@@ -41,11 +41,11 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from calib.fit import Observation, fit, free_closure_observation, observations_from_frames
-from calib.one_frame import one_frame_from_frames
-from calib.profile import CalibrationProfile
+from softgrip_calib.fit import Observation, fit, free_closure_observation, observations_from_frames
+from softgrip_calib.one_frame import one_frame_from_frames
+from softgrip_calib.profile import CalibrationProfile
 from softgrip_jax import CASE_NAMES, FingerFrame, PolygonSDF, estimate_in_frame, joint_errors
-from vision.keypoints import resample_polyline
+from softgrip_vision.keypoints import resample_polyline
 _ROOT = str(Path(__file__).resolve().parents[1])
 if _ROOT not in sys.path:  # the test support `synthetic` sits at the root of the checkout
     sys.path.insert(0, _ROOT)

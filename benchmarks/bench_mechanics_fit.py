@@ -29,7 +29,7 @@ solver): a uniform one, and one whose bending stiffness doubles from the tip to 
 With ``--selection``: what ``softgrip calibrate --fit`` does by default through the mechanics
 estimate, from 3 training pairs and the calibration pair, on grippers that need more than a
 uniform clamped finger and on ones that do not: the stiffness model the pairs choose
-(:func:`calib.select.fit_stiffness_model`), against the uniform model (Theta only) and against a fit
+(:func:`softgrip_calib.select.fit_stiffness_model`), against the uniform model (Theta only) and against a fit
 of Theta with the gripper's true stiffness profile and base compliance held fixed (the same
 estimate on its true stiffness), each judged on the held-out pairs.
 """
@@ -52,8 +52,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import bench_calibration as bc  # noqa: E402
-from calib.fit import fit  # noqa: E402
-from calib.profile import CalibrationProfile  # noqa: E402
+from softgrip_calib.fit import fit  # noqa: E402
+from softgrip_calib.profile import CalibrationProfile  # noqa: E402
 from reproduce_paper import rod_case  # noqa: E402
 from softgrip_jax import CASE_NAMES, FingerFrame, estimate_in_frame, joint_errors  # noqa: E402
 from synthetic.rod import RodMechanics  # noqa: E402
@@ -87,7 +87,7 @@ def free_closure_error(profile: CalibrationProfile, truth: CalibrationProfile, n
     """The largest distance over both fingers between ``profile``'s closure without an object and
     the true one (the rod's free closure is the PCC arc of the true L and Theta), at joint N/2 and
     N, from the base along the gripper's axes: "mid / tip" in mm."""
-    from calib.one_frame import free_closure_joints
+    from softgrip_calib.one_frame import free_closure_joints
 
     gaps = [np.hypot(*(free_closure_joints(profile.fingers[side], np.zeros(2), side)
                        - free_closure_joints(truth.fingers[side], np.zeros(2), side)).T) for side in bc.SIDES]
@@ -160,7 +160,7 @@ SELECTION_GRIPPERS = ((1.0, 0.0), (2.0, 0.0), (2.0, 0.3))
 
 def run_selection(stiffness_ratio: float, base_compliance: float, n_links: int, n_train: int, n_test: int,
                   variant: str = "default") -> list[str]:
-    from calib.select import fit_stiffness_model
+    from softgrip_calib.select import fit_stiffness_model
     from vision_accuracy import VARIANTS
 
     options = dict(VARIANTS[variant])

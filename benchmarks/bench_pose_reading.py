@@ -3,8 +3,8 @@
     python benchmarks/bench_pose_reading.py [--rows 1000000] [--repeat 3]
 
 Times ``softgrip_cli.cmd_score.read_poses`` on a file of ROWS poses as plain CSV, CSV saved by a
-spreadsheet (byte-order mark, ';' separators, CRLF) and JSON, and ``vision.frames.load_frame`` /
-``calib.profile.load_profile`` on the sample data; best of REPEAT runs, seconds. Run it with
+spreadsheet (byte-order mark, ';' separators, CRLF) and JSON, and ``softgrip_vision.frames.load_frame`` /
+``softgrip_calib.profile.load_profile`` on the sample data; best of REPEAT runs, seconds. Run it with
 ``PYTHONPATH`` pointing at another checkout to compare (a format that checkout refuses is shown as
 "refused").
 """
@@ -37,10 +37,10 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
 
-    from calib.profile import load_profile
+    from softgrip_calib.profile import load_profile
     from softgrip_cli.cmd_score import read_poses
     from softgrip_jax import SoftgripError
-    from vision.frames import load_frame
+    from softgrip_vision.frames import load_frame
 
     sys.path.insert(0, str(ROOT))
     from benchmarks._machine import describe

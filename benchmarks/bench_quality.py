@@ -19,7 +19,7 @@ Parts (``--part``, comma-separated):
   about the pose that puts the object between the fingers at mid-length (:data:`BOX`), on each of the paper's five objects, both
   estimators: valid, closure, and whether the top 20 are in force closure with both fingers touching.
 * ``variants``: the same on frames rendered with renderer variants, through vision: a one-frame
-  calibration (closed frame without object, open frame with it), ``vision.scene.frame_scene`` (the
+  calibration (closed frame without object, open frame with it), ``softgrip_vision.scene.frame_scene`` (the
   object's SDF grid from the open frame, the profile's gripper) and a grid around the frame's pose.
 * ``throughput``: candidates/s of ``score`` with both estimators on a grid where most fingers
   touch, against ``estimate_grasp_batch`` on the same poses and chunks (the closest call without
@@ -271,12 +271,12 @@ class RenderedScene:
 
 def vision_scene(setup: RenderedScene, variant: str):
     """Render the closed (no object) and open (object) frames as ``variant``, calibrate from the
-    pair (``calib.one_frame.one_frame_from_frames``, N = 20) and build the open frame's
-    :class:`vision.scene.Scene` (the object's SDF grid from the frame, the profile's gripper)."""
+    pair (``softgrip_calib.one_frame.one_frame_from_frames``, N = 20) and build the open frame's
+    :class:`softgrip_vision.scene.Scene` (the object's SDF grid from the frame, the profile's gripper)."""
     from benchmarks.vision_accuracy import INTRINSICS, AccuracyScene, variant_scenes
-    from calib.one_frame import one_frame_from_frames
+    from softgrip_calib.one_frame import one_frame_from_frames
     from synthetic.render import render
-    from vision.scene import frame_scene
+    from softgrip_vision.scene import frame_scene
 
     accuracy = AccuracyScene(
         index=setup.index, theta=THETA, center_mm=setup.gripper_centre_mm, base_separation_mm=setup.base_separation_mm,

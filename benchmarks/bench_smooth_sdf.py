@@ -9,7 +9,7 @@ Run from the repository root (one process; several minutes on two cores, mostly 
 The scene: one finger (L = 52 mm, Theta 0.7, r = 4 mm, N = 20) and a disc of radius 10 mm at
 (20, 60) mm whose tip rests on it (``tests/core/test_closing_path.py``'s). The objects: the exact
 disc (``synthetic.smooth.DiscSDF``), and the ``SDFGrid`` vision makes of it
-(``vision.object_sdf.object_sdf`` of the disc's hard mask, rasterised at the pixel centres of a
+(``softgrip_vision.object_sdf.object_sdf`` of the disc's hard mask, rasterised at the pixel centres of a
 D405-like camera whose pixels are 0.3 mm in the plane), looked up bilinearly
 (``interpolation="linear"``) and bicubically (the default).
 
@@ -44,8 +44,8 @@ from _machine import describe  # noqa: E402
 from softgrip_jax import FingerModel, MechanicsConfig, SDFGrid, estimate, estimate_batch  # noqa: E402
 from synthetic.render import d405_intrinsics  # noqa: E402
 from synthetic.smooth import DiscSDF  # noqa: E402
-from vision.geometry import PlaneCamera  # noqa: E402
-from vision.object_sdf import object_sdf  # noqa: E402
+from softgrip_vision.geometry import PlaneCamera  # noqa: E402
+from softgrip_vision.object_sdf import object_sdf  # noqa: E402
 
 FINGER = FingerModel(52.0, 0.7, 4.0, 20)
 CENTRE, RADIUS, CELL_MM = (20.0, 60.0), 10.0, 0.3

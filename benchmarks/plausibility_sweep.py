@@ -8,7 +8,7 @@ Run from the repository root:
     .venv/bin/python benchmarks/plausibility_sweep.py --seeds 5
 
 and paste the printed markdown into a RESULTS file. Every frame goes through
-``vision.scene.frame_scene`` with a profile of the rendered gripper's own sizes (so a refusal of an
+``softgrip_vision.scene.frame_scene`` with a profile of the rendered gripper's own sizes (so a refusal of an
 upright frame is a false alarm), then flipped vertically and rotated by 180 degrees.
 """
 
@@ -21,12 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.profile import load_profile
+from softgrip_calib.profile import load_profile
 from softgrip_jax import SoftgripError
 from synthetic.render import Scene, d405_intrinsics, render
 from synthetic.scenes import gripper_centrelines
-from vision.frames import Frame
-from vision.scene import frame_scene
+from softgrip_vision.frames import Frame
+from softgrip_vision.scene import frame_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 LENGTH, HALF, SEPARATION = 52.0, 4.0, 64.0

@@ -788,7 +788,7 @@ def kinds(tmp: Path, cache: Path, rng: random.Random) -> list[Kind]:
             import numpy as np
 
             import softgrip_jax
-            from calib.profile import load_profile
+            from softgrip_calib.profile import load_profile
 
             gripper = load_profile(PROFILE).gripper()
             poses = np.zeros((4, 3), np.float32)
@@ -797,7 +797,7 @@ def kinds(tmp: Path, cache: Path, rng: random.Random) -> list[Kind]:
             elif what == "sdf array":
                 softgrip_jax.score(gripper, np.zeros((3, 3)), poses, estimator=softgrip_jax.Geometric())
             elif what == "profile dict":
-                from vision.scene import frame_scene
+                from softgrip_vision.scene import frame_scene
 
                 frame_scene(DATA / "circle_open", json.loads(Path(PROFILE).read_text()))
             elif what == "poses string":

@@ -17,7 +17,7 @@ The protocol follows the paper's section V-A on rendered frames:
   clamped, uniform stiffness unless ``--stiffness-ratio``/``--base-compliance`` say otherwise, its
   own solver), divided into N equal arc lengths as the paper divides the observed contour;
 * calibration per trial: eq. 4 on a rendered frame of the gripper closed on nothing, eq. 5 on a
-  rendered open frame (``calib.one_frame``);
+  rendered open frame (``softgrip_calib.one_frame``);
 * estimate from the rendered open frame through the whole vision pipeline (segmentation, keypoints,
   object SDF grid), and the same estimate from the true geometry (true base, Theta, L, r and the
   object's polygon): the difference is what the vision pipeline costs;
@@ -50,10 +50,10 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from calib.one_frame import frame_measurement, one_frame_from_frames
+from softgrip_calib.one_frame import frame_measurement, one_frame_from_frames
 from softgrip_jax import CASE_NAMES, ContactConfig, FingerFrame, FingerModel, PolygonSDF, estimate_in_frame
-from vision.keypoints import resample_polyline
-from vision.overlay import draw_overlay, save_png
+from softgrip_vision.keypoints import resample_polyline
+from softgrip_vision.overlay import draw_overlay, save_png
 _ROOT = str(Path(__file__).resolve().parents[1])
 if _ROOT not in sys.path:  # the test support `synthetic` sits at the root of the checkout
     sys.path.insert(0, _ROOT)

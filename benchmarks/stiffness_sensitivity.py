@@ -36,7 +36,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import bench_calibration as bc  # noqa: E402
-from calib.fit import PoorlyDeterminedWarning, fit  # noqa: E402
+from softgrip_calib.fit import PoorlyDeterminedWarning, fit  # noqa: E402
 from softgrip_jax import FingerFrame, FingerModel, PolygonSDF, estimate_in_frame  # noqa: E402
 from synthetic.render import Scene  # noqa: E402
 from synthetic.rod import RodMechanics  # noqa: E402

@@ -17,7 +17,7 @@ eq. 4, the paper's observed positions). Every frame goes through the whole pipel
 
 The renderer variants (:data:`VARIANTS`: flat-cut bases, a body in view, round fingers, object
 faces +-3 mm, touching tips, a tilted camera, anti-aliasing, lighting and noise, all at once) go
-through the public one-frame calibration (``calib.one_frame.one_frame_from_frames``) and the
+through the public one-frame calibration (``softgrip_calib.one_frame.one_frame_from_frames``) and the
 measured object outline (:func:`variant_errors`), compared with the renderer's geometry against the
 issue's goals (:data:`VARIANT_GOALS`).
 
@@ -51,12 +51,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from softgrip_jax import SDFGrid
-from vision.coverage import edge_coverage
-from vision.frames import Frame
-from vision.geometry import PlaneCamera
-from vision.keypoints import gripper_keypoints, resample_polyline
-from vision.object_sdf import object_sdf
-from vision.segmentation import segment, segment_batch
+from softgrip_vision.coverage import edge_coverage
+from softgrip_vision.frames import Frame
+from softgrip_vision.geometry import PlaneCamera
+from softgrip_vision.keypoints import gripper_keypoints, resample_polyline
+from softgrip_vision.object_sdf import object_sdf
+from softgrip_vision.segmentation import segment, segment_batch
 _ROOT = str(Path(__file__).resolve().parents[1])
 if _ROOT not in sys.path:  # the test support `synthetic` sits at the root of the checkout
     sys.path.insert(0, _ROOT)
@@ -368,8 +368,8 @@ def variant_scenes(scene: AccuracyScene, variant: str) -> tuple[Scene, Scene]:
 def profile_errors(profile, scene) -> dict[str, list[float]]:
     """Each finger's calibration errors against the renderer's truth: Theta (rad), L (%), r (mm),
     and the free closure's mid-finger and tip joints (mm), as lists [left, right]."""
-    from calib.one_frame import free_closure_joints
-    from calib.profile import FingerEntry
+    from softgrip_calib.one_frame import free_closure_joints
+    from softgrip_calib.profile import FingerEntry
 
     truth = FingerEntry(LENGTH_MM, scene.theta, HALF_THICKNESS_MM, N_LINKS)
     errors: dict[str, list[float]] = {"theta": [], "length": [], "r": [], "mid": [], "tip": []}
@@ -389,7 +389,7 @@ def variant_errors(scene: AccuracyScene, variant: str) -> VariantErrors:
 
     A segmentation or keypoint error is not caught: it fails the run (and the tests) loudly.
     """
-    from calib.one_frame import frame_measurement, one_frame_from_frames
+    from softgrip_calib.one_frame import frame_measurement, one_frame_from_frames
 
     opened, closed = variant_scenes(scene, variant)
     open_frame, closed_frame = render(opened, INTRINSICS), render(closed, INTRINSICS)
@@ -484,9 +484,9 @@ def plane_errors(scene: AccuracyScene, section: str = "round", blur_px: float = 
     object from the open frame with the paper's geometric method; compare with the truth."""
     import warnings
 
-    from calib.one_frame import one_frame_from_frames
-    from vision.measure import MeasurementWarning
-    from vision.scene import frame_scene
+    from softgrip_calib.one_frame import one_frame_from_frames
+    from softgrip_vision.measure import MeasurementWarning
+    from softgrip_vision.scene import frame_scene
 
     opened, closed = plane_scenes(scene, section, blur_px)
     open_frame, closed_frame = render(opened, INTRINSICS), render(closed, INTRINSICS)
@@ -582,9 +582,9 @@ def lens_errors(scene: AccuracyScene, lens: tuple[str, tuple[float, ...]] | None
     import dataclasses
     import warnings
 
-    from calib.one_frame import one_frame_from_frames
+    from softgrip_calib.one_frame import one_frame_from_frames
     from softgrip_jax import Geometric
-    from vision.scene import frame_scene
+    from softgrip_vision.scene import frame_scene
 
     opened, closed = variant_scenes(scene, "default")
     if lens is not None:
@@ -613,7 +613,7 @@ def lens_shift_px(lens: tuple[str, tuple[float, ...]]) -> float:
     and where the pinhole camera does, over the pixels the lens still sees."""
     import dataclasses
 
-    from vision.frames import distort_points
+    from softgrip_vision.frames import distort_points
 
     intr = dataclasses.replace(INTRINSICS, model=lens[0], coeffs=lens[1])
     v, u = np.mgrid[0:INTRINSICS.height:8, 0:INTRINSICS.width:8].astype(np.float64)

@@ -26,7 +26,7 @@ if str(ROOT) not in sys.path:  # runnable from anywhere in a source checkout
     sys.path.insert(0, str(ROOT))
 
 from softgrip_jax import PolygonSDF  # noqa: E402
-from vision.frames import load_frame, save_frame  # noqa: E402
+from softgrip_vision.frames import load_frame, save_frame  # noqa: E402
 from synthetic.render import Scene, d405_intrinsics, render  # noqa: E402
 from synthetic.rod import close_rod, observed_joints  # noqa: E402
 from synthetic.scenes import gripper_centrelines  # noqa: E402
@@ -138,8 +138,8 @@ def make_samples(out: Path) -> dict:
 
 def make_profile(out: Path) -> Path:
     """Calibrate from the calibration pair (one frame, eqs. 4-5) and save ``sample_profile.json``."""
-    from calib.one_frame import one_frame_from_frames
-    from calib.profile import save_profile
+    from softgrip_calib.one_frame import one_frame_from_frames
+    from softgrip_calib.profile import save_profile
 
     profile = one_frame_from_frames(load_frame(out / "calib_closed"), load_frame(out / "calib_open"), N_LINKS,
                                     label="calib_open + calib_closed", camera_name="synthetic D405")

@@ -44,7 +44,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import IO
 
-#: The files of a frame folder (see ``vision.frames``): what a command reading that frame must not
+#: The files of a frame folder (see ``softgrip_vision.frames``): what a command reading that frame must not
 #: overwrite.
 FRAME_FILES = ("color.png", "depth.png", "intrinsics.json")
 

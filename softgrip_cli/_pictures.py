@@ -1,6 +1,6 @@
 """Results -> pictures drawn with OpenCV on the frame itself: per-frame overlays (as in the paper's
 Figs. 15-17) and captions. Plots people read (heat maps with mm axes and a colour bar) are drawn
-with matplotlib in :mod:`vision.plots`."""
+with matplotlib in :mod:`softgrip_vision.plots`."""
 
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ import cv2
 import numpy as np
 
 from softgrip_base.input_guard import ascii_text
-from vision.documents import SIDES, finger_contacts_mm
+from softgrip_vision.documents import SIDES, finger_contacts_mm
 
 
 def grasp_overlay(rgb: np.ndarray, grasp, camera, observed_px=(), label: str | None = None) -> np.ndarray:
     """``rgb`` with both fingers' estimated joints (blue), contacts (red) and observed positions
     (green, (K, 2) px each) drawn as in the paper's Figs. 15-17, with white halos so they read on
     any background, and an optional caption."""
-    from vision.overlay import draw_overlay
+    from softgrip_vision.overlay import draw_overlay
 
     joints = [camera.mm_to_px(np.asarray(getattr(grasp, side).joints, np.float64)) for side in SIDES]
     contacts = np.concatenate([camera.mm_to_px(finger_contacts_mm(getattr(grasp, side))) for side in SIDES])

@@ -1,11 +1,11 @@
 """What the commands share, split by what it does; the names here stay for existing callers.
 
-- frame -> scene: :mod:`vision.scene` (public: ``frame_scene``, ``Scene``, ``FrameSceneError``),
+- frame -> scene: :mod:`softgrip_vision.scene` (public: ``frame_scene``, ``Scene``, ``FrameSceneError``),
   plus :func:`load_profile`, :func:`gripper_from_profile` and :func:`segmentation_settings` below;
-- scene -> results: ``Scene.estimate`` and ``Scene.score`` (:mod:`vision.scene`), and
+- scene -> results: ``Scene.estimate`` and ``Scene.score`` (:mod:`softgrip_vision.scene`), and
   :func:`estimate_scene` below;
-- results -> files: JSON documents in :mod:`vision.documents`, pictures in
-  :mod:`softgrip_cli._pictures` (OpenCV overlays) and :mod:`vision.plots` (matplotlib), output
+- results -> files: JSON documents in :mod:`softgrip_vision.documents`, pictures in
+  :mod:`softgrip_cli._pictures` (OpenCV overlays) and :mod:`softgrip_vision.plots` (matplotlib), output
   files and folders in :mod:`softgrip_cli._files`.
 """
 
@@ -19,10 +19,10 @@ from pathlib import Path
 from softgrip_base.input_guard import one_line
 from softgrip_cli._files import add_force_argument, check_output_file, ensure_dir, frame_inputs, unique_png_names
 from softgrip_cli._pictures import caption, grasp_overlay
-from vision.documents import (SIDES, candidate_json, components_json, failed_frame_json, finger_contacts_mm,
+from softgrip_vision.documents import (SIDES, candidate_json, components_json, failed_frame_json, finger_contacts_mm,
                               finger_json, fingers_json, frame_json, number_json, points_json, pose_json,
                               status_name)
-from vision.scene import (OPEN_BEND_WARN, SEPARATION_WARN_MM, FrameScene, FrameSceneError, Scene, pose_from_bases,
+from softgrip_vision.scene import (OPEN_BEND_WARN, SEPARATION_WARN_MM, FrameScene, FrameSceneError, Scene, pose_from_bases,
                           take, to_numpy, with_lengths)
 
 __all__ = [
@@ -107,10 +107,10 @@ def warn(message: str) -> None:
 
 
 def load_profile(path: str | os.PathLike[str]):
-    """The calibration profile at ``path`` (``calib.profile.load_profile``; errors name the file),
+    """The calibration profile at ``path`` (``softgrip_calib.profile.load_profile``; errors name the file),
     with its path as ``source``, so that a frame that does not match it names the file
-    (:func:`vision.plausibility.check_profile_match`)."""
-    from calib.profile import load_profile as _load
+    (:func:`softgrip_vision.plausibility.check_profile_match`)."""
+    from softgrip_calib.profile import load_profile as _load
 
     profile = _load(path)
     object.__setattr__(profile, "source", str(path))  # not a field: to_dict and equality ignore it
@@ -124,8 +124,8 @@ def gripper_from_profile(profile, lengths_mm: tuple[float, float] | None = None)
 
 
 def segmentation_settings(profile):
-    """The profile's :class:`~vision.segmentation.SegmentationSettings`."""
-    from vision.segmentation import SegmentationSettings
+    """The profile's :class:`~softgrip_vision.segmentation.SegmentationSettings`."""
+    from softgrip_vision.segmentation import SegmentationSettings
 
     return SegmentationSettings.from_dict(profile.segmentation, source="the profile's segmentation")
 
@@ -135,9 +135,9 @@ def segmentation_settings(profile):
 
 
 def frame_scene(path, profile, *, length_from_frame: bool = False, settings=None) -> Scene:
-    """:func:`vision.scene.frame_scene` with the profile's segmentation settings read as the
+    """:func:`softgrip_vision.scene.frame_scene` with the profile's segmentation settings read as the
     commands read them, and warnings printed on stderr."""
-    from vision.scene import frame_scene as _frame_scene
+    from softgrip_vision.scene import frame_scene as _frame_scene
 
     settings = segmentation_settings(profile) if settings is None else settings
     return _frame_scene(path, profile, length_from_frame=length_from_frame, settings=settings, warn=warn)
@@ -145,7 +145,7 @@ def frame_scene(path, profile, *, length_from_frame: bool = False, settings=None
 
 def estimate_grasp_jit():
     """``softgrip_jax.estimate_grasp`` compiled once (per frame size and N) for the whole process."""
-    from vision.scene import _estimate_grasp_jit
+    from softgrip_vision.scene import _estimate_grasp_jit
 
     return _estimate_grasp_jit()
 

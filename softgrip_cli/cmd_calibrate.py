@@ -128,7 +128,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def _n_links(text: str) -> int:
     """An argparse type: a number of links from 1 to the profile format's MAX_N_LINKS."""
-    from calib.profile import MAX_N_LINKS
+    from softgrip_calib.profile import MAX_N_LINKS
 
     value = positive_int(text)
     if value > MAX_N_LINKS:
@@ -148,7 +148,7 @@ def _relief(text: str):
 
 def _measure_settings(args: argparse.Namespace, start=None):
     """The measurement settings: the --profile's (if any) with --base-end / --finger-relief applied."""
-    from vision.measure import MeasureSettings
+    from softgrip_vision.measure import MeasureSettings
 
     base = start.measure_settings() if start is not None else MeasureSettings()
     relief = base.finger_relief_mm if args.finger_relief is None else (
@@ -158,7 +158,7 @@ def _measure_settings(args: argparse.Namespace, start=None):
 
 def run(args: argparse.Namespace) -> int:
     """Calibrate as ``args`` says, write the profile, print a report; 0 on success."""
-    from calib.fit import SkippedFrameWarning
+    from softgrip_calib.fit import SkippedFrameWarning
     from softgrip_cli._pipeline import check_output_file
 
     inputs = _inputs(args)
@@ -167,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
         warnings.simplefilter("always", SkippedFrameWarning)
         warnings.showwarning = _print_warning
         profile, start_method = _fit(args) if args.fit else (_one_frame(args), None)
-    from calib.profile import save_profile
+    from softgrip_calib.profile import save_profile
 
     save_profile(profile, args.output, inputs=inputs, force=args.force)
     if args.fit:
@@ -191,8 +191,8 @@ def _inputs(args: argparse.Namespace) -> list[Path]:
 
 
 def _one_frame(args: argparse.Namespace):
-    from calib.one_frame import one_frame_from_frames
-    from vision.frames import load_frame
+    from softgrip_calib.one_frame import one_frame_from_frames
+    from softgrip_vision.frames import load_frame
 
     if args.closed is None or args.open_frame is None:
         raise SoftgripError("give CLOSED_FRAME and --open OPEN_FRAME for a one-frame calibration, or --fit OPEN "
@@ -212,10 +212,10 @@ def _fit(args: argparse.Namespace):
     """The fitted profile, and the fit method of its start profile."""
     import dataclasses
 
-    from calib.fit import fit, load_observations, start_from_open_frame
-    from calib.one_frame import one_frame_from_frames
-    from calib.profile import load_profile
-    from vision.frames import load_frame
+    from softgrip_calib.fit import fit, load_observations, start_from_open_frame
+    from softgrip_calib.one_frame import one_frame_from_frames
+    from softgrip_calib.profile import load_profile
+    from softgrip_vision.frames import load_frame
 
     if args.closed is not None or args.open_frame is not None:
         raise SoftgripError("CLOSED_FRAME and --open are for a one-frame calibration; with --fit give the frames "
@@ -283,7 +283,7 @@ def _fit(args: argparse.Namespace):
     # A progress bar only on a terminal: its per-step callback keeps the solve out of the compilation
     # cache, so scripted runs (stderr not a terminal) compile once per machine instead of once per run.
     if select:
-        from calib.select import fit_stiffness_model
+        from softgrip_calib.select import fit_stiffness_model
 
         fitted = fit_stiffness_model(observations, start, parameters, loss=args.loss, loss_scale_mm=args.loss_scale,
                                      estimator=estimator, skipped=skipped, progress=sys.stderr.isatty())
@@ -301,8 +301,8 @@ def _same_pair(a: tuple[Path, Path], b: tuple[Path, Path]) -> bool:
 def _free_closure(pair: tuple[Path, Path], settings, n_links: int, measure, must: bool):
     """(the free-closure Observation of ``pair`` (open, closed), None) or, when it cannot be used and
     ``must`` is False, (None, why) with a warning; when ``must``, the error names the pair."""
-    from calib.fit import SkippedFrameWarning, free_closure_observation
-    from vision.frames import load_frame
+    from softgrip_calib.fit import SkippedFrameWarning, free_closure_observation
+    from softgrip_vision.frames import load_frame
 
     label = f"{pair[0]} + {pair[1]}"
     try:
@@ -411,7 +411,7 @@ def _print_summary(profile, output: Path, start_method: str | None = None) -> No
     if fit.method == "least-squares":
         _print_frames(profile, start_method)
     if fit.model_selection is not None:
-        from calib.select import describe_selection
+        from softgrip_calib.select import describe_selection
 
         print("stiffness model (RMS joint distance of each pair predicted from the others, and fitted to all):")
         print("\n".join(describe_selection(fit.model_selection)))

@@ -8,7 +8,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from vision.realsense import CameraError, RecordingDamagedError, capture_from_camera, capture_from_recording
+from softgrip_vision.realsense import CameraError, RecordingDamagedError, capture_from_camera, capture_from_recording
 from softgrip_cli._args import positive_int
 
 EPILOG = """\

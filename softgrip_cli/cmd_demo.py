@@ -136,15 +136,15 @@ def _calibrate(data: Path, out: Path):
     sample = data / SAMPLE_PROFILE
     sample_profile = pipe.load_profile(sample) if sample.is_file() else None
     try:
-        from calib.one_frame import one_frame_from_frames
-        from calib.profile import save_profile
+        from softgrip_calib.one_frame import one_frame_from_frames
+        from softgrip_calib.profile import save_profile
     except ImportError:  # calibration not available: use the profile shipped with the samples
         if sample_profile is None:
             raise SoftgripError(f"{sample}: no sample profile, and calibration is not available") from None
         profile, source = sample_profile, str(sample)
         _write_json(out / "profile.json", profile.to_dict())
     else:
-        from vision.frames import load_frame
+        from softgrip_vision.frames import load_frame
 
         n_links = sample_profile.fingers["left"].n_links if sample_profile else DEFAULT_N_LINKS
         settings = pipe.segmentation_settings(sample_profile) if sample_profile else None
@@ -192,7 +192,7 @@ def _compile_refine(scene: pipe.FrameScene, estimator) -> threading.Thread:
 def _estimate_scene(data: Path, name: str, scene: pipe.FrameScene, profile, out: Path, estimator) -> dict:
     """Estimate one scene at its frame's pose with ``estimator``; compare with its observed closure
     when present."""
-    from vision.overlay import save_png
+    from softgrip_vision.overlay import save_png
 
     grasp = pipe.estimate_scene(scene, estimator)
     record = pipe.frame_json(scene, grasp, estimator.name)
@@ -222,9 +222,9 @@ def _estimate_scene(data: Path, name: str, scene: pipe.FrameScene, profile, out:
 
 def _observed(path: Path, profile, n_links: int) -> list[np.ndarray]:
     """[left, right] observed positions (eq. 10: the closed centreline in N equal arc lengths), mm."""
-    from vision.frames import load_frame, undistort_frame
-    from vision.measure import measure_gripper
-    from vision.segmentation import segment
+    from softgrip_vision.frames import load_frame, undistort_frame
+    from softgrip_vision.measure import measure_gripper
+    from softgrip_vision.segmentation import segment
 
     try:
         frame = undistort_frame(load_frame(path))
@@ -238,7 +238,7 @@ def _observed(path: Path, profile, n_links: int) -> list[np.ndarray]:
 def _score_scene(scene: pipe.FrameScene, out: Path, estimator) -> dict:
     """Score the default grid on ``scene`` with ``estimator`` and write its heat map."""
     from softgrip_cli import cmd_score
-    from vision.overlay import save_png
+    from softgrip_vision.overlay import save_png
 
     grid = cmd_score.default_grid(scene)
     poses = cmd_score.grid_poses(*grid)
@@ -247,7 +247,7 @@ def _score_scene(scene: pipe.FrameScene, out: Path, estimator) -> dict:
     best = int(order[0])
     name = scene.name[:-len("_open")] if scene.name.endswith("_open") else scene.name
     heatmap = f"heatmap_{name}.png"
-    from vision import plots
+    from softgrip_vision import plots
 
     try:
         plots.require_matplotlib()
@@ -274,7 +274,7 @@ def _refine(scene: pipe.FrameScene, scored: dict, out: Path, estimator) -> dict:
     import jax.numpy as jnp
 
     from softgrip_jax import RefineStatus, refine
-    from vision.overlay import save_png
+    from softgrip_vision.overlay import save_png
 
     best = scored["best"]["pose"]
     start_pose = np.array([best["x_mm"], best["y_mm"], best["angle_rad"]])

@@ -87,10 +87,10 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from vision import documents
+    from softgrip_vision import documents
     from softgrip_base.atomic_write import atomic_open
-    from vision.overlay import save_png
-    from vision.scene import conventions
+    from softgrip_vision.overlay import save_png
+    from softgrip_vision.scene import conventions
 
     profile = pipe.load_profile(args.profile)
     estimator = resolve_estimator(args.method, profile)

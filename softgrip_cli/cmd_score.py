@@ -20,9 +20,9 @@ from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_estimator
 from softgrip_jax import SoftgripError, finger_frames
 from softgrip_jax._quality import DEFAULT_MU
-from vision import documents
-from vision import scene as scene_api
-from vision.plots import TOP_GRASPS
+from softgrip_vision import documents
+from softgrip_vision import scene as scene_api
+from softgrip_vision.plots import TOP_GRASPS
 from softgrip_base import input_guard, user_json
 from softgrip_base.input_guard import one_line
 
@@ -140,7 +140,7 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vision import plots
+    from softgrip_vision import plots
 
     if args.top < 0:
         raise SoftgripError(f"--top must be >= 0 (0 prints every candidate), got {args.top}")
@@ -702,13 +702,13 @@ def _show(value) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-#: Smallest padded batch (``vision.scene.MIN_BATCH``): every grid or file of up to this many poses
+#: Smallest padded batch (``softgrip_vision.scene.MIN_BATCH``): every grid or file of up to this many poses
 #: shares one compilation.
 MIN_BATCH = scene_api.MIN_BATCH
 
 
 def score_poses(scene: pipe.FrameScene, poses: np.ndarray, estimator=None, mu: float = DEFAULT_MU, uncertainty=None):
-    """Score (B, 3) poses on ``scene`` in one compiled call (``vision.scene.Scene.score``), with the
+    """Score (B, 3) poses on ``scene`` in one compiled call (``softgrip_vision.scene.Scene.score``), with the
     deformation ``estimator`` (``softgrip_jax.Geometric()`` or ``Mechanics(config)``; None: the default)
     and the friction coefficient ``mu`` (``softgrip_jax.ScoreWeights(mu=...)``; a run-time value: no
     recompilation when it changes), robust with ``uncertainty`` (a ``softgrip_jax.Uncertainty``).
@@ -764,12 +764,12 @@ _NO_VALID_RGB = (128, 128, 128)
 def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best: int,
                   mu: float = DEFAULT_MU) -> np.ndarray:
     """The heat map drawn with OpenCV on the frame's pixels (the demo's picture when matplotlib is
-    not installed; ``vision.plots.heatmap_figure`` is the plot with mm axes): the frame with the
+    not installed; ``softgrip_vision.plots.heatmap_figure`` is the plot with mm axes): the frame with the
     best grasp quality over the angles at each gripper-centre position (viridis from 0 to the
     highest; light grey where valid candidates have no force closure, grey where no angle is valid),
     the best candidate's estimate (joints blue, contacts red) and its centre and base line, a colour
     bar and a caption. ``mu``: the friction the scores were computed with (for the caption)."""
-    from vision.plots import closure_quality, quality_cells, quality_label
+    from softgrip_vision.plots import closure_quality, quality_cells, quality_label
 
     rgb = scene.frame.color
     h, w = rgb.shape[:2]

@@ -14,7 +14,7 @@ JAX refuses to store a program that calls back into Python (``jax.debug.callback
   a non-finite result, which the estimates and scores already report per candidate
   (``valid=False``, a :class:`~softgrip_jax.Status`). The ``softgrip`` command sets it; a library
   user sets it in the shell or at the top of the program (:func:`equinox_errors_cacheable` tells).
-* a progress bar (``calib.fit.fit(progress=True)``).
+* a progress bar (``softgrip_calib.fit.fit(progress=True)``).
 
 The cache holds compiled machine code, which JAX loads and runs. A folder that another user can
 write is therefore refused (:func:`untrusted_reason`, :class:`UntrustedCacheWarning`): the cache is

@@ -12,12 +12,12 @@ from typing import Any
 
 from softgrip_base.errors import SoftgripError
 
-_SDF_HINT = ("pass a softgrip_jax.SDFGrid or PolygonSDF: from a camera frame vision.object_sdf.object_sdf(mask, "
-             "camera) or vision.scene.frame_scene(...).sdf, from numbers SDFGrid(values, origin, spacing) or "
+_SDF_HINT = ("pass a softgrip_jax.SDFGrid or PolygonSDF: from a camera frame softgrip_vision.object_sdf.object_sdf(mask, "
+             "camera) or softgrip_vision.scene.frame_scene(...).sdf, from numbers SDFGrid(values, origin, spacing) or "
              "PolygonSDF(vertices)")
 _FINGER_HINT = "pass a softgrip_jax.FingerModel(length, theta_entire, half_thickness, n_links) (mm, rad)"
 _GRIPPER_HINT = ("pass a softgrip_jax.Gripper(left, right, base_separation); from a calibration profile: "
-                 "calib.profile.load_profile(path).gripper(), or CalibrationProfile.from_dict(d).gripper() for a "
+                 "softgrip_calib.profile.load_profile(path).gripper(), or CalibrationProfile.from_dict(d).gripper() for a "
                  "dict read from one")
 
 

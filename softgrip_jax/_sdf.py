@@ -2,7 +2,7 @@
 
 Two implementations behind one interface, :class:`AbstractSDF`:
 
-* :class:`SDFGrid` samples a distance grid (made from a mask by a distance transform in ``vision``)
+* :class:`SDFGrid` samples a distance grid (made from a mask by a distance transform in ``softgrip_vision``)
   with a C1 bicubic (Catmull-Rom) lookup by default, bilinearly on request; outside the grid it reads
   as ``far``, never as contact.
 * :class:`PolygonSDF` is the exact distance to a closed polygon, differentiable in its vertices.

@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 
 from softgrip_base import SoftgripError
-from vision.frames import DISTORTION_MODELS, Frame, Intrinsics, distort_points
+from softgrip_vision.frames import DISTORTION_MODELS, Frame, Intrinsics, distort_points
 
 LABEL_BACKGROUND = 0
 LABEL_OBJECT = 1
@@ -194,7 +194,7 @@ class Scene:
         light_gain: brightness factor of the whole image (exposure; 1 as given).
         light_gradient: brightness change across the image's width as a fraction (uneven lighting:
             0.3 makes the right edge 30 % brighter than the left).
-        distortion: the lens, ``(model, coeffs)`` with a model of :data:`vision.frames.DISTORTION_MODELS`
+        distortion: the lens, ``(model, coeffs)`` with a model of :data:`softgrip_vision.frames.DISTORTION_MODELS`
             and OpenCV's (pyrealsense2's) coefficients, e.g. ``("brown_conrady", (-0.1, 0.0, 0.0, 0.0, 0.0))``
             for a mild barrel; None (default) for a pinhole camera. Each pixel's ray is then the
             lens's (OpenCV's undistortion of the pixel), so the frame is what that lens would image,
@@ -272,7 +272,7 @@ class Scene:
 def camera(scene: Scene, intrinsics: Intrinsics) -> Intrinsics:
     """The intrinsics of the frames :func:`render` makes of ``scene``: ``intrinsics`` with the scene's
     lens distortion (``Scene.distortion``), if any; the same K. Coefficients a real lens cannot have
-    are refused here (:class:`vision.frames.FrameError`, naming the coefficient).
+    are refused here (:class:`softgrip_vision.frames.FrameError`, naming the coefficient).
 
     Example:
         >>> lens = Scene([], distortion=("brown_conrady", (-0.1, 0.0, 0.0, 0.0, 0.0)))

@@ -89,7 +89,7 @@ def test_readme_setup_then_demo_on_a_fresh_copy(tmp_path, work):
     assert softgrip.is_file()
     # The new venv runs the copy, not this checkout.
     where = subprocess.run([str(work / ".venv" / "bin" / "python"), "-c",
-                            "import softgrip_jax, vision, calib, softgrip_cli; print(softgrip_jax.__file__)"],
+                            "import softgrip_jax, softgrip_vision, softgrip_calib, softgrip_cli; print(softgrip_jax.__file__)"],
                            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert where.returncode == 0, where.stderr
     assert Path(where.stdout.strip()).resolve().is_relative_to(work.resolve())

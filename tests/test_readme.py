@@ -32,12 +32,12 @@ def test_readme_planner_is_the_doctested_example():
 
 
 def test_readme_scene_example_is_the_doctested_example_outputs_included():
-    import vision.scene
+    import softgrip_vision.scene
 
     blocks = re.findall(r"^```python\n(.*?)^```", README.read_text(encoding="utf-8"), flags=re.S | re.M)
     scene = [b for b in blocks if "frame_scene(" in b]
     assert len(scene) == 1, "the README has one frame-to-scene example"
-    examples = doctest.DocTestParser().get_examples(vision.scene.__doc__)
+    examples = doctest.DocTestParser().get_examples(softgrip_vision.scene.__doc__)
     assert _code(scene[0]) == _code("".join(e.source for e in examples))
     # Every output the doctest checks is shown in the README, as a comment, in the same order.
     shown = [line[2:] for line in scene[0].splitlines() if line.startswith("# ")]

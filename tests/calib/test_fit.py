@@ -20,15 +20,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from calib.fit import (FRAME_BUCKET, MIN_CLUSTERED_FRAMES, FitError, Observation, PoorlyDeterminedWarning,
+from softgrip_calib.fit import (FRAME_BUCKET, MIN_CLUSTERED_FRAMES, FitError, Observation, PoorlyDeterminedWarning,
                        SkippedFrameWarning, _robust, _solve, _warn_if_poorly_determined, fit, free_closure_observation,
                        load_observations, observations_from_frames)
-from calib.one_frame import free_closure_joints, one_frame_from_frames, one_frame_profile
-from calib.profile import CalibrationProfile, FingerEntry, FitEntry, load_profile
+from softgrip_calib.one_frame import free_closure_joints, one_frame_from_frames, one_frame_profile
+from softgrip_calib.profile import CalibrationProfile, FingerEntry, FitEntry, load_profile
 from softgrip_cli import cmd_calibrate
 from softgrip_jax import DEFAULT_METHOD, FAR_MM, SDFGrid, SoftgripError
-from vision.frames import save_frame
-from vision.geometry import PlaneCamera
+from softgrip_vision.frames import save_frame
+from softgrip_vision.geometry import PlaneCamera
 from synthetic.render import Scene, d405_intrinsics, render
 from synthetic.rod import free_arc_points
 from synthetic.scenes import gripper_centrelines
@@ -340,7 +340,7 @@ def test_fits_of_other_frame_counts_and_parameters_reuse_the_compilation(five_fr
 
 @dataclass(frozen=True)
 class Keypoints:
-    """The keypoints the one-frame calibration reads, as vision.keypoints.FingerKeypoints has them."""
+    """The keypoints the one-frame calibration reads, as softgrip_vision.keypoints.FingerKeypoints has them."""
 
     base_mm: np.ndarray
     tip_mm: np.ndarray
@@ -432,7 +432,7 @@ def frames(tmp_path_factory):
 
 
 def test_one_frame_calibration_from_rendered_frames(frames) -> None:
-    from vision.frames import load_frame
+    from softgrip_vision.frames import load_frame
 
     profile = one_frame_from_frames(load_frame(frames["closed"]), load_frame(frames["open"]), N,
                                     camera_name="synthetic")
@@ -446,7 +446,7 @@ def test_one_frame_calibration_from_rendered_frames(frames) -> None:
 
 
 def test_least_squares_fit_on_rendered_frames(frames) -> None:
-    from vision.frames import load_frame
+    from softgrip_vision.frames import load_frame
 
     with pytest.warns(SkippedFrameWarning, match="closed_empty: skipped: .*gripper"):
         observations, skipped = load_observations(frames["pairs"], None, N, progress=False)
@@ -480,7 +480,7 @@ def test_at_most_one_free_closure_pair() -> None:
 
 
 def test_a_free_closure_pair_whose_closed_frame_shows_an_object_is_refused() -> None:
-    from vision.frames import load_frame
+    from softgrip_vision.frames import load_frame
 
     with pytest.raises(SoftgripError, match=r"^square_closed shows an object \(\d+ px\): the free-closure pair needs"):
         free_closure_observation(load_frame(DATA / "square_open"), load_frame(DATA / "square_closed"), None, 20,
@@ -501,7 +501,7 @@ def sample_fits():
     calibration pair (N = 20): the fit over the three object pairs with the calibration pair, and
     without it (its free-closure residual at the objects-only values read as the start residual of
     a fit from them)."""
-    from vision.frames import load_frame
+    from softgrip_vision.frames import load_frame
 
     start = one_frame_from_frames(load_frame(DATA / "calib_closed"), load_frame(DATA / "calib_open"), 20,
                                   label="calib_open + calib_closed")
@@ -545,7 +545,7 @@ def test_without_the_calibration_pair_the_objects_bend_theta(sample_fits) -> Non
 
 
 def test_observation_of_a_frame_pair_reads_bases_and_the_closed_fingers(frames) -> None:
-    from vision.frames import load_frame
+    from softgrip_vision.frames import load_frame
 
     open_path, closed_path = frames["pairs"][3]
     obs = observations_from_frames(load_frame(open_path), load_frame(closed_path), None, N, "p")
@@ -669,11 +669,11 @@ def test_cli_stiffness_flags_need_the_mechanics_estimate(frames, tmp_path: Path)
 ])
 def test_cli_fit_passes_the_method_and_parameters(frames, tmp_path: Path, monkeypatch, capsys, argv, parameters,
                                                   method, chosen) -> None:
-    """The command's wiring to calib.fit.fit, and to calib.select.fit_stiffness_model when the
+    """The command's wiring to softgrip_calib.fit.fit, and to softgrip_calib.select.fit_stiffness_model when the
     mechanics fit is given no stiffness flag (the fits themselves are tested in test_fit_mechanics
     and test_select)."""
-    import calib.fit
-    import calib.select
+    import softgrip_calib.fit
+    import softgrip_calib.select
 
     calls = []
 
@@ -685,8 +685,8 @@ def test_cli_fit_passes_the_method_and_parameters(frames, tmp_path: Path, monkey
                                                            residual_rms_mm=0.0, estimate_method=name))
         return fake_fit
 
-    monkeypatch.setattr(calib.fit, "fit", fake("given"))
-    monkeypatch.setattr(calib.select, "fit_stiffness_model", fake("chosen"))
+    monkeypatch.setattr(softgrip_calib.fit, "fit", fake("given"))
+    monkeypatch.setattr(softgrip_calib.select, "fit_stiffness_model", fake("chosen"))
     output = tmp_path / "p.json"
     pairs = [str(p) for pair in frames["pairs"][:2] for p in pair]
     assert run_cli(["--fit", *pairs, "--n-links", str(N), *argv, "-o", str(output)]) == 0

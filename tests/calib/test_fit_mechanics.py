@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.fit import COMPLIANCE_START, PARAMETERS, FitError, Observation, fit
-from calib.profile import CalibrationProfile, FingerEntry, FitEntry
+from softgrip_calib.fit import COMPLIANCE_START, PARAMETERS, FitError, Observation, fit
+from softgrip_calib.profile import CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import PolygonSDF
 from synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
 

@@ -7,7 +7,7 @@ import warnings
 import pytest
 
 from benchmarks.vision_accuracy import INTRINSICS, N_LINKS, accuracy_scenes, variant_scenes
-from calib.one_frame import one_frame_from_frames
+from softgrip_calib.one_frame import one_frame_from_frames
 from softgrip_jax import SoftgripError
 from synthetic.render import render
 

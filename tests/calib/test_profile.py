@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.profile import (PROFILE_VERSION, CalibrationProfile, FingerEntry, FitEntry, ProfileError, load_profile,
+from softgrip_calib.profile import (PROFILE_VERSION, CalibrationProfile, FingerEntry, FitEntry, ProfileError, load_profile,
                            save_profile, to_gripper)
 from softgrip_jax import Gripper, SoftgripError
-from vision.segmentation import SegmentationSettings
+from softgrip_vision.segmentation import SegmentationSettings
 from synthetic.render import d405_intrinsics
 
 
@@ -382,11 +382,11 @@ def test_a_non_finite_number_in_the_detection_record_is_named(tmp_path: Path) ->
 
 
 def test_the_profile_schema_file_is_the_models_and_an_independent_validator_agrees(tmp_path: Path) -> None:
-    """schemas/profile.schema.json is what calib.profile_schema says (regenerate it with
+    """schemas/profile.schema.json is what softgrip_calib.profile_schema says (regenerate it with
     ``json_schema()`` after a change), and jsonschema, a validator independent of pydantic, accepts
     the sample profile and refuses what load_profile refuses."""
     jsonschema = pytest.importorskip("jsonschema")
-    from calib.profile_schema import json_schema
+    from softgrip_calib.profile_schema import json_schema
 
     root = Path(__file__).resolve().parents[2]
     on_disk = json.loads((root / "schemas" / "profile.schema.json").read_text())

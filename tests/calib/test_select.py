@@ -1,4 +1,4 @@
-"""The stiffness model a fit chooses from the frame pairs (calib.select).
+"""The stiffness model a fit chooses from the frame pairs (softgrip_calib.select).
 
 The decision rule is checked on hand-made records (fast); the whole selection on closures of the
 independent elastic rod (synthetic.rod, its own solver), without rendering (slow): a gripper
@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.profile import CalibrationProfile
-from calib.select import MIN_GAIN_FRACTION, MIN_GAIN_MM, STIFFNESS_MODELS, _choose, describe_selection
+from softgrip_calib.profile import CalibrationProfile
+from softgrip_calib.select import MIN_GAIN_FRACTION, MIN_GAIN_MM, STIFFNESS_MODELS, _choose, describe_selection
 
 
 def records(*held_out, failures=None):
@@ -47,7 +47,7 @@ def test_too_few_pairs_with_an_object_keep_the_uniform_finger_and_say_what_to_ad
 
 
 def test_the_selection_is_recorded_in_the_profile_and_survives_a_round_trip(tmp_path) -> None:
-    from calib.profile import FingerEntry, FitEntry, load_profile, save_profile
+    from softgrip_calib.profile import FingerEntry, FitEntry, load_profile, save_profile
 
     selection = {"chosen": "stiffness ratio", "reason": "because", "candidates": records(0.4, 0.2, None, failures=[
         None, None, "did not converge: the least-squares fit did not converge within 100 steps"])}
@@ -72,8 +72,8 @@ def test_rod_closures_choose_the_model_their_gripper_needs(ratio, compliance, ri
     richer models cannot predict its held-out pairs better than the model-to-rod difference)."""
     import warnings
 
-    from calib.fit import Observation
-    from calib.select import fit_stiffness_model
+    from softgrip_calib.fit import Observation
+    from softgrip_calib.select import fit_stiffness_model
     from softgrip_jax import PolygonSDF
     from synthetic.rod import RodMechanics, free_arc_points
     from tests.calib.test_fit_mechanics import (BASES, DISCS, HANDEDNESS, LENGTH, N, TRUE_THETA, rod_observation,

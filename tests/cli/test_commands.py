@@ -53,9 +53,9 @@ def profile_data() -> dict:
 def frame_camera(path: str):
     """The frame's plane camera, measured the way the pipeline measures it (the profile's
     segmentation and vision settings: the gripper plane fitted to the fingers' depth)."""
-    from calib.one_frame import frame_measurement
-    from calib.profile import load_profile
-    from vision.frames import load_frame
+    from softgrip_calib.one_frame import frame_measurement
+    from softgrip_calib.profile import load_profile
+    from softgrip_vision.frames import load_frame
 
     frame = load_frame(path)
     profile = load_profile(PROFILE)
@@ -87,7 +87,7 @@ def check_schema(document: dict, kind: str) -> None:
     """``document`` is valid under the repository's JSON Schema ``schemas/KIND.schema.json``."""
     import jsonschema
 
-    from vision.documents import schema
+    from softgrip_vision.documents import schema
 
     jsonschema.Draft202012Validator(schema(kind)).validate(document)
 
@@ -393,7 +393,7 @@ def test_robust_linear_sets_the_linearisation_with_the_same_spreads():
 
     from softgrip_cli.cmd_score import parse_robust
     from softgrip_jax import Uncertainty
-    from vision.documents import uncertainty_json
+    from softgrip_vision.documents import uncertainty_json
 
     args = Namespace(robust="linear", pose_sigma="0.8,0.02", mu_spread=None, contour_sigma="0.1")
     settings = parse_robust(args)
@@ -562,7 +562,7 @@ def test_demo_writes_its_outputs(demo):
         image = cv2.imread(str(out_dir / name), cv2.IMREAD_UNCHANGED)
         assert image.ndim == 3 and image.shape[2] == 3 and image.shape[0] > 480 and image.shape[1] > 640
     assert json.loads((out_dir / "summary.json").read_text()) == summary
-    from calib.profile import load_profile
+    from softgrip_calib.profile import load_profile
 
     profile = load_profile(out_dir / "profile.json")
     assert profile.fingers["left"].theta_entire == pytest.approx(0.55, abs=0.01)
@@ -620,7 +620,7 @@ def test_missing_profile_is_a_user_error(tmp_path):
 
 @pytest.fixture(scope="module")
 def frame_without_gripper(tmp_path_factory):
-    from vision.frames import save_frame
+    from softgrip_vision.frames import save_frame
     from synthetic.render import Scene, d405_intrinsics, render
 
     path = tmp_path_factory.mktemp("frames") / "empty_frame"
@@ -676,7 +676,7 @@ def fit_with_empty(tmp_path_factory):
 
 def test_calibrate_fit_with_empty_reports_every_pairs_residual(fit_with_empty):
     report, err, output = fit_with_empty
-    from calib.profile import load_profile
+    from softgrip_calib.profile import load_profile
 
     fit = load_profile(output).fit
     label = " + ".join(CALIBRATION)
@@ -732,7 +732,7 @@ def test_calibrate_fit_text_report_with_the_sample_profile(tmp_path):
     assert f"including the free-closure pair {pair} that {PROFILE} records" in err
     lines = out.splitlines()
     assert "per frame pair (mm): residual RMS, mean joint error at joint N/2 and at the tip" in lines
-    from calib.profile import load_profile
+    from softgrip_calib.profile import load_profile
 
     fit = load_profile(output).fit
     for label, rms in zip(fit.frames, fit.frame_residual_rms_mm):
@@ -803,7 +803,7 @@ def test_calibrate_records_both_planes_and_warns_when_they_disagree(tmp_path):
     command still writes the profile, with both depths, and prints the warning naming both."""
     from benchmarks.vision_accuracy import INTRINSICS, accuracy_scenes, plane_scenes
     from synthetic.render import render
-    from vision.frames import save_frame
+    from softgrip_vision.frames import save_frame
 
     scene = accuracy_scenes(2)[1]
     opened, closed = plane_scenes(scene, "round", 1.1, closed_depth_shift_mm=2.0)

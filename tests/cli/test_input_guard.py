@@ -112,9 +112,9 @@ def test_files_over_their_kind_s_limit_are_refused(tmp_path: Path, monkeypatch) 
     monkeypatch.setattr(input_guard, "MAX_PROFILE_BYTES", 1000)
     refused(estimate(FRAME), str(PROFILE), "more than such a file can be (1000 bytes)")
     monkeypatch.undo()
-    import vision.frames
+    import softgrip_vision.frames
 
-    monkeypatch.setattr(vision.frames, "MAX_FILE_BYTES", 1000)
+    monkeypatch.setattr(softgrip_vision.frames, "MAX_FILE_BYTES", 1000)
     refused(estimate(FRAME), str(FRAME / "color.png"), "more than such a file can be (1000 bytes)")
 
 
@@ -309,7 +309,7 @@ def test_a_caption_with_invalid_utf8_bytes_draws_ascii_instead_of_crashing() -> 
 
 
 def test_plot_titles_take_names_literally() -> None:
-    from vision.plots import _plain
+    from softgrip_vision.plots import _plain
 
     assert _plain("a$x^2$\nb\udcff") == "a\\$x^2\\$\\nb\\udcff"
 

@@ -12,7 +12,7 @@ def test_old_import_paths_name_the_same_objects():
     import softgrip_base
     import softgrip_jax
     from softgrip_jax._errors import SoftgripError
-    from vision import atomic_write, user_json
+    from softgrip_vision import atomic_write, user_json
 
     assert softgrip_jax.SoftgripError is SoftgripError is softgrip_base.SoftgripError
     assert atomic_write.OutputRefusedError is softgrip_base.OutputRefusedError

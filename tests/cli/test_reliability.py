@@ -145,12 +145,12 @@ def test_ctrl_c_while_starting_exits_130_without_a_traceback(when: str) -> None:
 
 
 def test_a_damaged_recording_names_the_lost_frames_and_fails_unless_allowed(tmp_path: Path) -> None:
-    realsense = pytest.importorskip("vision.realsense")
+    realsense = pytest.importorskip("softgrip_vision.realsense")
     try:
         realsense.import_realsense()
     except Exception as err:  # pragma: no cover - no pyrealsense2 here
         pytest.skip(f"pyrealsense2 unavailable: {err}")
-    from vision.frames import load_frame
+    from softgrip_vision.frames import load_frame
 
     frames = [load_frame(DATA / name) for name in ("circle_open", "square_open", "star_a_open")]
     recording = realsense.write_recording(tmp_path / "scene.db3", frames)

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 import softgrip_jax as sg
-from calib.profile import ProfileError, check_profile, load_profile, save_profile, to_gripper
+from softgrip_calib.profile import ProfileError, check_profile, load_profile, save_profile, to_gripper
 from tests.cli.test_commands import DATA, PROFILE
 
 ROOT = DATA.parent
@@ -119,7 +119,7 @@ def test_profile_functions_given_a_dict_or_path_say_how_to_load_it(bad, fix: str
 
 
 def test_frame_scene_given_a_profile_dict_says_how_to_load_it() -> None:
-    from vision.scene import FrameSceneError, frame_scene
+    from softgrip_vision.scene import FrameSceneError, frame_scene
 
     with pytest.raises(FrameSceneError, match=r"^profile: got a dict with keys .*load_profile\(path\)"):
         frame_scene(DATA / "circle_open", PROFILE_DICT)

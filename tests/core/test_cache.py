@@ -158,7 +158,7 @@ def test_refine_mechanics_compiles_without_host_callbacks_under_eqx_on_error_nan
 def test_fit_compiles_without_host_callbacks_unless_a_progress_bar_is_shown() -> None:
     import numpy as np
 
-    from calib.fit import _solve, _stack, _unknowns
+    from softgrip_calib.fit import _solve, _stack, _unknowns
     from tests.calib.test_fit import observation, start_profile
 
     rng = np.random.default_rng(3)

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.fuzz.strategies import frame_files, intrinsic_values
-from vision.frames import Frame, FrameError, Intrinsics, load_frame, save_frame
+from softgrip_vision.frames import Frame, FrameError, Intrinsics, load_frame, save_frame
 
 SAMPLE = Path(__file__).resolve().parents[2] / "data" / "circle_open"
 FIELDS = ("width", "height", "fx", "fy", "ppx", "ppy", "depth_scale")
@@ -128,7 +128,7 @@ def painted(draw, frame: Frame) -> Frame:
 def test_a_painted_over_real_frame_becomes_a_scene_or_a_frame_scene_error_naming_it(data):
     # The command's pipeline up to the core's inputs (segmentation, keypoints, the object's SDF), without
     # compiling an estimate.
-    from calib.profile import load_profile
+    from softgrip_calib.profile import load_profile
     from softgrip_cli._pipeline import FrameSceneError, frame_scene
 
     frame = data.draw(painted(load_frame(SAMPLE)))

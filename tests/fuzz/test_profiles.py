@@ -11,7 +11,7 @@ from pathlib import Path
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calib.profile import CalibrationProfile, ProfileError, load_profile, save_profile
+from softgrip_calib.profile import CalibrationProfile, ProfileError, load_profile, save_profile
 from tests.fuzz.strategies import SAMPLE_PROFILE, json_values, mutated_profiles
 
 

@@ -20,9 +20,9 @@ from hypothesis import strategies as st
 
 from softgrip_jax import (ContactConfig, FingerModel, MechanicsConfig, SDFGrid, chain_stations, estimate,
                           forward_kinematics, sweep_shape)
-from vision.geometry import PlaneCamera
-from vision.object_sdf import object_sdf
-from vision.segmentation import segment
+from softgrip_vision.geometry import PlaneCamera
+from softgrip_vision.object_sdf import object_sdf
+from softgrip_vision.segmentation import segment
 from synthetic.render import Scene, d405_intrinsics, render
 from synthetic.scenes import gripper_centrelines
 from synthetic.shapes import shape

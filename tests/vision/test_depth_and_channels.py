@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vision.frames import Frame, FrameError, load_frame
-from vision.plausibility import check_channel_order
-from vision.segmentation import segment
+from softgrip_vision.frames import Frame, FrameError, load_frame
+from softgrip_vision.plausibility import check_channel_order
+from softgrip_vision.segmentation import segment
 
 DATA = Path(__file__).resolve().parents[2] / "data"
 

@@ -16,7 +16,7 @@ import pytest
 
 from benchmarks.vision_accuracy import INTRINSICS, LENS_GOALS, LENSES, accuracy_scenes, lens_errors, variant_scenes
 from synthetic.render import LABEL_FIRST_FINGER, LABEL_OBJECT, camera, project, render, render_labels
-from vision.frames import (Frame, FrameError, Intrinsics, distort_points, load_frame, undistort_frame,
+from softgrip_vision.frames import (Frame, FrameError, Intrinsics, distort_points, load_frame, undistort_frame,
                            undistortion_maps)
 
 DATA = Path(__file__).resolve().parents[2] / "data"
@@ -155,8 +155,8 @@ def test_a_lens_that_folds_back_inside_the_image_is_refused() -> None:
 
 def test_measure_gripper_refuses_a_distorted_frame() -> None:
     """A caller who segments and measures a distorted frame directly is stopped, not misled."""
-    from vision.measure import measure_gripper
-    from vision.segmentation import segment
+    from softgrip_vision.measure import measure_gripper
+    from softgrip_vision.segmentation import segment
 
     frame = render(dataclasses.replace(variant_scenes(accuracy_scenes(1)[0], "default")[0],
                                        distortion=MODELS["barrel k1 -0.1"]), INTRINSICS)
@@ -191,7 +191,7 @@ def test_a_distorted_rendering_is_measured_as_the_pinhole_one() -> None:
     with the pinhole rendering's within one pixel at the plane (Z / fx mm, about 0.3 mm): what
     segmenting two renderings of the same edges at different pixel scales may move an outline by.
     Ignoring the lens (model none) moves them by more."""
-    from calib.one_frame import frame_measurement
+    from softgrip_calib.one_frame import frame_measurement
 
     scene = accuracy_scenes(1)[0]
     opened = variant_scenes(scene, "default")[0]
@@ -233,7 +233,7 @@ def test_fit_observations_from_distorted_frames_match_the_pinhole_ones() -> None
     """``calibrate --fit``'s observations (bases, the closed fingers' observed positions and the
     object's grid) from a pair rendered through a lens agree with the pinhole pair's within one pixel
     at the plane, as :func:`test_a_distorted_rendering_is_measured_as_the_pinhole_one`."""
-    from calib.fit import observations_from_frames
+    from softgrip_calib.fit import observations_from_frames
 
     scene = accuracy_scenes(1)[0]
     one_px_mm = scene.plane_depth_mm / INTRINSICS.fx

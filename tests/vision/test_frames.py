@@ -12,9 +12,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import vision.frames as frames_module
+import softgrip_vision.frames as frames_module
 from softgrip_base.errors import SoftgripError
-from vision.frames import (
+from softgrip_vision.frames import (
     COLOR_FILE,
     DEPTH_FILE,
     INTRINSICS_FILE,

@@ -1,4 +1,4 @@
-"""The tilted gripper plane (vision.geometry): ray-plane mapping against hand-derived formulas, and the
+"""The tilted gripper plane (softgrip_vision.geometry): ray-plane mapping against hand-derived formulas, and the
 plane fit against depth images computed here from the analytic surfaces (not the renderer's code).
 """
 
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from vision.frames import Frame, FrameError
-from vision.geometry import PlaneCamera, face_offset_mm, fit_gripper_plane
+from softgrip_vision.frames import Frame, FrameError
+from softgrip_vision.geometry import PlaneCamera, face_offset_mm, fit_gripper_plane
 from synthetic.render import d405_intrinsics
 
 INTR = d405_intrinsics()

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vision.frames import Frame, FrameError, Intrinsics, load_frame, save_frame, undistort_frame
+from softgrip_vision.frames import Frame, FrameError, Intrinsics, load_frame, save_frame, undistort_frame
 
 K = np.array([[612.5, 0.0, 321.25], [0.0, 611.0, 242.75], [0.0, 0.0, 1.0]])
 DIST = np.array([0.11, -0.23, 0.0012, -0.0007, 0.05])

@@ -1,4 +1,4 @@
-"""intrinsics.json validated by a pydantic model (vision.intrinsics_schema), its JSON Schema on disk."""
+"""intrinsics.json validated by a pydantic model (softgrip_vision.intrinsics_schema), its JSON Schema on disk."""
 
 from __future__ import annotations
 
@@ -8,15 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vision.frames import DISTORTION_MODELS, FrameError, Intrinsics
-from vision.intrinsics_schema import MODELS, json_schema
+from softgrip_vision.frames import DISTORTION_MODELS, FrameError, Intrinsics
+from softgrip_vision.intrinsics_schema import MODELS, json_schema
 
 ROOT = Path(__file__).resolve().parents[2]
 GOOD = {"width": 640, "height": 480, "fx": 385.0, "fy": 385, "ppx": 320.0, "ppy": 240.0, "depth_scale": 0.0001}
 
 
 def test_the_intrinsics_schema_file_is_the_model_and_an_independent_validator_agrees():
-    """schemas/intrinsics.schema.json is what vision.intrinsics_schema says (regenerate it with
+    """schemas/intrinsics.schema.json is what softgrip_vision.intrinsics_schema says (regenerate it with
     ``json_schema()`` after a change), and jsonschema, a validator independent of pydantic, accepts
     the sample frames' intrinsics and refuses what Intrinsics.from_dict refuses."""
     jsonschema = pytest.importorskip("jsonschema")

@@ -1,5 +1,5 @@
-"""Finger keypoints (vision.keypoints) against the renderer's ground truth, pixels <-> millimetres
-(vision.geometry), and drawing them (vision.overlay).
+"""Finger keypoints (softgrip_vision.keypoints) against the renderer's ground truth, pixels <-> millimetres
+(softgrip_vision.geometry), and drawing them (softgrip_vision.overlay).
 
 Ground truth is the scene geometry in mm projected with the renderer's own ``mm_to_px`` at the
 scene's plane depth; the pipeline estimates the plane depth from the noisy depth image.
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from benchmarks.vision_accuracy import REQUIREMENTS, accuracy_scenes, measure
-from vision.frames import Frame, FrameError, Intrinsics
-from vision.geometry import PlaneCamera, plane_depth_mm
-from vision.keypoints import (
+from softgrip_vision.frames import Frame, FrameError, Intrinsics
+from softgrip_vision.geometry import PlaneCamera, plane_depth_mm
+from softgrip_vision.keypoints import (
     KeypointError,
     finger_keypoints,
     finger_length,
@@ -25,8 +25,8 @@ from vision.keypoints import (
     resample_polyline,
     theta_from_closed,
 )
-from vision.overlay import CONTACT_RGB, JOINT_RGB, OBSERVED_RGB, draw_overlay, save_png
-from vision.segmentation import SegmentationSettings, segment
+from softgrip_vision.overlay import CONTACT_RGB, JOINT_RGB, OBSERVED_RGB, draw_overlay, save_png
+from softgrip_vision.segmentation import SegmentationSettings, segment
 from synthetic.render import LABEL_FIRST_FINGER, Scene, d405_intrinsics, mm_to_px, render, render_labels
 from synthetic.rod import free_arc_points
 from synthetic.scenes import gripper_centrelines
@@ -282,7 +282,7 @@ def test_bilinear_sampling_of_more_points_than_opencv_remap_takes_at_once() -> N
     bilinear interpolation) inside the image."""
     from scipy.ndimage import map_coordinates
 
-    from vision.keypoints import _bilinear
+    from softgrip_vision.keypoints import _bilinear
 
     image = np.random.default_rng(0).random((50, 60)).astype(np.float32)
     points = np.random.default_rng(1).uniform(-2.0, 62.0, (100_000, 2))  # (u, v) px

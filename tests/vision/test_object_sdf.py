@@ -1,4 +1,4 @@
-"""Object masks to signed distances (vision.object_sdf): zero level against the true outline on the
+"""Object masks to signed distances (softgrip_vision.object_sdf): zero level against the true outline on the
 rendered scenes and on point-sampled and anti-aliased masks of tilted planes (no bias), distances
 against geometry, the grid's shape, objects cut by the image border, bad masks."""
 
@@ -22,10 +22,10 @@ from benchmarks.vision_accuracy import (
     zero_level_px,
 )
 from softgrip_jax import FAR_MM, SDFGrid
-from vision.frames import Intrinsics
-from vision.geometry import PlaneCamera
-from vision.object_sdf import ObjectMaskError, object_polygon, object_sdf
-from vision.segmentation import segment
+from softgrip_vision.frames import Intrinsics
+from softgrip_vision.geometry import PlaneCamera
+from softgrip_vision.object_sdf import ObjectMaskError, object_polygon, object_sdf
+from softgrip_vision.segmentation import segment
 from synthetic.render import LABEL_OBJECT, Scene, d405_intrinsics, mm_to_px, render, render_labels
 from synthetic.scenes import gripper_centrelines
 from synthetic.shapes import shape

@@ -21,11 +21,11 @@ import pytest
 
 from benchmarks.vision_accuracy import (HALF_THICKNESS_MM, INTRINSICS, N_LINKS, PLANE_GOALS, accuracy_scenes,
                                         plane_errors, plane_scenes)
-from calib.one_frame import frame_measurement, one_frame_from_frames
+from softgrip_calib.one_frame import frame_measurement, one_frame_from_frames
 from synthetic.render import Scene, render
 from synthetic.scenes import gripper_centrelines
-from vision.geometry import _EDGE_PX, _mixed_band_px
-from vision.measure import PLANE_AGREEMENT_MM, MeasurementWarning, PlaneDisagreementWarning
+from softgrip_vision.geometry import _EDGE_PX, _mixed_band_px
+from softgrip_vision.measure import PLANE_AGREEMENT_MM, MeasurementWarning, PlaneDisagreementWarning
 
 SCENE = accuracy_scenes(2)[1]
 MODERATE, STRONG = 1.1, 1.7  # Gaussian sigma (px): about a 5 x 5 and a 9 x 9 filter

@@ -18,15 +18,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.profile import FingerEntry, ProfileError, load_profile
+from softgrip_calib.profile import FingerEntry, ProfileError, load_profile
 from softgrip_cli import main
 from softgrip_cli.cmd_score import PoseInputError, check_pose_units
 from synthetic.render import Scene, d405_intrinsics, render
 from synthetic.scenes import gripper_centrelines
-from vision.frames import Frame, FrameError, load_frame, save_frame
-from vision.measure import measure_gripper
-from vision.scene import FrameSceneError, frame_scene
-from vision.segmentation import SegmentationError, segment
+from softgrip_vision.frames import Frame, FrameError, load_frame, save_frame
+from softgrip_vision.measure import measure_gripper
+from softgrip_vision.scene import FrameSceneError, frame_scene
+from softgrip_vision.segmentation import SegmentationError, segment
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "data"
@@ -293,7 +293,7 @@ _CALIBRATED = {"base_px": {"left": [219.0, 94.0], "right": [424.0, 94.0]},
 def test_a_frame_turned_against_its_calibration_is_refused(turn):
     # The calibrated gripper in a 640x480 image turned over: what the frame's (upper) ends are is
     # derived by hand from v' = 479 - v (and u' = 639 - u for the 180-degree turn).
-    from vision.plausibility import check_orientation_against_calibration
+    from softgrip_vision.plausibility import check_orientation_against_calibration
 
     def turned(u, v):
         return (u, 479 - v) if turn == "flipud" else (639 - u, 479 - v)
@@ -310,7 +310,7 @@ def test_a_frame_turned_against_its_calibration_is_refused(turn):
 def test_an_upright_or_moved_gripper_is_not_refused(shift):
     # Upright at the calibrated place, or moved in the image (a camera not fixed to the gripper):
     # either the bases are near the calibrated ones, or the tips are nowhere near a mirrored base.
-    from vision.plausibility import check_orientation_against_calibration
+    from softgrip_vision.plausibility import check_orientation_against_calibration
 
     du, dv = shift
     bases = [(219 + du, 94 + dv), (424 + du, 94 + dv)]
@@ -319,7 +319,7 @@ def test_an_upright_or_moved_gripper_is_not_refused(shift):
 
 
 def test_a_profile_without_recorded_positions_is_not_checked():
-    from vision.plausibility import check_orientation_against_calibration
+    from softgrip_vision.plausibility import check_orientation_against_calibration
 
     fingers = _fingers([(219, 217), (424, 217)], [(219, 385), (424, 385)])
     for detected in (None, {}, {"base_px": {"left": [1, 2]}}, {"base_px": "x", "tip_px": None}):
@@ -337,8 +337,8 @@ def test_a_frame_of_the_closed_gripper_is_refused_and_the_open_one_is_not():
 
 def test_fingers_ten_times_too_long_are_refused_as_a_scale_mistake():
     # A 52 mm finger through a depth_scale ten times too large measures 522 mm.
-    from vision.frames import Intrinsics
-    from vision.plausibility import check_gripper_size
+    from softgrip_vision.frames import Intrinsics
+    from softgrip_vision.plausibility import check_gripper_size
 
     intrinsics = Intrinsics(640, 480, 385.0, 385.0, 320.0, 240.0, 0.001)
     check_gripper_size((52.2, 52.1), 64.0, intrinsics)

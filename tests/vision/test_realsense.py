@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import vision.realsense as realsense
+import softgrip_vision.realsense as realsense
 from softgrip_cli import cmd_capture
-from vision.frames import Frame, FrameError, Intrinsics, load_frame
-from vision.realsense import (
+from softgrip_vision.frames import Frame, FrameError, Intrinsics, load_frame
+from softgrip_vision.realsense import (
     CameraError,
     capture_from_camera,
     capture_from_recording,

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vision.frames import load_frame, save_frame
+from softgrip_vision.frames import load_frame, save_frame
 from synthetic.render import (
     LABEL_BACKGROUND,
     LABEL_FIRST_FINGER,

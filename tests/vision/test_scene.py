@@ -1,4 +1,4 @@
-"""vision.scene without compiling an estimate: frames from folders and from memory, warnings,
+"""softgrip_vision.scene without compiling an estimate: frames from folders and from memory, warnings,
 finger frames, conventions and bad poses (the estimate and score are in its doctest)."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.profile import load_profile
+from softgrip_calib.profile import load_profile
 from softgrip_jax import SoftgripError
-from vision.frames import Frame, load_frame
-from vision.scene import FrameSceneError, SceneWarning, frame_scene, pose_from_bases
+from softgrip_vision.frames import Frame, load_frame
+from softgrip_vision.scene import FrameSceneError, SceneWarning, frame_scene, pose_from_bases
 
 DATA = Path(__file__).resolve().parents[2] / "data"
 PROFILE = load_profile(DATA / "sample_profile.json")

@@ -1,4 +1,4 @@
-"""Segmentation (vision.segmentation): masks against the renderer's ground-truth labels, both
+"""Segmentation (softgrip_vision.segmentation): masks against the renderer's ground-truth labels, both
 backends against each other, every setting, and one test per bad input."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import pytest
 
 from benchmarks.vision_accuracy import accuracy_scenes, measure
 from softgrip_jax import SoftgripError
-from vision.frames import Frame
-from vision.segmentation import SegmentationError, SegmentationSettings, segment, segment_batch
+from softgrip_vision.frames import Frame
+from softgrip_vision.segmentation import SegmentationError, SegmentationSettings, segment, segment_batch
 from synthetic.render import (
     LABEL_FIRST_FINGER,
     LABEL_OBJECT,

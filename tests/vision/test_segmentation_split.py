@@ -1,4 +1,4 @@
-"""Splitting one gripper region into two fingers (vision.segmentation): fingertips that touch or
+"""Splitting one gripper region into two fingers (softgrip_vision.segmentation): fingertips that touch or
 overlap by a few pixels in the closed frame, and the gripper's body (a palm bar) joining the finger
 bases, found at the region's neck or at a centre-line hint; a single finger is never split; and the
 one-frame calibration through a closed frame whose tips touch."""
@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from calib.one_frame import one_frame_from_frames
-from vision.segmentation import SegmentationError, segment, segment_batch
+from softgrip_calib.one_frame import one_frame_from_frames
+from softgrip_vision.segmentation import SegmentationError, segment, segment_batch
 from synthetic.render import (
     LABEL_FIRST_FINGER,
     LABEL_PALM,

@@ -6,7 +6,7 @@ without it :func:`require_matplotlib` raises a :class:`~softgrip_jax.SoftgripErr
 Figures are built on ``matplotlib.figure.Figure`` with the Agg canvas, never through pyplot, so
 no global backend or figure state changes in the caller's process. Per-frame overlays for video
 (joints and contacts drawn on each frame's pixels) stay OpenCV drawings
-(:mod:`vision.overlay`).
+(:mod:`softgrip_vision.overlay`).
 
 The heat map (:func:`heatmap_figure`) shows the frame in the gripper plane's millimetres (x right,
 y down, as the image), each gripper-centre position of a pose grid coloured by its best grasp
@@ -171,7 +171,7 @@ def _finish_axes(ax, spans_x: list[float], spans_y: list[float], margin: float =
 
 def _draw_fingers(ax, grasp, colour) -> np.ndarray:
     """Both fingers' estimated joints (mm) of one candidate, over a white outline; returns them, (2 (N+1), 2)."""
-    from vision.documents import SIDES
+    from softgrip_vision.documents import SIDES
 
     drawn = []
     for side in SIDES:
@@ -187,9 +187,9 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
     """A matplotlib ``Figure`` of the grasp quality of ``poses`` on ``scene`` (see the module docstring).
 
     Args:
-        scene: a :class:`vision.scene.Scene`.
+        scene: a :class:`softgrip_vision.scene.Scene`.
         poses: (B, 3) poses (x mm, y mm, angle rad).
-        result: their numpy :class:`softgrip_jax.Score` (:meth:`vision.scene.Scene.score`).
+        result: their numpy :class:`softgrip_jax.Score` (:meth:`softgrip_vision.scene.Scene.score`).
         grid: ``(xs, ys, angles)`` when the poses are that grid (x slowest, angle fastest): drawn
             as cells, each the best quality over the angles; None: each pose's centre is drawn as a dot.
         best: index of the pose whose estimate is drawn (default: the best valid score).
@@ -204,7 +204,7 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    from vision.documents import SIDES, quality_contacts
+    from softgrip_vision.documents import SIDES, quality_contacts
 
     poses = np.asarray(poses, np.float64)
     quality, valid = closure_quality(result, robust)
@@ -304,10 +304,10 @@ def grasps_figure(scene, poses: np.ndarray, result, order=None, *, top: int = TO
     tight=False)``).
 
     Args:
-        scene: a :class:`vision.scene.Scene`.
+        scene: a :class:`softgrip_vision.scene.Scene`.
         poses: (B, 3) poses (x mm, y mm, angle rad).
-        result: their numpy :class:`softgrip_jax.Score` (:meth:`vision.scene.Scene.score`).
-        order: candidate indices, best first (default: :func:`vision.scene.rank`); the first
+        result: their numpy :class:`softgrip_jax.Score` (:meth:`softgrip_vision.scene.Scene.score`).
+        order: candidate indices, best first (default: :func:`softgrip_vision.scene.rank`); the first
             ``top`` valid ones are drawn.
         mu: the friction coefficient the scores were computed with.
         title: the figure's title (default: the frame's name and each grasp's rank, quality and closure).
@@ -317,8 +317,8 @@ def grasps_figure(scene, poses: np.ndarray, result, order=None, *, top: int = TO
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    from vision.documents import SIDES, quality_contacts
-    from vision.scene import rank
+    from softgrip_vision.documents import SIDES, quality_contacts
+    from softgrip_vision.scene import rank
 
     poses = np.asarray(poses, np.float64)
     order = rank(result) if order is None else np.asarray(order)

@@ -4,7 +4,7 @@ A frame can be perfectly well-formed and still wrong: a ``depth_scale`` of 1000 
 (Open3D's "depth units per metre" where pyrealsense2's "metres per depth unit" is meant), focal
 lengths in the wrong unit, a principal point from another resolution. Each of these used to give
 confident millimetre figures that are off by factors of thousands. The checks here refuse them with
-a :class:`~vision.frames.FrameError` naming the field and the likely fix.
+a :class:`~softgrip_vision.frames.FrameError` naming the field and the likely fix.
 
 The bounds are deliberately wide (a gripper from a few millimetres to a few metres from the camera,
 fingers from 2 mm to 1 m): they catch unit mistakes, not unusual set-ups.
@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from vision.frames import FrameError, Intrinsics
+from softgrip_vision.frames import FrameError, Intrinsics
 
 #: Depth (mm) of the gripper plane from the camera: "a few millimetres to a few metres".
 GRIPPER_DEPTH_MM = (5.0, 5000.0)
@@ -57,7 +57,7 @@ def check_intrinsics(intrinsics: Intrinsics, source: str = "intrinsics.json") ->
         >>> check_intrinsics(Intrinsics(640, 480, 1e-300, 385.0, 320.0, 240.0, 0.001))
         Traceback (most recent call last):
         ...
-        vision.frames.FrameError: intrinsics.json: fx = 1e-300 px is not a focal length a camera has ...
+        softgrip_vision.frames.FrameError: intrinsics.json: fx = 1e-300 px is not a focal length a camera has ...
     """
     lo, hi = FOCAL_PX
     for name in ("fx", "fy"):
@@ -154,7 +154,7 @@ def check_channel_order(color, mask, expected_rgb, source: str = "color") -> Non
         >>> check_channel_order(red[..., ::-1], np.ones((4, 4), bool), (220, 20, 20))
         Traceback (most recent call last):
         ...
-        vision.frames.FrameError: color: the channels look swapped (BGR): ...
+        softgrip_vision.frames.FrameError: color: the channels look swapped (BGR): ...
     """
     pixels = np.asarray(color)[np.asarray(mask, bool)]
     if pixels.size == 0:
@@ -166,7 +166,7 @@ def check_channel_order(color, mask, expected_rgb, source: str = "color") -> Non
         raise FrameError(f"{source}: the channels look swapped (BGR): the region's mean colour is "
                          f"{np.round(mean).astype(int).tolist()} where {np.round(expected).astype(int).tolist()} "
                          f"(RGB) is expected, and reversed it matches; pass cv2.cvtColor(color, "
-                         f"cv2.COLOR_BGR2RGB) (cv2.imread gives BGR), or read frames with vision.frames.load_frame")
+                         f"cv2.COLOR_BGR2RGB) (cv2.imread gives BGR), or read frames with softgrip_vision.frames.load_frame")
 
 
 def straightness(keypoints) -> float:
@@ -193,13 +193,13 @@ BODY_MIN_HEIGHT = 1.25
 def body_below_fingers(region) -> bool:
     """Whether one gripper region (H, W) bool, whose two fingers segmentation could not cut apart,
     is joined by the gripper's body BELOW the fingers: it has no neck the right way up
-    (:func:`vision.segmentation.neck_column`) but has one flipped vertically, and there the region
+    (:func:`softgrip_vision.segmentation.neck_column`) but has one flipped vertically, and there the region
     is more than :data:`BODY_MIN_HEIGHT` finger widths tall (a body, not the bottom of one finger
     curled into a U). Then the frame is upside down (a body joins the finger bases, above them, in
     an upright frame)."""
     import cv2
 
-    from vision.segmentation import neck_column
+    from softgrip_vision.segmentation import neck_column
 
     region = np.asarray(region, bool)
     if neck_column(region) is not None:
@@ -218,7 +218,7 @@ def body_below_fingers(region) -> bool:
 def check_orientation(keypoints, source: str | None = None) -> None:
     """Refuse a frame whose fingers look upside down: both fingers' tip ends cut flat while their
     base ends are rounded. A finger is cut flat where it leaves the gripper's body, and its tip is a
-    rounded cap (:attr:`vision.keypoints.FingerKeypoints.tip_end`), so that frame shows the fingers
+    rounded cap (:attr:`softgrip_vision.keypoints.FingerKeypoints.tip_end`), so that frame shows the fingers
     hanging from their tips. (A gripper body joining the fingers below them is refused by
     segmentation, :func:`body_below_fingers`. Fingers rounded at both ends with no body in view
     look the same either way up: nothing in the frame tells, and nothing is refused.)
@@ -252,7 +252,7 @@ def check_orientation_against_calibration(keypoints, detected_open: dict | None,
     camera fixed to the gripper sees the bases where calibration did.
 
     Args:
-        keypoints: the frame's two :class:`~vision.keypoints.FingerKeypoints` (px).
+        keypoints: the frame's two :class:`~softgrip_vision.keypoints.FingerKeypoints` (px).
         size: the image's (width, height), px (the same as the calibration frames').
         detected_open: the profile's ``vision.detected.open`` (its ``base_px`` and ``tip_px``, px);
             profiles written before they were recorded have neither, and are not checked.
@@ -325,7 +325,7 @@ def check_profile_match(keypoints, separation_mm: float, profile, *, source: str
     (:data:`LENGTH_TOLERANCE`, :data:`THICKNESS_TOLERANCE`, :data:`SEPARATION_TOLERANCE`).
 
     Args:
-        keypoints: (left, right) :class:`~vision.keypoints.FingerKeypoints` in mm.
+        keypoints: (left, right) :class:`~softgrip_vision.keypoints.FingerKeypoints` in mm.
         separation_mm: the measured distance between the bases, mm.
         profile: the calibration profile (``fingers[side].length``, ``.half_thickness``,
             ``base_separation``, mm).

@@ -35,10 +35,10 @@ calibration's data), and ``frame_start_residual_rms_mm``, ``frame_mid_error_mm``
 ``frame_tip_error_mm`` give, per pair in ``frames``, the residual RMS at the start values and the
 mean joint error of the fitted estimate at joint N // 2 and at the tip (mm); profiles without them
 load as before.
-``segmentation`` holds :class:`vision.segmentation.SegmentationSettings` fields (``{}``: defaults);
+``segmentation`` holds :class:`softgrip_vision.segmentation.SegmentationSettings` fields (``{}``: defaults);
 ``camera`` names the camera (serial number, ``"synthetic"``, or ``"unspecified"``) and its
-intrinsics (pyrealsense2 names, or null). ``vision`` (optional) says how the fingers are measured
-(:class:`vision.measure.MeasureSettings`: ``base_end`` ``"auto"``/``"rounded"``/``"flat"``,
+intrinsics (pyrealsense2 names, or null). ``softgrip_vision`` (optional) says how the fingers are measured
+(:class:`softgrip_vision.measure.MeasureSettings`: ``base_end`` ``"auto"``/``"rounded"``/``"flat"``,
 ``finger_relief_mm`` ``"auto"`` or mm) and records under ``detected`` what calibration found in its
 frames (each finger's base end, whether the gripper's body was in view, the fitted plane with its
 tilt, each finger's relief, the object's face offset, the band of depth readings mixed with the
@@ -67,12 +67,12 @@ from jaxtyping import ArrayLike
 
 from softgrip_jax import FingerModel, Gripper, SoftgripError
 from softgrip_base import input_guard, user_json
-from calib import profile_schema
-from calib.profile_schema import MAX_MAGNITUDE, MAX_N_LINKS, show_value  # noqa: F401 - the limits are this module's API too
+from softgrip_calib import profile_schema
+from softgrip_calib.profile_schema import MAX_MAGNITUDE, MAX_N_LINKS, show_value  # noqa: F401 - the limits are this module's API too
 from softgrip_base.atomic_write import write_atomic
-from vision.frames import FrameError, Intrinsics
-from vision.measure import MeasureSettings, MeasureSettingsError
-from vision.segmentation import SegmentationError, SegmentationSettings
+from softgrip_vision.frames import FrameError, Intrinsics
+from softgrip_vision.measure import MeasureSettings, MeasureSettingsError
+from softgrip_vision.segmentation import SegmentationError, SegmentationSettings
 
 #: The profile format this code writes and reads.
 PROFILE_VERSION = 1
@@ -145,7 +145,7 @@ class FitEntry:
         frame_mid_error_mm: per frame, the mean over both fingers of the fitted joint distance
             |estimated - observed| at joint N // 2, mm (empty when not recorded).
         frame_tip_error_mm: the same at the tip, joint N, mm (empty when not recorded).
-        model_selection: how a fit chose the stiffness model (:mod:`calib.select`): ``{"chosen":
+        model_selection: how a fit chose the stiffness model (:mod:`softgrip_calib.select`): ``{"chosen":
             model name, "reason": text, "candidates": [{"model", "parameters", "residual_rms_mm",
             "held_out_rms_mm", "failure"}, ...]}``; None when the model was given, not chosen.
     """
@@ -176,12 +176,12 @@ class CalibrationProfile:
         fingers: ``{"left": FingerEntry, "right": FingerEntry}``.
         base_separation: distance W between the two finger bases, mm, > 0 (JSON
             ``gripper.base_separation``).
-        segmentation: :class:`~vision.segmentation.SegmentationSettings` fields as a dict (``{}``
+        segmentation: :class:`~softgrip_vision.segmentation.SegmentationSettings` fields as a dict (``{}``
             for the defaults).
         camera: ``{"name": str, "intrinsics": dict | None}``.
         fit: how it was obtained.
         version: the format version, :data:`PROFILE_VERSION`.
-        vision: :class:`~vision.measure.MeasureSettings` fields and what was ``detected``
+        vision: :class:`~softgrip_vision.measure.MeasureSettings` fields and what was ``detected``
             (``{}``: defaults, nothing recorded).
     """
 
@@ -253,11 +253,11 @@ def check_profile(profile: Any, name: str = "profile") -> None:
     from softgrip_jax._checks import describe
 
     if isinstance(profile, dict):
-        fix = "make one with calib.profile.CalibrationProfile.from_dict(d) (it checks every field)"
+        fix = "make one with softgrip_calib.profile.CalibrationProfile.from_dict(d) (it checks every field)"
     elif isinstance(profile, (str, os.PathLike)):
-        fix = "load the file with calib.profile.load_profile(path)"
+        fix = "load the file with softgrip_calib.profile.load_profile(path)"
     else:
-        fix = "load one with calib.profile.load_profile(path), or make one with CalibrationProfile.from_dict(d)"
+        fix = "load one with softgrip_calib.profile.load_profile(path), or make one with CalibrationProfile.from_dict(d)"
     raise ProfileError(f"{name}: got {describe(profile)}; a CalibrationProfile is needed: {fix}")
 
 
@@ -267,8 +267,8 @@ def to_gripper(profile: CalibrationProfile) -> Gripper:
 
     Example (lengths in mm, angles in rad):
         >>> from pathlib import Path
-        >>> import calib
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+        >>> import softgrip_calib
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
         >>> gripper = to_gripper(load_profile(data / "sample_profile.json"))
         >>> round(float(gripper.base_separation), 1), gripper.left.n_links, round(float(gripper.left.theta_entire), 2)
         (64.0, 20, 0.55)
@@ -306,8 +306,8 @@ def save_profile(profile: CalibrationProfile, path: str | os.PathLike[str], *, i
     Example:
         >>> import tempfile
         >>> from pathlib import Path
-        >>> import calib
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+        >>> import softgrip_calib
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
         >>> profile = load_profile(data / "sample_profile.json")
         >>> with tempfile.TemporaryDirectory() as folder:
         ...     copy = load_profile(save_profile(profile, Path(folder) / "gripper.json"))
@@ -335,8 +335,8 @@ def load_profile(path: str | os.PathLike[str]) -> CalibrationProfile:
 
     Example:
         >>> from pathlib import Path
-        >>> import calib
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+        >>> import softgrip_calib
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
         >>> profile = load_profile(data / "sample_profile.json")
         >>> profile.fit.method, round(profile.fingers["left"].length, 1)  # L in mm
         ('one-frame', 52.2)
@@ -371,7 +371,7 @@ def _json_kind(data: Any) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-# Validation: the layout by calib.profile_schema (pydantic), then what a field's type cannot say.
+# Validation: the layout by softgrip_calib.profile_schema (pydantic), then what a field's type cannot say.
 
 
 def _parse(data: Any, source: str) -> CalibrationProfile:

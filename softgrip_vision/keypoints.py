@@ -30,7 +30,7 @@ not. From its mask:
    positions).
 
 Everything is found in pixels and converted to millimetres in the gripper plane through a
-:class:`~vision.geometry.PlaneCamera` (which may be tilted: lengths and angles are measured in
+:class:`~softgrip_vision.geometry.PlaneCamera` (which may be tilted: lengths and angles are measured in
 millimetres). The left finger curls toward +x; the right finger's Theta is measured toward -x (the
 scene mirrored about the gripper's centre line).
 
@@ -50,9 +50,9 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from softgrip_jax import SoftgripError
-from vision.coverage import edge_coverage
-from vision.geometry import PlaneCamera
-from vision.segmentation import Segmentation
+from softgrip_vision.coverage import edge_coverage
+from softgrip_vision.geometry import PlaneCamera
+from softgrip_vision.segmentation import Segmentation
 
 Side = Literal["left", "right"]
 BaseEnd = Literal["rounded", "flat"]
@@ -314,7 +314,7 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
         cut_column: the column (px) along which segmentation cut this finger from the other one
             (touching fingertips), or None; mask edges on it are not the finger's outline.
         coverage: (H, W) float, how much of each pixel on the finger's edge the finger covers
-            (:func:`vision.coverage.edge_coverage`), for edges at sub-pixel precision; None reads
+            (:func:`softgrip_vision.coverage.edge_coverage`), for edges at sub-pixel precision; None reads
             the mask's edges (halfway between pixel centres).
 
     Raises:
@@ -323,11 +323,11 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
 
     Example (pixels, and the finger's L in mm):
         >>> from pathlib import Path
-        >>> import vision
-        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
-        >>> from vision.frames import load_frame
-        >>> from vision.geometry import PlaneCamera
-        >>> from vision.segmentation import segment
+        >>> import softgrip_vision
+        >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from softgrip_vision.frames import load_frame
+        >>> from softgrip_vision.geometry import PlaneCamera
+        >>> from softgrip_vision.segmentation import segment
         >>> frame = load_frame(data / "calib_open")
         >>> seg = segment(frame)
         >>> k = finger_keypoints(seg.left_finger, PlaneCamera.from_frame(frame, seg.fingers), "left")
@@ -382,15 +382,15 @@ def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera, rounded_b
     """(left, right) keypoints of a segmented frame (see :func:`finger_keypoints`); when segmentation
     cut the fingers apart at its centre column, edges on that column are not used. With the
     frame's ``color`` (H, W, 3), edges are read at sub-pixel precision from each edge pixel's colour
-    (:func:`vision.coverage.edge_coverage`).
+    (:func:`softgrip_vision.coverage.edge_coverage`).
 
     Example (L of both fingers, eq. 5, from the open sample frame, mm):
         >>> from pathlib import Path
-        >>> import vision
-        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
-        >>> from vision.frames import load_frame
-        >>> from vision.geometry import PlaneCamera
-        >>> from vision.segmentation import segment
+        >>> import softgrip_vision
+        >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from softgrip_vision.frames import load_frame
+        >>> from softgrip_vision.geometry import PlaneCamera
+        >>> from softgrip_vision.segmentation import segment
         >>> frame = load_frame(data / "calib_open")
         >>> seg = segment(frame)
         >>> left, right = gripper_keypoints(seg, PlaneCamera.from_frame(frame, seg.fingers))
@@ -421,7 +421,7 @@ def _finger_region(mask: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray]
     outer boundary pixels (P, 2) (u, v), float64."""
     if mask.ndim != 2 or not mask.any():
         raise KeypointError(f"the {side} finger's mask is empty (or not 2-D, shape {mask.shape}): "
-                            f"segment the frame first (vision.segmentation.segment)")
+                            f"segment the frame first (softgrip_vision.segmentation.segment)")
     _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
     largest = (labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))).view(np.uint8)
     contours, _ = cv2.findContours(largest, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
@@ -501,7 +501,7 @@ def _bilinear(image: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 class _Sampler:
-    """Sub-pixel edges of a part along straight lines, from its coverage image (:mod:`vision.coverage`:
+    """Sub-pixel edges of a part along straight lines, from its coverage image (:mod:`softgrip_vision.coverage`:
     1 inside, 0 outside, the fraction covered on the edge pixels; or a 0/1 mask)."""
 
     def __init__(self, coverage: np.ndarray) -> None:

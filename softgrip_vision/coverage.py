@@ -11,7 +11,7 @@ its colour between the part's colour (the median over a ring just inside) and th
 Integrating this image across an edge (from a point inside, where it is 1, to just past the edge)
 gives the edge's distance to a fraction of a pixel where the image has partial coverage, and
 exactly the mask's edge (halfway between the last pixel centre inside and the first outside) where
-it has none (point-sampled synthetic frames): ``vision.keypoints`` reads edges so.
+it has none (point-sampled synthetic frames): ``softgrip_vision.keypoints`` reads edges so.
 
 Example (a column edge at u = 10.3: pixel 10 is 20 % covered, the mask says not covered):
     >>> import numpy as np

@@ -2,7 +2,7 @@
 
 Each command writes ONE JSON document (schemas in ``schemas/estimate.schema.json`` and
 ``schemas/score.schema.json``, :func:`schema`) that says what its numbers mean: ``units``,
-``conventions`` (origin, axes, units and the plane's depth: :func:`vision.scene.conventions`), the
+``conventions`` (origin, axes, units and the plane's depth: :func:`softgrip_vision.scene.conventions`), the
 ``profile`` it was made with (:func:`profile_identity`), then a list per frame (estimate) or per
 candidate pose (score). Every enum is written by name (cases ``"none"``, ``"tip"``, ...; statuses
 ``"ok"``, ``"base_outside_sdf"``, ...). One finger is written as::

@@ -51,7 +51,7 @@ import cv2
 import numpy as np
 
 from softgrip_jax import SoftgripError
-from vision.frames import COLOR_FILE, Frame, greyscale_problem
+from softgrip_vision.frames import COLOR_FILE, Frame, greyscale_problem
 
 Backend = Literal["opencv", "kornia"]
 Split = Literal["components", "center_column", "center_hint", "neck"]
@@ -233,9 +233,9 @@ def segment(frame: Frame, settings: SegmentationSettings | None = None, *,
 
     Example (masks are bool (H, W); the cut-off is in mm):
         >>> from pathlib import Path
-        >>> import vision
-        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
-        >>> from vision.frames import load_frame
+        >>> import softgrip_vision
+        >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from softgrip_vision.frames import load_frame
         >>> seg = segment(load_frame(data / "circle_open"))
         >>> seg.object.shape, bool(seg.object.any()), bool((seg.left_finger & seg.right_finger).any())
         ((480, 640), True, False)
@@ -273,9 +273,9 @@ def segment_batch(
 
     Example:
         >>> from pathlib import Path
-        >>> import vision
-        >>> from vision.frames import load_frame
-        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> import softgrip_vision
+        >>> from softgrip_vision.frames import load_frame
+        >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"  # the sample frames
         >>> segs = segment_batch([load_frame(data / name) for name in ("circle_open", "calib_open")])
         >>> [bool(s.object.any()) for s in segs]
         [True, False]
@@ -317,9 +317,9 @@ def background_cutoff_mm(frame: Frame, settings: SegmentationSettings) -> float:
 
     Example (the samples: gripper and object at 120-123 mm, background at 400 mm):
         >>> from pathlib import Path
-        >>> import vision
-        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
-        >>> from vision.frames import load_frame
+        >>> import softgrip_vision
+        >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from softgrip_vision.frames import load_frame
         >>> 123 < background_cutoff_mm(load_frame(data / "circle_open"), SegmentationSettings()) < 400
         True
     """
@@ -490,7 +490,7 @@ def _components(frame: Frame, settings: SegmentationSettings, cutoff_mm: float, 
             else:  # no hint, or one that would cut through a finger (e.g. fingers of unequal Theta)
                 neck = neck_column(region)
                 if neck is None:
-                    from vision.plausibility import UPSIDE_DOWN_FIX, body_below_fingers
+                    from softgrip_vision.plausibility import UPSIDE_DOWN_FIX, body_below_fingers
 
                     if body_below_fingers(region):
                         raise SegmentationError(

@@ -1,12 +1,12 @@
 """The ``intrinsics.json`` layout as a pydantic model: what every field must be, said once.
 
 :func:`validate` checks a parsed JSON object against :class:`IntrinsicsDocument` and turns
-pydantic's first error into the message :meth:`vision.frames.Intrinsics.from_dict` gives (the field,
+pydantic's first error into the message :meth:`softgrip_vision.frames.Intrinsics.from_dict` gives (the field,
 what it must be, the value), e.g. ``fx must be a finite number, got nan``. Each field's
 ``description`` says what it expects, which is also what :func:`json_schema`
 (``schemas/intrinsics.schema.json``) tells other tools. Keys other than these fields are allowed
 and ignored. What the types cannot say (how many coefficients a distortion model takes, no
-coefficients without a model) is checked by :class:`vision.frames.Intrinsics` after this.
+coefficients without a model) is checked by :class:`softgrip_vision.frames.Intrinsics` after this.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 #: pyrealsense2's names for the seven required fields, in this order in messages.
 REQUIRED = ("width", "height", "fx", "fy", "ppx", "ppy", "depth_scale")
-#: Lens distortion models (as :data:`vision.frames.DISTORTION_MODELS`; a test keeps them equal).
+#: Lens distortion models (as :data:`softgrip_vision.frames.DISTORTION_MODELS`; a test keeps them equal).
 MODELS = ("none", "brown_conrady", "inverse_brown_conrady", "rational_polynomial", "kannala_brandt4",
           "modified_brown_conrady")
 

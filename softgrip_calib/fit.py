@@ -77,13 +77,13 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Bool, Float
 from tqdm import tqdm
 
-from calib.one_frame import frame_keypoints, frame_measurement
-from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
+from softgrip_calib.one_frame import frame_keypoints, frame_measurement
+from softgrip_calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import (METHODS, AbstractEstimator, AbstractSDF, ContactConfig, FingerFrame, FingerModel,
                           MechanicsConfig, SoftgripError, Status, as_estimator, estimate_in_frame)
-from vision.frames import Frame, load_frame
-from vision.measure import MeasureSettings
-from vision.segmentation import SegmentationSettings
+from softgrip_vision.frames import Frame, load_frame
+from softgrip_vision.measure import MeasureSettings
+from softgrip_vision.segmentation import SegmentationSettings
 
 Loss = Literal["huber", "cauchy"]
 EstimateMethod = Literal["geometric", "mechanics"]
@@ -139,7 +139,7 @@ class PoorlyDeterminedWarning(UserWarning):
 
 @dataclass(frozen=True)
 class Parameter:
-    """A per-finger quantity the fit can adjust (a field of :class:`calib.profile.FingerEntry`).
+    """A per-finger quantity the fit can adjust (a field of :class:`softgrip_calib.profile.FingerEntry`).
 
     Attributes:
         name: the field name, e.g. ``"theta_entire"``.
@@ -298,8 +298,8 @@ def fit(
     Example (a pair without an object, whose closed fingers are PCC shapes of Theta 0.55 and 0.45
     rad; the fit starts from 0.5 and finds both):
         >>> import numpy as np
-        >>> from calib.one_frame import free_closure_joints
-        >>> from calib.profile import CalibrationProfile, FingerEntry, FitEntry
+        >>> from softgrip_calib.one_frame import free_closure_joints
+        >>> from softgrip_calib.profile import CalibrationProfile, FingerEntry, FitEntry
         >>> from softgrip_jax import PolygonSDF
         >>> entry = lambda theta: FingerEntry(52.0, theta, 4.0, 5, (0.0, 0.0))  # L, Theta, r, N, offset
         >>> bases = np.array([[-32.0, 0.0], [32.0, 0.0]])  # (left, right) in mm
@@ -397,7 +397,7 @@ def check_pair_order(open_keypoints, closed_keypoints, label: str) -> None:
     Raises:
         PairOrderError: names the pair, both frames' straightness and the fix.
     """
-    from vision.plausibility import straightness
+    from softgrip_vision.plausibility import straightness
 
     opened, closed = straightness(open_keypoints), straightness(closed_keypoints)
     if np.isfinite(opened) and np.isfinite(closed) and opened < closed - PAIR_ORDER_MARGIN:
@@ -421,16 +421,16 @@ def observations_from_frames(
     without an object; the outline taken at the depth of the object's front face); the closed
     frame gives both fingers' centrelines divided into ``n_links`` equal arc lengths (split at the
     open frame's centre line when its fingertips touch). ``measure`` says how the fingers are
-    measured (a profile's ``vision`` settings; defaults when None).
+    measured (a profile's ``softgrip_vision`` settings; defaults when None).
 
     Raises:
         SoftgripError: segmentation, depth or keypoint failures (the message names what to adjust).
 
     Example (the sample circle scene, N = 20):
         >>> from pathlib import Path
-        >>> import calib
-        >>> from vision.frames import load_frame
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> import softgrip_calib
+        >>> from softgrip_vision.frames import load_frame
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"  # the sample frames
         >>> obs = observations_from_frames(load_frame(data / "circle_open"), load_frame(data / "circle_closed"),
         ...                                None, 20)
         >>> obs.bases.shape, obs.observed.shape  # (left, right) bases; N+1 closed joints each; mm
@@ -488,9 +488,9 @@ def free_closure_observation(
 
     Example (the sample calibration pair; N = 20):
         >>> from pathlib import Path
-        >>> import calib
-        >>> from vision.frames import load_frame
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> import softgrip_calib
+        >>> from softgrip_vision.frames import load_frame
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"  # the sample frames
         >>> obs = free_closure_observation(load_frame(data / "calib_open"), load_frame(data / "calib_closed"),
         ...                                None, 20, "calib")
         >>> obs.free_closure, obs.observed.shape  # (left, right), N + 1 joints, mm
@@ -527,8 +527,8 @@ def load_observations(
 
     Example (the second pair's open folder does not exist, so that pair is skipped):
         >>> from pathlib import Path
-        >>> import calib
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> import softgrip_calib
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"  # the sample frames
         >>> pairs = [(data / "circle_open", data / "circle_closed"), (data / "nowhere", data / "circle_closed")]
         >>> observations, skipped = load_observations(pairs, None, 20, progress=False)
         >>> len(observations), len(skipped), "does not exist" in skipped[0]["reason"]
@@ -565,9 +565,9 @@ def start_from_open_frame(
 
     Example (L in mm, Theta in rad):
         >>> from pathlib import Path
-        >>> import calib
-        >>> from vision.frames import load_frame
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> import softgrip_calib
+        >>> from softgrip_vision.frames import load_frame
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"  # the sample frames
         >>> start = start_from_open_frame(load_frame(data / "calib_open"), 20)
         >>> round(start.fingers["left"].length), start.fingers["left"].theta_entire
         (52, 0.5)

@@ -3,36 +3,36 @@
 One frame of the open gripper (and usually an object) becomes a :class:`Scene`
 (:func:`frame_scene`):
 
-1. the frame folder is loaded (:func:`vision.frames.load_frame`; or a :class:`~vision.frames.Frame`
+1. the frame folder is loaded (:func:`softgrip_vision.frames.load_frame`; or a :class:`~softgrip_vision.frames.Frame`
    built in memory from numpy arrays) and segmented with the profile's segmentation settings;
-2. the gripper is measured (:func:`vision.measure.measure_gripper`, with the profile's ``vision``
+2. the gripper is measured (:func:`softgrip_vision.measure.measure_gripper`, with the profile's ``softgrip_vision``
    settings): the gripper plane fitted to the fingers' depth (tilt and front-surface relief), each
    finger's keypoints, and the depth of the object's front face;
 3. each finger's base (plus the profile's base offset) gives the gripper's pose: the point midway
    between the two bases and the angle of the base line (0: the bases level, fingers hanging toward
-   +y), in the gripper plane's millimetres (:meth:`~vision.geometry.PlaneCamera.px_to_mm`);
+   +y), in the gripper plane's millimetres (:meth:`~softgrip_vision.geometry.PlaneCamera.px_to_mm`);
 4. the object mask, at the depth of its front face, becomes the core's
    :class:`~softgrip_jax.SDFGrid` (no object reads "far");
-5. the gripper is the profile's (:meth:`calib.profile.CalibrationProfile.gripper`), optionally with
+5. the gripper is the profile's (:meth:`softgrip_calib.profile.CalibrationProfile.gripper`), optionally with
    each finger's length L measured in this frame (eq. 5).
 
 A scene then answers for any poses (numpy or JAX, (3,) or (B, 3): x mm, y mm, angle rad):
 :meth:`Scene.estimate` (both fingers' estimates) and :meth:`Scene.score` (ranked-ready scores), as
 numpy. :attr:`Scene.conventions` says in which frame all of it is (origin, axes, units, the plane's
-depth); :mod:`vision.documents` writes the same results as the JSON documents of ``softgrip
+depth); :mod:`softgrip_vision.documents` writes the same results as the JSON documents of ``softgrip
 estimate --json`` and ``softgrip score --json``.
 
 The profile is anything with the methods of :class:`ProfileLike` (a
-:class:`calib.profile.CalibrationProfile` has them): ``vision`` does not import ``calib``.
+:class:`softgrip_calib.profile.CalibrationProfile` has them): ``softgrip_vision`` does not import ``softgrip_calib``.
 
 Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps the two identical):
     >>> from pathlib import Path
     >>> import numpy as np
-    >>> import vision
-    >>> from calib.profile import load_profile
+    >>> import softgrip_vision
+    >>> from softgrip_calib.profile import load_profile
     >>> from softgrip_jax import Geometric
-    >>> from vision.scene import frame_scene, rank
-    >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+    >>> from softgrip_vision.scene import frame_scene, rank
+    >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"  # the sample frames and profile
     >>> scene = frame_scene(data / "circle_open", load_profile(data / "sample_profile.json"))
     >>> print(scene.summary())
     circle_open: gripper at x 0.0 mm, y -45.1 mm, angle -0.001 rad; object 29.3 x 29.3 mm; plane 120.0 mm deep
@@ -67,7 +67,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from softgrip_jax import CASE_NAMES, AbstractEstimator, Gripper, SoftgripError, as_estimator
-from vision.frames import Frame
+from softgrip_vision.frames import Frame
 
 SIDES: tuple[str, str] = ("left", "right")
 #: Warn when the frame's bases are this much closer or farther apart than the profile says (mm).
@@ -96,7 +96,7 @@ class SceneWarning(UserWarning):
 
 class ProfileLike(Protocol):
     """What :func:`frame_scene` needs of a calibration profile
-    (:class:`calib.profile.CalibrationProfile`)."""
+    (:class:`softgrip_calib.profile.CalibrationProfile`)."""
 
     base_separation: float
     camera: dict[str, Any]
@@ -197,11 +197,11 @@ class Scene:
 
     Attributes:
         path: the frame folder as given (:data:`MEMORY_PATH`, ``"<memory>"``, for a frame built in memory).
-        frame: the :class:`vision.frames.Frame` (colour, depth, intrinsics), with the lens distortion
-            undone (:func:`vision.frames.undistort_frame`): the pixels everything else refers to.
-        segmentation: its :class:`vision.segmentation.Segmentation` (gripper, fingers, object masks).
-        camera: the gripper plane's :class:`vision.geometry.PlaneCamera` (px <-> mm).
-        keypoints: (left, right) :class:`vision.keypoints.FingerKeypoints`.
+        frame: the :class:`softgrip_vision.frames.Frame` (colour, depth, intrinsics), with the lens distortion
+            undone (:func:`softgrip_vision.frames.undistort_frame`): the pixels everything else refers to.
+        segmentation: its :class:`softgrip_vision.segmentation.Segmentation` (gripper, fingers, object masks).
+        camera: the gripper plane's :class:`softgrip_vision.geometry.PlaneCamera` (px <-> mm).
+        keypoints: (left, right) :class:`softgrip_vision.keypoints.FingerKeypoints`.
         bases_mm: (2, 2) [left, right] finger bases, mm, with the profile's base offsets.
         pose: (3,) float64 (x mm, y mm, angle rad) of the gripper in the frame.
         sdf: the object's :class:`softgrip_jax.SDFGrid` (mm).
@@ -352,7 +352,7 @@ def rank(result) -> np.ndarray:
 
 def conventions(camera=None) -> dict[str, Any]:
     """The coordinate conventions of results measured with ``camera`` (a
-    :class:`~vision.geometry.PlaneCamera`), as written into every JSON document. Without a camera
+    :class:`~softgrip_vision.geometry.PlaneCamera`), as written into every JSON document. Without a camera
     (a document of several frames), ``plane`` says that each frame gives its own."""
     plane: Any = "each frame's own: its depth_mm, normal and tilt_deg under frames[].plane"
     if camera is not None:
@@ -380,8 +380,8 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
     """Load, segment and measure one frame of the open gripper (see the module docstring).
 
     Args:
-        frame: a frame folder, or a :class:`vision.frames.Frame` (numpy colour, depth and intrinsics).
-        profile: the calibration profile (:class:`calib.profile.CalibrationProfile`).
+        frame: a frame folder, or a :class:`softgrip_vision.frames.Frame` (numpy colour, depth and intrinsics).
+        profile: the calibration profile (:class:`softgrip_calib.profile.CalibrationProfile`).
         length_from_frame: use each finger's length measured in this frame (eq. 5) instead of the
             profile's.
         settings: segmentation settings (the profile's when None).
@@ -391,17 +391,17 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
     Raises:
         FrameSceneError: the frame cannot be read, segmented or measured, or its gripper does not
             match the profile (finger length, thickness, base separation:
-            :func:`vision.plausibility.check_profile_match`, which names the profile by its
+            :func:`softgrip_vision.plausibility.check_profile_match`, which names the profile by its
             ``source`` attribute when it has one); the message starts with the frame's path.
     """
-    from vision.frames import load_frame, undistort_frame
-    from vision.measure import measure_gripper
-    from vision.segmentation import segment
+    from softgrip_vision.frames import load_frame, undistort_frame
+    from softgrip_vision.measure import measure_gripper
+    from softgrip_vision.segmentation import segment
 
     if isinstance(profile, (dict, str, os.PathLike)) or not callable(getattr(profile, "gripper", None)):
         from softgrip_jax._checks import describe
 
-        raise FrameSceneError(f"profile: got {describe(profile)}; pass a calib.profile.CalibrationProfile: "
+        raise FrameSceneError(f"profile: got {describe(profile)}; pass a softgrip_calib.profile.CalibrationProfile: "
                               f"load_profile(path), or CalibrationProfile.from_dict(d) for a dict read from a profile")
     warn = warn or _default_warn
     label = MEMORY_PATH if isinstance(frame, Frame) else str(frame)
@@ -432,7 +432,7 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
              f"made with {recorded.get('width')}x{recorded.get('height')} px frames: is it the same camera setup?")
     separation = float(np.hypot(*(bases[1] - bases[0])))
     if hasattr(profile, "fingers"):  # a CalibrationProfile: its sizes against the frame's
-        from vision.plausibility import check_orientation_against_calibration, check_profile_match
+        from softgrip_vision.plausibility import check_orientation_against_calibration, check_profile_match
 
         try:
             if not recorded or (recorded.get("width"), recorded.get("height")) == (intrinsics.width, intrinsics.height):

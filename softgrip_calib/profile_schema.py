@@ -6,7 +6,7 @@ first error into one line that names the field as a path and says what it expect
 that expectation in its ``description`` (:func:`number`, :func:`text`), which is also what
 :func:`json_schema` (``schemas/profile.schema.json``) tells other tools. What a field's type cannot
 say (the format version, one value per frame, the free-closure pair among the frames) is checked
-in :mod:`calib.profile` after this.
+in :mod:`softgrip_calib.profile` after this.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pydantic_core import PydanticCustomError
 #: Largest magnitude of a number in a profile: the core computes in float32 (max 3.4e38).
 MAX_MAGNITUDE = 1e30
 #: Largest finger length and base separation (mm) and half-thickness (mm) of a profile: a gripper
-#: up to a metre (vision.plausibility measures fingers up to 1 m in a frame). Beyond that a value is
+#: up to a metre (softgrip_vision.plausibility measures fingers up to 1 m in a frame). Beyond that a value is
 #: a unit mistake (metres typed as micrometres) or a corrupted file, refused when it is loaded.
 MAX_SIZE_MM = 1000.0
 MAX_HALF_THICKNESS_MM = 250.0
@@ -98,7 +98,7 @@ class Fingers(_Object):
 
 class Camera(_Object):
     name: text()
-    # Checked field by field by vision.frames.Intrinsics.from_dict.
+    # Checked field by field by softgrip_vision.frames.Intrinsics.from_dict.
     intrinsics: dict[str, Any] | None = Field(description="the camera's intrinsics (a JSON object) or null")
 
 
@@ -108,7 +108,7 @@ class Skipped(_Object):
 
 
 class Candidate(_Object):
-    """One stiffness model a fit tried (calib.select)."""
+    """One stiffness model a fit tried (softgrip_calib.select)."""
 
     model: text()
     parameters: list[text()]
@@ -148,7 +148,7 @@ class PlaneDepths(_Object):
 
 
 class Vision(BaseModel):
-    """How the fingers are measured (vision.measure.MeasureSettings checks those fields) and what
+    """How the fingers are measured (softgrip_vision.measure.MeasureSettings checks those fields) and what
     calibration detected."""
 
     model_config = ConfigDict(extra="allow", strict=True, frozen=True)
@@ -162,7 +162,7 @@ class ProfileDocument(_Object):
     version: Annotated[int, Field(strict=True, description="the format version"), _expecting("1")]
     gripper: Gripper
     fingers: Fingers
-    # Checked field by field by vision.segmentation.SegmentationSettings.from_dict.
+    # Checked field by field by softgrip_vision.segmentation.SegmentationSettings.from_dict.
     segmentation: dict[str, Any] = Field(
         description="a JSON object of segmentation settings ({} for the defaults)")
     camera: Camera

@@ -12,7 +12,7 @@ From a frame of the closed gripper with no object and a frame of the open grippe
 
 All in millimetres in the gripper plane. :func:`one_frame_profile` works on keypoints already in
 millimetres (anything with ``base_mm``, ``tip_mm``, ``half_thickness_mm`` and ``observed_mm(n)``,
-such as :class:`vision.keypoints.FingerKeypoints`); :func:`one_frame_from_frames` runs the vision
+such as :class:`softgrip_vision.keypoints.FingerKeypoints`); :func:`one_frame_from_frames` runs the vision
 pipeline on two frames first.
 """
 
@@ -25,14 +25,14 @@ from typing import Protocol
 import jax.numpy as jnp
 import numpy as np
 
-from calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
+from softgrip_calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import FingerFrame, SoftgripError, pcc_joints
-from vision.frames import Frame, undistort_frame
-from vision.geometry import PlaneCamera
-from vision.keypoints import FingerKeypoints, finger_length, gripper_angle, theta_from_closed
-from vision.measure import (PLANE_AGREEMENT_MM, GripperMeasurement, MeasureSettings, MeasurementWarning,
+from softgrip_vision.frames import Frame, undistort_frame
+from softgrip_vision.geometry import PlaneCamera
+from softgrip_vision.keypoints import FingerKeypoints, finger_length, gripper_angle, theta_from_closed
+from softgrip_vision.measure import (PLANE_AGREEMENT_MM, GripperMeasurement, MeasureSettings, MeasurementWarning,
                             PlaneDisagreementWarning, measure_gripper)
-from vision.segmentation import Segmentation, SegmentationSettings, segment
+from softgrip_vision.segmentation import Segmentation, SegmentationSettings, segment
 
 
 class FingerMeasurement(Protocol):
@@ -97,13 +97,13 @@ def one_frame_profile(
 
     Raises:
         SoftgripError: a finger bent away from the gripper's centre (negative Theta: are the frames
-            swapped?) or not below its base (``vision.keypoints.KeypointError``), or a bad N.
+            swapped?) or not below its base (``softgrip_vision.keypoints.KeypointError``), or a bad N.
 
     Example (the sample calibration pair, rendered with Theta 0.55 rad for both fingers):
         >>> from pathlib import Path
-        >>> import calib
-        >>> from vision.frames import load_frame
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> import softgrip_calib
+        >>> from softgrip_vision.frames import load_frame
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"  # the sample frames
         >>> _, _, closed = frame_keypoints(load_frame(data / "calib_closed"))
         >>> _, _, opened = frame_keypoints(load_frame(data / "calib_open"))
         >>> profile = one_frame_profile(closed, opened, 20)
@@ -145,7 +145,7 @@ def one_frame_profile(
 def free_closure_joints(entry: FingerEntry, base_mm: np.ndarray, side: str, angle: float = 0.0) -> np.ndarray:
     """(N+1, 2) joints (mm) of the closed, untouched finger (eqs. 1-3) hanging from ``base_mm``,
     mirrored for the right finger as the core mirrors it (a ``FingerFrame`` of handedness -1), on a
-    gripper turned by ``angle`` (rad, see :func:`vision.keypoints.gripper_angle`).
+    gripper turned by ``angle`` (rad, see :func:`softgrip_vision.keypoints.gripper_angle`).
 
     Example:
         >>> import numpy as np
@@ -161,13 +161,13 @@ def free_closure_joints(entry: FingerEntry, base_mm: np.ndarray, side: str, angl
 def frame_measurement(frame: Frame, settings: SegmentationSettings | None = None,
                       measure: MeasureSettings | None = None, *,
                       center_hint: float | None = None) -> GripperMeasurement:
-    """Segment a frame and measure its gripper (:func:`vision.measure.measure_gripper`): the
+    """Segment a frame and measure its gripper (:func:`softgrip_vision.measure.measure_gripper`): the
     fitted gripper plane, both fingers' keypoints and the object's depth. Notes on what was measured
-    (e.g. a steep camera tilt) are issued as :class:`vision.measure.MeasurementWarning`.
+    (e.g. a steep camera tilt) are issued as :class:`softgrip_vision.measure.MeasurementWarning`.
 
     ``center_hint`` (px) is where another frame of the same set-up put the gripper's centre line
     (used to split fingers that touch); None to find it in this frame. A frame with lens distortion
-    is undistorted first (:func:`vision.frames.undistort_frame`): the measurement's pixels are those
+    is undistorted first (:func:`softgrip_vision.frames.undistort_frame`): the measurement's pixels are those
     of the pinhole frame.
 
     Raises:
@@ -192,9 +192,9 @@ def frame_keypoints(
 
     Example (the camera's plane depth in mm; the fingers' L in mm):
         >>> from pathlib import Path
-        >>> import calib
-        >>> from vision.frames import load_frame
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> import softgrip_calib
+        >>> from softgrip_vision.frames import load_frame
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"  # the sample frames
         >>> seg, camera, (left, right) = frame_keypoints(load_frame(data / "calib_open"))
         >>> round(camera.depth_mm), round(left.length_mm), round(right.length_mm)
         (120, 52, 52)
@@ -211,9 +211,9 @@ def plane_depths(opened: GripperMeasurement, closed: GripperMeasurement) -> dict
 
     Example (the sample calibration pair: both frames show the plane 120 mm deep):
         >>> from pathlib import Path
-        >>> import calib
-        >>> from vision.frames import load_frame
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"
+        >>> import softgrip_calib
+        >>> from softgrip_vision.frames import load_frame
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"
         >>> depths = plane_depths(frame_measurement(load_frame(data / "calib_open")),
         ...                       frame_measurement(load_frame(data / "calib_closed")))
         >>> round(depths["open"]), round(depths["closed"]), depths["used"]
@@ -238,14 +238,14 @@ def one_frame_from_frames(
     """:func:`one_frame_profile` on a closed frame without an object and an open frame.
 
     ``names`` (closed, open), e.g. the frame folders, start the error messages. ``measure`` says
-    how the fingers are measured (base ends, relief); the profile records it in its ``vision``
+    how the fingers are measured (base ends, relief); the profile records it in its ``softgrip_vision``
     section with what was detected in each frame (base ends, body, plane and tilt, relief). The
     closed frame is split at the open frame's centre line when its fingertips touch.
 
     The gripper plane is measured in both frames (:func:`plane_depths`), which show one gripper
     pose from one camera, so both must put it at the same depth; the profile records both under
-    ``vision.plane_depth_mm``, and a :class:`~vision.measure.PlaneDisagreementWarning` says when they
-    differ by more than :data:`~vision.measure.PLANE_AGREEMENT_MM`. Each frame's keypoints are
+    ``vision.plane_depth_mm``, and a :class:`~softgrip_vision.measure.PlaneDisagreementWarning` says when they
+    differ by more than :data:`~softgrip_vision.measure.PLANE_AGREEMENT_MM`. Each frame's keypoints are
     converted through its own plane, and the calibration's millimetres (L, r and the base separation,
     the scale of everything the profile holds) are the open frame's: its straight fingers show their
     full width over their whole length, the widest band of readings clear of the mixed band at the
@@ -259,9 +259,9 @@ def one_frame_from_frames(
 
     Example (the sample calibration pair, rendered with Theta 0.55 rad for both fingers):
         >>> from pathlib import Path
-        >>> import calib
-        >>> data = Path(calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
-        >>> from vision.frames import load_frame
+        >>> import softgrip_calib
+        >>> data = Path(softgrip_calib.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+        >>> from softgrip_vision.frames import load_frame
         >>> profile = one_frame_from_frames(load_frame(data / "calib_closed"), load_frame(data / "calib_open"), 20)
         >>> [round(profile.fingers[side].theta_entire, 2) for side in ("left", "right")]
         [0.55, 0.55]

@@ -12,7 +12,7 @@ The smoothing damps the staircase's one-pixel steps (their fundamental by exp(-2
 shallow edge only within half a pixel (its steps are longer than the smoothing): unbiased on
 average, but the outline wavers by up to about 0.4 px, and distances a few pixels off it read the
 nearest waver, on average about 0.1 px short. With a **coverage** image (each edge pixel's covered
-fraction, :func:`vision.coverage.edge_coverage`) the 0.5 level follows an anti-aliased edge to a
+fraction, :func:`softgrip_vision.coverage.edge_coverage`) the 0.5 level follows an anti-aliased edge to a
 few hundredths of a pixel. Features about a pixel wide shrink in the smoothing (a lone pixel to
 under half its width); an object that vanishes entirely (a faint coverage) is traced unsmoothed.
 
@@ -42,7 +42,7 @@ good as the visible part of the object.
 Example:
     >>> import numpy as np
     >>> from synthetic.render import d405_intrinsics
-    >>> from vision.geometry import PlaneCamera
+    >>> from softgrip_vision.geometry import PlaneCamera
     >>> mask = np.zeros((480, 640), bool); mask[200:260, 300:360] = True
     >>> grid = object_sdf(mask, PlaneCamera(d405_intrinsics(), 120.0))
     >>> grid.values.shape
@@ -58,7 +58,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from softgrip_jax import FAR_MM, PolygonSDF, SDFGrid, SoftgripError
-from vision.geometry import PlaneCamera
+from softgrip_vision.geometry import PlaneCamera
 
 _POLYGON_UPSAMPLE = 4
 _SMOOTH_PX = 0.5  # Gaussian sigma (px) smoothing the mask's staircase before its 0.5 level is traced
@@ -78,7 +78,7 @@ def object_sdf(mask: np.ndarray, camera: PlaneCamera, coverage: np.ndarray | Non
         mask: (H, W) bool, the object's pixels (several components are one object).
         camera: the plane's camera (pixels <-> mm, tilted or not).
         coverage: (H, W) float in [0, 1], the fraction of each pixel the object covers (e.g.
-            ``vision.coverage.edge_coverage(frame.color, mask)``), or None for the hard mask. Its
+            ``softgrip_vision.coverage.edge_coverage(frame.color, mask)``), or None for the hard mask. Its
             0.5 level (smoothed) is then the outline, to sub-pixel precision on anti-aliased edges;
             the mask only says whether there is an object (and is the outline where the coverage
             has no pixel on one side of 1/2).

@@ -1,6 +1,6 @@
 """Frames from Intel RealSense cameras and recordings, through pyrealsense2.
 
-Every capture ends as frame folders (see :mod:`vision.frames`): colour in RGB order, depth
+Every capture ends as frame folders (see :mod:`softgrip_vision.frames`): colour in RGB order, depth
 registered to the colour image in units of the device's depth scale, and the colour stream's
 intrinsics. pyrealsense2 is optional (``pip install 'softgrip-jax[realsense]'``) and imported on
 first use.
@@ -34,7 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from softgrip_base.errors import SoftgripError
-from vision.frames import DISTORTION_MODELS, Frame, FrameError, Intrinsics, next_frame_dir, save_frame
+from softgrip_vision.frames import DISTORTION_MODELS, Frame, FrameError, Intrinsics, next_frame_dir, save_frame
 
 RECORDING_SUFFIXES = (".db3", ".bag")
 _CAMERA_WAIT_MS = 5000
@@ -477,9 +477,9 @@ def write_recording(
         >>> import tempfile
         >>> from pathlib import Path
         >>> import numpy as np
-        >>> import vision
-        >>> from vision.frames import load_frame
-        >>> data = Path(vision.__file__).resolve().parents[1] / "data"
+        >>> import softgrip_vision
+        >>> from softgrip_vision.frames import load_frame
+        >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"
         >>> frames = [load_frame(data / name) for name in ("circle_open", "square_open")]
         >>> with tempfile.TemporaryDirectory() as folder:
         ...     recording = write_recording(Path(folder) / "scene.db3", frames)

@@ -216,10 +216,10 @@ class Intrinsics:
         """Build from a JSON object; errors name ``source`` (usually the file) and the key.
 
         Keys other than the seven fields (and ``model``, ``coeffs``) are ignored. Integers are accepted
-        for the float fields. The layout is the pydantic model :class:`vision.intrinsics_schema.IntrinsicsDocument`
+        for the float fields. The layout is the pydantic model :class:`softgrip_vision.intrinsics_schema.IntrinsicsDocument`
         (its JSON Schema: ``schemas/intrinsics.schema.json``).
         """
-        from vision.intrinsics_schema import validate  # pydantic: imported only where intrinsics are read
+        from softgrip_vision.intrinsics_schema import validate  # pydantic: imported only where intrinsics are read
 
         document, problem = validate(d)
         if problem is not None:
@@ -455,7 +455,7 @@ class Frame:
 
     Segmentation reads only saturation and value, which do not depend on the channel order: a BGR
     image gives the same measurements, with swapped colours in the plots. To catch one anyway,
-    :func:`vision.plausibility.check_channel_order` compares a region with its known colour.
+    :func:`softgrip_vision.plausibility.check_channel_order` compares a region with its known colour.
 
     Example:
         >>> from synthetic.render import d405_intrinsics
@@ -523,8 +523,8 @@ def load_frame(path: str | os.PathLike[str]) -> Frame:
 
     Example:
         >>> from pathlib import Path
-        >>> import vision
-        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> import softgrip_vision
+        >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"  # the sample frames
         >>> frame = load_frame(data / "circle_open")
         >>> frame.color.shape, frame.depth.dtype.name, frame.intrinsics.fx, frame.intrinsics.depth_scale
         ((480, 640, 3), 'uint16', 385.0, 0.0001)
@@ -587,7 +587,7 @@ def greyscale_problem(color: np.ndarray) -> str | None:
 
 def _refuse_greyscale(color: np.ndarray, path: Path) -> None:
     """Refuse a one-channel ``color.png`` with that cause (three equal channels are refused where the
-    frame is segmented: :func:`vision.segmentation.segment_batch`)."""
+    frame is segmented: :func:`softgrip_vision.segmentation.segment_batch`)."""
     if color.ndim == 2 or (color.ndim == 3 and color.shape[2] in (1, 2)):
         raise FrameError(f"{path} {greyscale_problem(color)}")
 

@@ -20,7 +20,7 @@ outline and all land in one millimetre frame. With ``n = (0, 0, 1)`` and no offs
     x_mm = (u - ppx) * Z / fx,    y_mm = (v - ppy) * Z / fy.
 
 Example:
-    >>> from vision.frames import Intrinsics
+    >>> from softgrip_vision.frames import Intrinsics
     >>> intr = Intrinsics(width=640, height=480, fx=400.0, fy=400.0, ppx=320.0, ppy=240.0,
     ...                   depth_scale=1e-4)
     >>> camera = PlaneCamera(intr, depth_mm=120.0)
@@ -47,7 +47,7 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 from scipy.stats import trim_mean
 
-from vision.frames import Frame, FrameError, Intrinsics
+from softgrip_vision.frames import Frame, FrameError, Intrinsics
 
 #: A camera tilted more than this (degrees) from the gripper plane gets a warning: the finger's
 #: sides and the object's walls start to show, which the planar model does not describe.
@@ -75,10 +75,10 @@ def plane_depth_mm(frame: Frame, mask: np.ndarray, what: str = "the gripper regi
 
     Example:
         >>> from pathlib import Path
-        >>> import vision
-        >>> data = Path(vision.__file__).resolve().parents[1] / "data"  # the sample frames
-        >>> from vision.frames import load_frame
-        >>> from vision.segmentation import segment
+        >>> import softgrip_vision
+        >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"  # the sample frames
+        >>> from softgrip_vision.frames import load_frame
+        >>> from softgrip_vision.segmentation import segment
         >>> frame = load_frame(data / "calib_open")
         >>> round(plane_depth_mm(frame, segment(frame).fingers))
         120
@@ -332,7 +332,7 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
         centrelines_px: each finger's centreline (K, 2) in px (u, v), or None to take the distance
             transform's ridge; sub-pixel centrelines measure rho, and so the relief, better.
         width_edges_px: with ``centrelines_px``, each finger's side points (S, 2, 2) px across it at
-            S stations (:attr:`vision.keypoints.FingerKeypoints.width_edges_px`): r is then taken
+            S stations (:attr:`softgrip_vision.keypoints.FingerKeypoints.width_edges_px`): r is then taken
             where each reading is, since perspective and tilt change it along the finger.
 
     Returns:
@@ -344,10 +344,10 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
 
     Example (the open sample frame: flat fronts in a plane facing the camera at 120 mm):
         >>> from pathlib import Path
-        >>> import vision
-        >>> from vision.frames import load_frame
-        >>> from vision.segmentation import segment
-        >>> frame = load_frame(Path(vision.__file__).resolve().parents[1] / "data" / "calib_open")
+        >>> import softgrip_vision
+        >>> from softgrip_vision.frames import load_frame
+        >>> from softgrip_vision.segmentation import segment
+        >>> frame = load_frame(Path(softgrip_vision.__file__).resolve().parents[1] / "data" / "calib_open")
         >>> seg = segment(frame)
         >>> fit = fit_gripper_plane(frame, [seg.left_finger, seg.right_finger], [13.0, 13.0])
         >>> round(fit.camera.depth_mm), fit.tilt_deg < 0.5, [abs(r) < 0.3 for r in fit.relief_mm]
@@ -576,10 +576,10 @@ def face_offset_mm(frame: Frame, mask: np.ndarray, camera: PlaneCamera) -> float
 
     Example (the sample's disc has its face 3 mm behind the fingers' plane):
         >>> from pathlib import Path
-        >>> import vision
-        >>> from vision.frames import load_frame
-        >>> from vision.segmentation import segment
-        >>> frame = load_frame(Path(vision.__file__).resolve().parents[1] / "data" / "circle_open")
+        >>> import softgrip_vision
+        >>> from softgrip_vision.frames import load_frame
+        >>> from softgrip_vision.segmentation import segment
+        >>> frame = load_frame(Path(softgrip_vision.__file__).resolve().parents[1] / "data" / "circle_open")
         >>> seg = segment(frame)
         >>> camera = PlaneCamera.from_frame(frame, seg.fingers)
         >>> round(face_offset_mm(frame, seg.object, camera))

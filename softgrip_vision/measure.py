@@ -2,25 +2,25 @@
 
 The steps, each in its own module:
 
-1. each finger's keypoints in pixels (:mod:`vision.keypoints`): base (a rounded end, a flat cut, or
+1. each finger's keypoints in pixels (:mod:`softgrip_vision.keypoints`): base (a rounded end, a flat cut, or
    where the finger leaves the gripper's body), tip, centreline, half-width, and the finger's own
    pixels without the body;
-2. the gripper plane fitted to the fingers' depth readings (:func:`vision.geometry.fit_gripper_plane`):
+2. the gripper plane fitted to the fingers' depth readings (:func:`softgrip_vision.geometry.fit_gripper_plane`):
    its tilt from the camera and each finger's front-surface relief (a round finger's front is up to
    r nearer the camera than its outline), so that each finger's outline is converted at its own depth;
 3. the object's front face: its depth relative to the gripper plane
-   (:func:`vision.geometry.face_offset_mm`), so that its outline is converted at that depth and lands in
+   (:func:`softgrip_vision.geometry.face_offset_mm`), so that its outline is converted at that depth and lands in
    the gripper plane's millimetres.
 
-How to measure is set by :class:`MeasureSettings` (a calibration profile's ``vision`` section);
+How to measure is set by :class:`MeasureSettings` (a calibration profile's ``softgrip_vision`` section);
 :meth:`GripperMeasurement.detected` is what a profile records of what was found.
 
 Example (the open sample frame: rounded bases, no body in view, a plane facing the camera):
     >>> from pathlib import Path
-    >>> import vision
-    >>> from vision.frames import load_frame
-    >>> from vision.segmentation import segment
-    >>> frame = load_frame(Path(vision.__file__).resolve().parents[1] / "data" / "calib_open")
+    >>> import softgrip_vision
+    >>> from softgrip_vision.frames import load_frame
+    >>> from softgrip_vision.segmentation import segment
+    >>> frame = load_frame(Path(softgrip_vision.__file__).resolve().parents[1] / "data" / "calib_open")
     >>> m = measure_gripper(frame, segment(frame))
     >>> [k.base_end for k in m.keypoints], m.body_in_view, m.plane.tilt_deg < 0.5
     (['rounded', 'rounded'], False, True)
@@ -36,12 +36,12 @@ from typing import Any, Literal
 import numpy as np
 
 from softgrip_jax import SDFGrid, SoftgripError
-from vision.coverage import edge_coverage
-from vision.frames import Frame, FrameError, undistort_frame
-from vision.geometry import TILT_WARN_DEG, PlaneCamera, PlaneFit, face_offset_mm, fit_gripper_plane
-from vision.keypoints import FingerKeypoints, gripper_keypoints
-from vision.object_sdf import object_sdf
-from vision.segmentation import Segmentation
+from softgrip_vision.coverage import edge_coverage
+from softgrip_vision.frames import Frame, FrameError, undistort_frame
+from softgrip_vision.geometry import TILT_WARN_DEG, PlaneCamera, PlaneFit, face_offset_mm, fit_gripper_plane
+from softgrip_vision.keypoints import FingerKeypoints, gripper_keypoints
+from softgrip_vision.object_sdf import object_sdf
+from softgrip_vision.segmentation import Segmentation
 
 BaseEndSetting = Literal["auto", "rounded", "flat"]
 BASE_END_SETTINGS: tuple[str, ...] = ("auto", "rounded", "flat")
@@ -69,7 +69,7 @@ PLANE_AGREEMENT_MM = 0.5
 
 @dataclass(frozen=True)
 class MeasureSettings:
-    """How the gripper is measured (a calibration profile's ``vision`` section).
+    """How the gripper is measured (a calibration profile's ``softgrip_vision`` section).
 
     Attributes:
         base_end: ``"auto"`` (detect from each finger's mask), ``"rounded"`` (the base end is a cap
@@ -97,7 +97,7 @@ class MeasureSettings:
 
     @property
     def rounded_base(self) -> bool | None:
-        """:func:`vision.keypoints.finger_keypoints`' ``rounded_base`` for this setting."""
+        """:func:`softgrip_vision.keypoints.finger_keypoints`' ``rounded_base`` for this setting."""
         return {"auto": None, "rounded": True, "flat": False}[self.base_end]
 
     def to_dict(self) -> dict[str, Any]:
@@ -129,9 +129,9 @@ class GripperMeasurement:
     """One frame's gripper in millimetres.
 
     Attributes:
-        segmentation: the frame's :class:`~vision.segmentation.Segmentation`.
+        segmentation: the frame's :class:`~softgrip_vision.segmentation.Segmentation`.
         plane: the fitted gripper plane (its ``camera`` is :attr:`camera`).
-        keypoints: (left, right) :class:`~vision.keypoints.FingerKeypoints` through :attr:`camera`.
+        keypoints: (left, right) :class:`~softgrip_vision.keypoints.FingerKeypoints` through :attr:`camera`.
         object_offset_mm: the object's front face behind the gripper plane (mm, < 0: nearer the
             camera), or None (no object, or no depth on it: taken as 0).
     """
@@ -159,7 +159,7 @@ class GripperMeasurement:
     def object_sdf(self, frame: Frame) -> SDFGrid:
         """The object's signed-distance grid (mm, in the gripper plane's coordinates) from its
         outline at the depth of its own face, read at sub-pixel level from ``frame``'s colour (the
-        frame this was measured in); far everywhere without an object (:func:`vision.object_sdf.object_sdf`)."""
+        frame this was measured in); far everywhere without an object (:func:`softgrip_vision.object_sdf.object_sdf`)."""
         mask = self.segmentation.object
         frame = undistort_frame(frame)  # the pixels the masks are in (the frame as given: undistorted again)
         return object_sdf(mask, self.object_camera, coverage=edge_coverage(frame.color, mask))
@@ -211,17 +211,17 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
     """Measure a segmented frame's gripper and object in millimetres (module docstring).
 
     Raises:
-        SoftgripError: keypoints that cannot be found (``vision.keypoints.KeypointError``) or no
-            depth on the fingers (``vision.frames.FrameError``); implausible intrinsics, gripper
-            depth or finger sizes, or fingers that look upside down (``vision.plausibility``, naming
+        SoftgripError: keypoints that cannot be found (``softgrip_vision.keypoints.KeypointError``) or no
+            depth on the fingers (``softgrip_vision.frames.FrameError``); implausible intrinsics, gripper
+            depth or finger sizes, or fingers that look upside down (``softgrip_vision.plausibility``, naming
             the field to fix); the message says what to adjust.
     """
-    from vision import plausibility
+    from softgrip_vision import plausibility
 
     settings = settings or MeasureSettings()
     if frame.intrinsics.distorted:  # millimetres from a pinhole model need the lens undone first
         raise FrameError(f"the frame has lens distortion ({frame.intrinsics.model}): undistort it before segmenting "
-                         f"and measuring it (vision.frames.undistort_frame), as frame_scene and frame_measurement do")
+                         f"and measuring it (softgrip_vision.frames.undistort_frame), as frame_scene and frame_measurement do")
     plausibility.check_intrinsics(frame.intrinsics)  # before any millimetre is computed from them
     provisional = PlaneCamera.from_frame(frame, segmentation.fingers)  # keypoints are found in pixels
     plausibility.check_gripper_depth(provisional.depth_mm, frame.intrinsics)

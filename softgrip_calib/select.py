@@ -10,7 +10,7 @@ errors. :func:`fit_stiffness_model` lets the frames decide between the nested mo
 2. ``stiffness ratio``: + the base-to-tip stiffness ratio of each finger;
 3. ``stiffness ratio + base compliance``: + a rotational spring at each finger's base.
 
-Each model is fitted to all pairs (:func:`calib.fit.fit`), each richer one starting from the fit of
+Each model is fitted to all pairs (:func:`softgrip_calib.fit.fit`), each richer one starting from the fit of
 the one before it (nested: the simpler model's solution is a point of the richer model, so the
 richer fit starts where the simpler one ended). Each is then judged by leave-one-pair-out
 prediction: for every pair with an object, the model is fitted to the other pairs and predicts the
@@ -26,7 +26,7 @@ on the stiffness, and it holds Theta.
 
 A model whose fit does not converge, or that the pairs cannot determine, is reported with the
 reason and not chosen; the fit then returns the richest model that did converge and says what more
-data would allow. Only when even the uniform model fails is a :class:`calib.fit.FitError` raised.
+data would allow. Only when even the uniform model fails is a :class:`softgrip_calib.fit.FitError` raised.
 """
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.fit import FitError, NotConvergedError, Observation, fit, profile_residuals
-from calib.profile import CalibrationProfile
+from softgrip_calib.fit import FitError, NotConvergedError, Observation, fit, profile_residuals
+from softgrip_calib.profile import CalibrationProfile
 from softgrip_jax import AbstractEstimator, ContactConfig, Status, as_estimator
 
 
@@ -82,26 +82,26 @@ def fit_stiffness_model(
     """Fit ``parameters`` plus the stiffness model the pairs support (see the module docstring).
 
     Args:
-        observations, start, config, max_steps, skipped, progress: as for :func:`calib.fit.fit`.
+        observations, start, config, max_steps, skipped, progress: as for :func:`softgrip_calib.fit.fit`.
         parameters: what every model fits (``theta_entire``, optionally ``base_offset``); the
             stiffness parameters are added per model.
         estimator: the mechanics estimate (``Mechanics(config)``); None: ``Mechanics()``. The
             geometric estimate does not depend on the stiffness, so it has nothing to choose.
-        fit_options: ``loss``, ``loss_scale_mm`` of :func:`calib.fit.fit`.
+        fit_options: ``loss``, ``loss_scale_mm`` of :func:`softgrip_calib.fit.fit`.
 
     Returns:
-        The chosen model's fit (as :func:`calib.fit.fit` returns it), whose
+        The chosen model's fit (as :func:`softgrip_calib.fit.fit` returns it), whose
         ``fit.model_selection`` records every model tried: its held-out and fitted residual RMS
         (mm), or why it could not be judged, and the choice with its reason.
 
     Raises:
-        FitError: as :func:`calib.fit.fit` for the uniform model (no usable pair, no convergence,
+        FitError: as :func:`softgrip_calib.fit.fit` for the uniform model (no usable pair, no convergence,
             ...), or a non-mechanics estimator.
     """
     estimator = as_estimator(estimator)  # None: Mechanics()
     if estimator.name != "mechanics":
         raise FitError(f"the stiffness model only changes the mechanics estimate; the fit goes through the "
-                       f"{estimator.name} estimate (fit it with calib.fit.fit, or use Mechanics())")
+                       f"{estimator.name} estimate (fit it with softgrip_calib.fit.fit, or use Mechanics())")
     base = [p for p in dict.fromkeys(parameters) if p not in ("stiffness_ratio", "base_compliance")]
     options = dict(estimator=estimator, config=config, max_steps=max_steps, **fit_options)
     held_out = [i for i, obs in enumerate(observations) if not obs.free_closure]
