@@ -1,5 +1,5 @@
-"""The errors and file helpers live below the JAX core (softgrip_base), under their old names too;
-``softgrip capture`` reports a camera error without importing JAX."""
+"""The errors live below the JAX core (softgrip_base), re-exported by it; ``softgrip capture``
+reports a camera error without importing JAX."""
 
 import subprocess
 import sys
@@ -8,15 +8,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_old_import_paths_name_the_same_objects():
+def test_the_core_reexports_the_base_errors():
     import softgrip_base
     import softgrip_jax
     from softgrip_jax._errors import SoftgripError
-    from softgrip_vision import atomic_write, user_json
 
     assert softgrip_jax.SoftgripError is SoftgripError is softgrip_base.SoftgripError
-    assert atomic_write.OutputRefusedError is softgrip_base.OutputRefusedError
-    assert user_json.loads is softgrip_base.user_json.loads
 
 
 def test_capture_reports_a_camera_error_without_jax(tmp_path):
