@@ -564,6 +564,7 @@ def run_cli(argv: list[str]) -> int:
     return args.func(args)
 
 
+@pytest.mark.slow  # runs the one-frame and fit commands end to end: about 90 s
 def test_cli_one_frame_then_fit(frames, tmp_path: Path, capsys) -> None:
     one = tmp_path / "one.json"
     assert run_cli([str(frames["closed"]), "--open", str(frames["open"]), "--n-links", str(N), "-o", str(one),

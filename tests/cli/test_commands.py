@@ -530,6 +530,7 @@ def demo(tmp_path_factory):
     return json.loads(out), out_dir
 
 
+@pytest.mark.slow  # the demo fixture runs the whole pipeline: about 130 s
 def test_demo_json_is_symmetric_and_physical(demo):
     out, _ = demo
     by_scene = {s["scene"]: {f["side"]: f for f in s["fingers"]} for s in out["scenes"]}
@@ -547,6 +548,7 @@ def test_demo_json_is_symmetric_and_physical(demo):
     assert np.hypot(*np.subtract(centred["left"]["contacts_mm"][0], [0.0, -20.0])) == pytest.approx(15.0, abs=0.3)
 
 
+@pytest.mark.slow  # the demo fixture runs the whole pipeline: about 130 s
 def test_demo_writes_its_outputs(demo):
     summary, out_dir = demo
     assert summary["method"] == DEFAULT_METHOD
@@ -568,6 +570,7 @@ def test_demo_writes_its_outputs(demo):
     assert profile.fingers["left"].theta_entire == pytest.approx(0.55, abs=0.01)
 
 
+@pytest.mark.slow  # the demo fixture runs the whole pipeline: about 130 s
 def test_demo_estimates_match_the_observed_closure(demo):
     summary, _ = demo
     for scene in summary["scenes"]:
@@ -578,6 +581,7 @@ def test_demo_estimates_match_the_observed_closure(demo):
             assert errors["tip_mm"] < 3.0 and errors["mid_mm"] < 3.0
 
 
+@pytest.mark.slow  # the demo fixture runs the whole pipeline: about 130 s
 def test_demo_refinement_never_loses_score(demo):
     summary, _ = demo
     refined = summary["refine"]

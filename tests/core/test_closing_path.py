@@ -243,6 +243,7 @@ def assert_same(ref, out, i, j):
 COMPOSITION = st.lists(st.integers(0, POOL_SIZE + len(SPECIAL) - 1), min_size=BATCH, max_size=BATCH)
 
 
+@pytest.mark.slow  # compiles the closing path for several batch shapes: about 55 s
 @settings(max_examples=3, deadline=None)
 @given(picks=COMPOSITION)
 def test_every_element_is_independent_of_the_rest_of_its_batch(picks):

@@ -83,6 +83,7 @@ def test_a_new_shape_compiles_once_for_all_parts():
     assert traces == [(MIN_PART, 2)]
 
 
+@pytest.mark.slow  # compiles the score for several part shapes: about 50 s
 def test_score_in_parts_matches_one_part():
     n = 2 * MIN_PART + 1
     rng = np.random.default_rng(3)

@@ -439,6 +439,7 @@ def test_closed_form_derivatives_match_autodiff(kind, handedness):
     np.testing.assert_allclose(d.gradient, gradient, atol=1e-3)
 
 
+@pytest.mark.slow  # compiles the mechanics batch: about 45 s
 def test_batch_marks_bad_bases_invalid_and_leaves_the_others_unchanged():
     f = finger(2.0)
     bases, good = batch_bases()
@@ -466,6 +467,7 @@ DISC = circle((0.0, 38.0), 15.0)
 POSES = jnp.array([[0.0, 0.0, 0.0], [0.0, -3.0, 0.0], [4.0, 1.0, 0.05], [0.0, -60.0, 0.0], [jnp.nan, 0.0, 0.0]])
 
 
+@pytest.mark.slow  # compiles the mechanics grasp batch and score: about 50 s
 def test_grasp_batch_and_score_use_the_mechanics_estimate():
     grasps = estimate_grasp_batch(GRIPPER, DISC, POSES, method="mechanics")
     assert np.asarray(grasps.valid).tolist() == [True, True, True, True, False]

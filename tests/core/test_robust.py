@@ -56,6 +56,7 @@ def test_draws_have_the_requested_spread_and_are_common() -> None:
 @pytest.mark.parametrize("nothing", [
     Uncertainty(samples=2, pose_mm=0.0, pose_rad=0.0, mu_spread=0.0, reach=math.inf),
     Uncertainty(linear=True, pose_mm=0.0, pose_rad=0.0, mu_spread=0.0)], ids=["draws", "linear"])
+@pytest.mark.slow  # compiles the robust score twice per case: 25-45 s
 def test_without_uncertainty_the_robust_score_is_the_nominal_one(nothing) -> None:
     nominal = score(GRIPPER, DISC, POSES, estimator=Geometric())
     robust = score(GRIPPER, DISC, POSES, estimator=Geometric(), uncertainty=nothing)

@@ -79,6 +79,7 @@ def test_estimate_batch_flags_poisoned_bases_and_isolates_the_others(drawn):
         assert_same_candidate(out, i, alone)
 
 
+@pytest.mark.slow  # fifteen drawn batches of scores: about 60 s
 @settings(max_examples=15, deadline=None)
 @given(batches([(MM, POISON_MM)] * 2 + [(RAD, POISON_RAD)]))
 def test_score_flags_poisoned_poses_and_isolates_the_others(drawn):

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 
 from softgrip_jax import ContactCase, Status
@@ -153,6 +154,7 @@ def _check_mechanics(drawn: Drawn, est, geometric) -> None:
         assert np.abs(_distance(drawn, np.asarray(est.contact.p_o2)[tip_cases])).max() <= _grid_step(drawn)
 
 
+@pytest.mark.slow  # ten drawn scenes, each compiled: about 90 s
 @settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(scenes())
 def test_estimates_are_consistent_with_the_contact_geometry(drawn: Drawn):
