@@ -134,7 +134,7 @@ def test_sigterm_during_a_real_score_leaves_no_temporary_file(tmp_path: Path) ->
     process = subprocess.Popen([sys.executable, "-m", "softgrip_cli", "score", str(DATA / "circle_open"), "--profile",
                                 str(PROFILE), "--method", "geometric", "--grid=-10:10:20,-60:-30:20,-0.1:0.1:10",
                                 "--top", "0", "-o", str(tmp_path / "out.json")], stdout=subprocess.DEVNULL,
-                               stderr=subprocess.PIPE, env=env, cwd=ROOT)
+                               stderr=subprocess.PIPE, env=env, cwd=ROOT, text=True)
     deadline = time.monotonic() + 900
     while process.poll() is None and time.monotonic() < deadline:
         if any(name.endswith(".tmp") for name in os.listdir(tmp_path)):
