@@ -702,11 +702,6 @@ def _show(value) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-#: Smallest padded batch (``softgrip_vision.scene.MIN_BATCH``): every grid or file of up to this many poses
-#: shares one compilation.
-MIN_BATCH = scene_api.MIN_BATCH
-
-
 def score_poses(scene: pipe.FrameScene, poses: np.ndarray, estimator=None, mu: float = DEFAULT_MU, uncertainty=None):
     """Score (B, 3) poses on ``scene`` in one compiled call (``softgrip_vision.scene.Scene.score``), with the
     deformation ``estimator`` (``softgrip_jax.Geometric()`` or ``Mechanics(config)``; None: the default)
@@ -715,7 +710,7 @@ def score_poses(scene: pipe.FrameScene, poses: np.ndarray, estimator=None, mu: f
 
     Returns:
         The ``Score`` with numpy leaves of leading axis B, and the seconds it took (compilation
-        included the first time a batch size is seen).
+        included the first time an estimator is used).
     """
     from softgrip_jax import ScoreWeights
 

@@ -14,16 +14,18 @@ need them rather than the batch size. The results are those of :func:`estimate`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from softgrip_jax._checks import check_finger, check_gripper, check_sdf
 from softgrip_jax._compile import tuned_jit
-from softgrip_jax._concurrent import pad_rows, run_in_parts
+from softgrip_jax._concurrent import pad_rows, run_in_pieces
 from softgrip_jax._contact import ContactConfig, sweep_parts
 from softgrip_jax._estimate import estimate_in_frame
 from softgrip_jax._estimators import AbstractEstimator, as_estimator
@@ -38,29 +40,32 @@ from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._sharding import device_mesh, run_sharded
 from softgrip_jax._stage import Estimate, refine_search, search_contact, search_further, stage_of
 
-#: Candidates evaluated together inside one chunk; peak memory scales with this, not the batch.
-#: (4096 against 2048: 1.00x, 1.10x and 1.12x in three processes of ``python
-#: benchmarks/profile_estimate.py --touching --batch 100000 --chunks 2048,4096``. ``score``'s
-#: default of 2048 poses is as many finger estimates.)
-DEFAULT_CHUNK = 4096
+#: Candidates per compiled call (a piece): every batch runs as pieces of this size through one
+#: compiled program, so a new batch size compiles nothing; peak memory scales with it, not the batch.
+#: Pieces of a few hundred are as fast per candidate as larger ones on a CPU (benchmarks/RESULTS.md,
+#: "One program for every batch size"), and a batch smaller than a piece costs a piece.
+DEFAULT_CHUNK = 256
 
 #: Chunks smaller than this refine every finger (see :func:`finger_chunk`).
 _SMALL_CHUNK = 16
 
 
-def as_candidates(x, width: int, dtype, what: str, single: bool = False) -> jax.Array:
+def as_candidates(x, width: int, dtype, what: str, single: bool = False) -> jax.Array | np.ndarray:
     """``x`` as a (B, width) array of ``dtype`` (B may be 0), or a :class:`SoftgripError` saying what
     was expected: a batch of the wrong shape would otherwise be broadcast into wrong results or fail
-    deep inside the computation. ``single``: a (width,) array is accepted too (and kept 1-D)."""
+    deep inside the computation. ``single``: a (width,) array is accepted too (and kept 1-D).
+
+    A JAX array (or tracer) stays one; anything else becomes a numpy array on the host (``jnp.asarray``
+    of a new shape would compile a small program per batch size)."""
     expected = f"{what} must be a (B, {width}) array of real numbers" + (f" or one ({width},)" if single else "")
     try:
-        array = jnp.asarray(x)
+        array = x if isinstance(x, jax.Array) else np.asarray(x)
     except (TypeError, ValueError) as err:
         raise SoftgripError(f"{expected}, got {type(x).__name__} that is not one ({err})") from None
     shape_ok = array.shape[-1:] == (width,) and (array.ndim == 2 or (single and array.ndim == 1))
-    if not shape_ok or not (jnp.issubdtype(array.dtype, jnp.floating) or jnp.issubdtype(array.dtype, jnp.integer)):
+    if not shape_ok or not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
         raise SoftgripError(f"{expected}, got shape {array.shape} of {array.dtype}")
-    return array.astype(dtype)
+    return array if array.dtype == dtype else array.astype(dtype)
 
 
 def geometric_stages(finger, sdf, frames, config, estimator):
@@ -118,17 +123,18 @@ def map_chunks(fn, xs, chunk_size):
     return jax.lax.fori_loop(0, n_chunks, write, out)
 
 
-def run_batch(one_device, sharded, before: tuple, xs: jax.Array, after: tuple, chunk_size: int,
-              workers: int | None, estimator: AbstractEstimator):
+def run_batch(one_device, sharded, before: tuple, xs: jax.Array | np.ndarray, after: tuple, chunk_size: int,
+              workers: int | None, estimator: AbstractEstimator, progress=None):
     """A jitted batch function over the candidates ``xs`` (B, ...), with outputs of leading axis B:
     with several JAX devices (GPUs, or processes joined by ``jax.distributed``) ``sharded`` on an
     even share per device (:func:`~softgrip_jax._sharding.run_sharded`), else ``one_device`` in
-    ``workers`` concurrent parts (:func:`~softgrip_jax._concurrent.run_in_parts`). Both are called
-    as ``fn(*before, xs, *after, chunk_size=..., estimator=estimator)``."""
+    pieces of ``chunk_size`` candidates, ``workers`` at a time (:func:`~softgrip_jax._concurrent.run_in_pieces`):
+    one compiled program whatever B is. Both are called as ``fn(*before, xs, *after, chunk_size=...,
+    estimator=estimator)``; ``progress(done, total)`` after each piece."""
     mesh = device_mesh()
     if mesh is not None:
-        return run_sharded(sharded, mesh, before, xs, after, chunk_size, estimator=estimator)
-    return run_in_parts(one_device, before, xs, after, workers, chunk_size, estimator=estimator)
+        return run_sharded(sharded, mesh, before, xs, after, chunk_size, progress, estimator=estimator)
+    return run_in_pieces(one_device, before, xs, after, workers, chunk_size, progress, estimator=estimator)
 
 
 def _estimate_share(finger, sdf, bases, config, chunk_size, estimator):
@@ -178,6 +184,7 @@ def estimate_batch(
     method: str | None = None,
     mechanics: MechanicsConfig | None = None,
     workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Estimate:
     """:func:`estimate` for B finger bases (mm), compiled once per shape, ``chunk_size`` at a time.
 
@@ -190,12 +197,15 @@ def estimate_batch(
 
     Args:
         bases: (B, 2) finger bases in mm (each finger hangs toward +y and curls toward +x).
-        chunk_size: bases evaluated together (static); memory grows with it, not with B.
+        chunk_size: bases per compiled call (a piece; static): every B runs through the program of
+            this size (a new B compiles nothing); memory grows with it, not with B.
         estimator: ``Geometric()`` or ``Mechanics(config)`` (None: ``Mechanics()``); equal
             estimators reuse one compiled program.
-        workers: on one device, concurrent parts the batch is split into (None: one per CPU core on
-            a CPU backend, one elsewhere; see :mod:`softgrip_jax._concurrent`). Results agree to float32
-            rounding whatever it is.
+        workers: on one device, pieces run at once (None: one per CPU core on a CPU backend, one
+            elsewhere; see :mod:`softgrip_jax._concurrent`). Results are the same whatever it is.
+        progress: called as ``progress(done, total)`` (candidates) after each piece, on the
+            calling thread, ending with ``(B, B)``; e.g. a tqdm bar's update, or a planner's
+            deadline check (raising from it stops the batch).
 
     Example:
         >>> import jax.numpy as jnp
@@ -210,7 +220,8 @@ def estimate_batch(
     check_sdf(sdf)
     estimator = as_estimator(estimator, method, mechanics)
     bases = as_candidates(bases, 2, finger.length.dtype, "estimate_batch: bases")
-    return run_batch(_estimate_batch, _estimate_sharded, (finger, sdf), bases, (config,), chunk_size, workers, estimator)
+    return run_batch(_estimate_batch, _estimate_sharded, (finger, sdf), bases, (config,), chunk_size, workers, estimator,
+                     progress)
 
 
 def estimate_grasp_batch(
@@ -224,6 +235,7 @@ def estimate_grasp_batch(
     method: str | None = None,
     mechanics: MechanicsConfig | None = None,
     workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> GraspEstimate:
     """:func:`estimate_grasp` for B poses (x mm, y mm, angle rad), ``chunk_size`` at a time.
 
@@ -231,7 +243,7 @@ def estimate_grasp_batch(
 
     Args:
         poses: (B, 3) gripper poses: centre x, y (mm) and angle (rad).
-        workers: concurrent parts, as for :func:`estimate_batch`.
+        workers, progress: as for :func:`estimate_batch`.
 
     Returns:
         :class:`GraspEstimate` with leading axis B: ``left`` and ``right`` :class:`Estimate` s
@@ -252,4 +264,4 @@ def estimate_grasp_batch(
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "estimate_grasp_batch: poses")
     return run_batch(_estimate_grasp_batch, _estimate_grasp_sharded, (gripper, sdf), poses, (config,), chunk_size,
-                     workers, estimator)
+                     workers, estimator, progress)

@@ -19,10 +19,12 @@ from __future__ import annotations
 import numbers
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from softgrip_base.errors import SoftgripError
 
@@ -43,17 +45,21 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
-def part_count(workers: object, batch: int, operands=()) -> int:
-    """How many concurrent parts a batch of ``batch`` candidates runs as (1: no split).
-
-    ``workers`` (checked here, as users pass it: an int >= 1 or None): None means one per core on a CPU backend and 1 on any other; an explicit count is
-    used on any backend (but never more parts than ``batch / MIN_PART``). 1 if any leaf of
-    ``operands`` is being traced.
-    """
+def worker_count(workers: object) -> int:
+    """Concurrent pieces at most: ``workers`` (checked here, as users pass it: an int >= 1 or None);
+    None means one per core on a CPU backend and 1 on any other."""
     if workers is None:
-        workers = available_cores() if jax.default_backend() == "cpu" else 1
-    elif not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+        return available_cores() if jax.default_backend() == "cpu" else 1
+    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
         raise SoftgripError(f"workers must be a positive integer (or None: one per CPU core), got {workers!r}")
+    return workers
+
+
+def part_count(workers: object, batch: int, operands=()) -> int:
+    """How many concurrent parts a batch of ``batch`` candidates runs as (1: no split):
+    :func:`worker_count`, but never more parts than ``batch / MIN_PART``; 1 if any leaf of
+    ``operands`` is being traced."""
+    workers = worker_count(workers)
     if is_traced(operands):
         return 1
     return max(1, min(workers, batch // MIN_PART))
@@ -109,48 +115,92 @@ def balanced_chunk(rows: int, chunk_size: int) -> int:
     return min(int(chunk_size), -(-even // CHUNK_ALIGN) * CHUNK_ALIGN)
 
 
-def run_in_parts(fn, before: tuple, xs: jax.Array, after: tuple, workers: int | None, chunk_size: int, **static):
-    """``fn(*before, xs, *after, chunk_size=..., **static)`` for a jitted ``fn`` whose outputs all
-    have ``xs``'s leading axis, evaluated as :func:`part_count` concurrent equal parts of ``xs``,
-    each scanned in equal chunks of at most ``chunk_size`` candidates (:func:`balanced_chunk`)."""
-    b = xs.shape[0]
-    parts = part_count(workers, b, (before, xs, after))
-    size = max(1, -(-b // parts))
-    static = dict(static, chunk_size=balanced_chunk(size, chunk_size))
-    if parts == 1:
-        return fn(*before, xs, *after, **static)
-    # Equal parts (one compilation); the last ends at the last row, overlapping the one before.
-    pieces = [xs[min(i * size, b - size):min(i * size, b - size) + size] for i in range(parts)]
-    overlap = parts * size - b
-    leaves, treedef = jax.tree_util.tree_flatten((before, after))
-    signature = (fn, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves),
-                 pieces[0].shape, pieces[0].dtype, tuple(sorted(static.items())))
-
-    def run(piece):
-        return jax.block_until_ready(fn(*before, piece, *after, **static))
-
-    pool = _executor(parts)
-    outputs = []
-    if signature not in _compiled:  # the first call compiles; the other parts then reuse it
-        outputs.append(pool.submit(run, pieces[0]).result())
-        _compiled.add(signature)
-    outputs += [f.result() for f in [pool.submit(run, p) for p in pieces[len(outputs):]]]
-    return _concatenate(outputs, overlap)
+def check_piece(chunk_size: object) -> int:
+    """``chunk_size`` as a positive int, or a :class:`SoftgripError` naming it."""
+    if not isinstance(chunk_size, numbers.Integral) or isinstance(chunk_size, bool) or chunk_size < 1:
+        raise SoftgripError(f"chunk_size must be a positive integer (candidates evaluated together; memory grows "
+                            f"with it), got {chunk_size!r}")
+    return int(chunk_size)
 
 
-def _concatenate(outputs: list, overlap: int):
-    """The parts' outputs joined along the leading axis, dropping the last part's first ``overlap``
-    rows. Leaf by leaf, largest first, each leaf's parts released once joined: the peak is the
-    result plus its largest leaf, not twice the result."""
+def split_pieces(xs: jax.Array | np.ndarray, size: int) -> list:
+    """``xs`` (B, ...) as ceil(B / size) pieces of exactly ``size`` rows (at least one), the last
+    padded with copies of its first row (zeros for an empty batch). Split on the host with numpy:
+    slicing a JAX array with Python integers compiles one small program per distinct bound, so a
+    planner calling with ever new batch sizes would collect compiled programs (and memory maps)."""
+    host = np.asarray(xs)
+    b = host.shape[0]
+    n = max(1, -(-b // size))
+    pieces = [host[i * size:(i + 1) * size] for i in range(n)]
+    last = pieces[-1]
+    if last.shape[0] < size:
+        fill = last[:1] if last.shape[0] else np.zeros((1,) + host.shape[1:], host.dtype)
+        pieces[-1] = np.concatenate([last, np.broadcast_to(fill, (size - last.shape[0],) + host.shape[1:])])
+    return pieces
+
+
+def join_pieces(outputs: list, b: int):
+    """The pieces' outputs (pytrees of arrays with a leading axis ``size``) joined along it and cut to
+    ``b`` rows. On a CPU backend the joining is numpy's, over zero-copy views, and the result goes
+    back to the device once per leaf (``jax.device_put``; ``jnp.asarray`` would compile a
+    small program per shape): no program is compiled for a new B (XLA's ``concatenate`` and
+    ``slice`` of new shapes would each compile one). Elsewhere it runs on the device. Each leaf's
+    pieces are released once joined (the peak is the result plus its largest leaf)."""
     leaves = [jax.tree_util.tree_flatten(out)[0] for out in outputs]
     treedef = jax.tree_util.tree_structure(outputs[0])
     outputs.clear()
+    on_cpu = all(d.platform == "cpu" for leaf in leaves[0] for d in leaf.devices())
     joined = [None] * len(leaves[0])
     for k in sorted(range(len(joined)), key=lambda k: -leaves[0][k].nbytes):
         parts = [part[k] for part in leaves]
         for part in leaves:
             part[k] = None
-        parts[-1] = parts[-1][overlap:]
-        joined[k] = jnp.concatenate(parts)
+        if on_cpu:
+            joined[k] = jax.device_put(np.concatenate([np.asarray(x) for x in parts])[:b])
+        else:
+            joined[k] = jnp.concatenate(parts)[:b]
         del parts
     return jax.tree_util.tree_unflatten(treedef, joined)
+
+
+def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, workers: int | None, chunk_size: int,
+                  progress: Callable[[int, int], None] | None = None, **static):
+    """``fn(*before, piece, *after, chunk_size=..., **static)`` for a jitted ``fn`` whose outputs all
+    have the candidates' leading axis, over pieces of exactly ``chunk_size`` candidates
+    (:func:`split_pieces`), :func:`part_count` of them in flight at once on the shared threads.
+
+    Every batch size runs the same compiled program, the one of a ``chunk_size`` piece: a planner
+    that calls with thousands of different batch sizes compiles once per estimator and settings,
+    and a batch costs its number of pieces (a batch smaller than one piece costs a piece).
+    ``progress(done, total)`` is called on this thread after each piece, in order, ending with
+    ``(B, B)``. Under tracing (``jit``, ``grad`` or ``vmap`` around the batch function) the traced
+    batch is one program of its own shape, scanned in chunks of at most ``chunk_size``.
+    """
+    size = check_piece(chunk_size)
+    b = xs.shape[0]
+    if is_traced((before, xs, after)):
+        return fn(*before, xs, *after, chunk_size=balanced_chunk(b, size), **static)
+    pieces = split_pieces(xs, size)
+    parts = min(worker_count(workers), len(pieces))
+    static = dict(static, chunk_size=size)
+    leaves, treedef = jax.tree_util.tree_flatten((before, after))
+    signature = (fn, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves),
+                 pieces[0].shape, pieces[0].dtype, tuple(sorted(static.items())))
+
+    def run(piece):
+        return jax.block_until_ready(fn(*before, jax.device_put(piece), *after, **static))
+
+    pool = _executor(parts)
+    outputs: list = []
+
+    def collect(output) -> None:
+        outputs.append(output)
+        if progress is not None:
+            progress(min(b, len(outputs) * size), b)
+
+    if signature not in _compiled:  # the first call compiles; the other pieces then reuse it
+        collect(pool.submit(run, pieces[0]).result())
+        _compiled.add(signature)
+    for future in [pool.submit(run, p) for p in pieces[len(outputs):]]:
+        collect(future.result())
+    return join_pieces(outputs, b)

@@ -31,6 +31,7 @@ estimate, so a pose can be refined by gradient (an optimistix minimiser).
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from functools import partial
 
 import equinox as eqx
@@ -39,7 +40,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks, run_batch
+from softgrip_jax._batch import DEFAULT_CHUNK, as_candidates, grasp_chunk, map_chunks, run_batch
 from softgrip_jax._checks import check_gripper, check_sdf
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._contact import ContactCase, ContactConfig
@@ -386,18 +387,20 @@ def score(
     weights: ScoreWeights = ScoreWeights(),
     config: ContactConfig = ContactConfig(),
     *,
-    chunk_size: int = 2048,
+    chunk_size: int = DEFAULT_CHUNK,
     estimator: AbstractEstimator | None = None,
     method: str | None = None,
     mechanics: MechanicsConfig | None = None,
     workers: int | None = None,
     uncertainty: Uncertainty | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Score:
     """Score B candidate poses (x mm, y mm, angle rad) in one compiled call.
 
-    Poses are evaluated ``chunk_size`` at a time (memory does not grow with B). When several JAX
-    devices are present (GPUs, or hosts joined by ``jax.distributed``), the batch is split evenly
-    across them with ``jax.sharding``; results are identical to a single device's. Returns a
+    Poses are evaluated ``chunk_size`` at a time by one compiled program, whatever B is (a new
+    batch size compiles nothing; memory does not grow with B). When several JAX devices are
+    present (GPUs, or hosts joined by ``jax.distributed``), each device runs pieces of the same size
+    with ``jax.sharding``; results agree with a single device's to float32 rounding. Returns a
     :class:`Score` whose leaves have a leading axis B; rank with ``jnp.argsort(-result.score)``.
     ``estimator`` (or the older ``method`` / ``mechanics``) chooses the deformation estimate, as for
     :func:`score_pose`; with ``Mechanics()`` (the default) the equilibrium is solved only for
@@ -407,12 +410,13 @@ def score(
         gripper: both fingers and the base separation W (mm, rad).
         sdf: the object (mm), in the frame's millimetre coordinates (x right, y down).
         poses: (B, 3) candidate poses: gripper centre x, y (mm) and angle (rad).
-        chunk_size: poses evaluated together (static); memory grows with it, not with B.
+        chunk_size: poses per compiled call (a piece; static): every B runs through the program
+            of this size; memory grows with it, not with B.
         estimator: ``Geometric()`` or ``Mechanics(config)`` (None: ``Mechanics()``); equal
             estimators reuse one compiled program.
-        workers: on one device, concurrent parts the batch is split into (None: one per CPU core
-            on a CPU, one elsewhere), as for :func:`estimate_batch`; results agree to float32
-            rounding whatever it is.
+        workers: on one device, pieces run at once (None: one per CPU core on a CPU, one
+            elsewhere), as for :func:`estimate_batch`.
+        progress: ``progress(done, total)`` (poses) after each piece, as for :func:`estimate_batch`.
         uncertainty: robust quality (:class:`~softgrip_jax._robust.Uncertainty`): each candidate
             is also scored for its K draws of the calibration, the pose error, mu and the contour
             (the same draws for every candidate), giving ``quality_mean`` and ``p_closure``, which
@@ -462,7 +466,7 @@ def score(
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
     return run_batch(_score_one_device, _score_sharded, (gripper, sdf), poses, (weights, config, uncertainty),
-                     chunk_size, workers, estimator)
+                     chunk_size, workers, estimator, progress)
 
 
 class RefineStatus(enum.IntEnum):

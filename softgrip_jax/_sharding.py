@@ -10,13 +10,14 @@ with numpy as on one device.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from softgrip_jax._concurrent import balanced_chunk, pad_rows
+from softgrip_jax._concurrent import check_piece, join_pieces, split_pieces
 
 AXIS = "candidates"
 
@@ -27,26 +28,33 @@ def device_mesh() -> Mesh | None:
     return Mesh(np.array(devices), (AXIS,)) if len(devices) > 1 else None
 
 
-def run_sharded(fn, mesh: Mesh, before: tuple, xs: jax.Array, after: tuple, chunk_size: int, **static):
+def run_sharded(fn, mesh: Mesh, before: tuple, xs: jax.Array | np.ndarray, after: tuple, chunk_size: int,
+                progress: Callable[[int, int], None] | None = None, **static):
     """``fn(*before, shares, *after, chunk_size=..., **static)`` for a jitted ``fn`` that maps a
-    (devices, per_device, ...) array of candidates to outputs with those two leading axes; the
-    shares are placed one per device of ``mesh``. Returns outputs with ``xs``'s leading axis."""
+    (devices, chunk_size, ...) array of candidates to outputs with those two leading axes, in rounds
+    of one ``chunk_size`` piece per device of ``mesh`` (the same program whatever B is; the last
+    round padded). Returns outputs with ``xs``'s leading axis; ``progress(done, total)`` after each
+    round."""
+    size = check_piece(chunk_size)
     b = xs.shape[0]
     n_dev = mesh.devices.size
-    per_device = max(1, -(-b // n_dev))
-    shares = pad_rows(xs, n_dev * per_device).reshape((n_dev, per_device) + xs.shape[1:])
-    # Across processes, device_put takes each process's (identical) batch and keeps its devices' shares.
-    shares = jax.device_put(shares, NamedSharding(mesh, PartitionSpec(AXIS)))
-    out = fn(*before, shares, *after, chunk_size=balanced_chunk(per_device, chunk_size), **static)
-    if jax.process_count() > 1:  # each process gets the whole result, not only its own devices' rows
-        return _joined_replicated(out, b, NamedSharding(mesh, PartitionSpec()))
-    return _join(out, b)
+    pieces = split_pieces(xs, size)
+    pieces += [pieces[-1]] * (-len(pieces) % n_dev)  # whole rounds (the extra pieces' rows are dropped)
+    replicated = NamedSharding(mesh, PartitionSpec())
+    outputs = []
+    for r in range(0, len(pieces), n_dev):
+        shares = np.stack(pieces[r:r + n_dev])
+        # Across processes, device_put takes each process's (identical) batch and keeps its devices' shares.
+        shares = jax.device_put(shares, NamedSharding(mesh, PartitionSpec(AXIS)))
+        out = fn(*before, shares, *after, chunk_size=size, **static)
+        if jax.process_count() > 1:  # each process gets the whole result, not only its own devices' rows
+            out = _replicated(out, replicated)
+        outputs += [jax.tree_util.tree_map(lambda x, i=i: x[i], out) for i in range(n_dev)]
+        if progress is not None:
+            progress(min(b, (r + n_dev) * size), b)
+    return join_pieces(outputs, b)
 
 
-def _join(out, b):
-    return jax.tree_util.tree_map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:])[:b], out)
-
-
-@partial(jax.jit, static_argnums=(1, 2))
-def _joined_replicated(out, b, replicated):
-    return jax.lax.with_sharding_constraint(_join(out, b), replicated)
+@partial(jax.jit, static_argnums=(1,))
+def _replicated(out, replicated):
+    return jax.lax.with_sharding_constraint(out, replicated)

@@ -77,9 +77,6 @@ OPEN_BEND_WARN = 0.15
 #: A frame whose fingers are both bent by more than this fraction of the profile's full closure
 #: (theta_entire) shows the closed gripper, not the open one the estimate starts from: refused.
 CLOSED_FRACTION = 0.5
-#: Smallest padded batch of :meth:`Scene.score`: every batch of up to this many poses shares one
-#: compilation (with the persistent cache, across runs too).
-MIN_BATCH = 2048
 #: :attr:`Scene.path` of a frame built in memory (no folder), and the name its titles show.
 MEMORY_PATH = "<memory>"
 MEMORY_NAME = "frame in memory"
@@ -153,13 +150,6 @@ def _estimate_grasp_jit():
 
         _ESTIMATE = eqx.filter_jit(estimate_grasp)
     return _ESTIMATE
-
-
-def _pad(poses: np.ndarray, minimum: int = MIN_BATCH) -> np.ndarray:
-    """Poses padded (with copies of the first) to a power of two >= ``minimum``, so that batches of
-    similar sizes share one compilation."""
-    size = max(minimum, 1 << (len(poses) - 1).bit_length())
-    return np.concatenate([poses, np.repeat(poses[:1], size - len(poses), axis=0)])
 
 
 def _poses(poses: Any, what: str) -> np.ndarray:
@@ -294,17 +284,15 @@ class Scene:
         from softgrip_jax import estimate_grasp_batch
 
         batch = _poses(poses, "Scene.estimate")
-        result = estimate_grasp_batch(self.gripper, self.sdf, jnp.asarray(_pad(batch, 64), dtype),
-                                      estimator=estimator)
-        return take_rows(to_numpy(result), len(batch))
+        return to_numpy(estimate_grasp_batch(self.gripper, self.sdf, jnp.asarray(batch, dtype), estimator=estimator))
 
     def score(self, poses: Any, *, estimator: AbstractEstimator | None = None, method: str | None = None,
-              weights=None, uncertainty=None):
+              weights=None, uncertainty=None, progress=None):
         """Score poses (numpy or JAX, (3,) or (B, 3): x mm, y mm, angle rad) in one compiled call.
 
-        ``estimator`` (or the older ``method``) is as for :meth:`estimate`. Batches are padded to a
-        power of two (at least :data:`MIN_BATCH`) so that batches of similar sizes share one
-        compilation. ``weights``: a :class:`softgrip_jax.ScoreWeights` (None: the defaults), e.g.
+        ``estimator`` (or the older ``method``) is as for :meth:`estimate`. Every batch size runs
+        through one compiled program (:func:`softgrip_jax.score` evaluates pieces of one size);
+        ``progress(done, total)`` is called after each piece. ``weights``: a :class:`softgrip_jax.ScoreWeights` (None: the defaults), e.g.
         ``ScoreWeights(mu=0.8)`` for another friction coefficient; its values are run-time, so
         changing them never recompiles. Returns a :class:`softgrip_jax.Score` with numpy leaves of
         leading axis B (``score`` is -inf where not valid; ``quality``, ``force_closure`` and the
@@ -321,10 +309,10 @@ class Scene:
             raise SoftgripError(f"Scene.score: weights must be a softgrip_jax.ScoreWeights (e.g. "
                                 f"ScoreWeights(mu=0.5)), got {type(weights).__name__}")
         batch = _poses(poses, "Scene.score")
-        padded = jnp.asarray(_pad(batch), self.gripper.base_separation.dtype)
-        result = jax.block_until_ready(score(self.gripper, self.sdf, padded, weights,
-                                             estimator=as_estimator(estimator, method), uncertainty=uncertainty))
-        return take_rows(to_numpy(result), len(batch))
+        result = jax.block_until_ready(score(self.gripper, self.sdf, jnp.asarray(batch, self.gripper.base_separation.dtype),
+                                             weights, estimator=as_estimator(estimator, method),
+                                             uncertainty=uncertainty, progress=progress))
+        return to_numpy(result)
 
     @staticmethod
     def case_name(grasp, side: str) -> str:

@@ -1,4 +1,5 @@
-"""Batches split into concurrent parts (softgrip_jax._concurrent): same results, one compilation."""
+"""Batches run as pieces of one size (softgrip_jax._concurrent): the same results whatever the batch
+size or the number of workers, one compiled program for every batch size, progress after each piece."""
 
 import functools
 
@@ -8,25 +9,74 @@ import numpy as np
 import pytest
 
 from softgrip_jax import FingerModel, Gripper, PolygonSDF, SDFGrid, SoftgripError, estimate_batch, score
-from softgrip_jax._concurrent import CHUNK_ALIGN, MIN_PART, balanced_chunk, part_count, run_in_parts
+from softgrip_jax._concurrent import CHUNK_ALIGN, MIN_PART, balanced_chunk, part_count, run_in_pieces
 
 FINGER = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=4)
 GRID = SDFGrid.sample(PolygonSDF.regular((30.0, 40.0), 8.0, 64), origin=(-40.0, -30.0), spacing=(0.5, 0.5),
                       shape=(200, 240))
 
 
-def test_parts_give_the_whole_batch_results_in_order():
-    # 3 parts of 257 rows, the last padded by 3: each candidate keeps its own result and place.
-    n = 3 * MIN_PART + 2
-    bases = np.random.default_rng(0).uniform([-20.0, -10.0], [40.0, 30.0], (n, 2)).astype(np.float32)
-    whole = estimate_batch(FINGER, GRID, bases, method="geometric", workers=1)
-    split = estimate_batch(FINGER, GRID, bases, method="geometric", workers=3)
-    assert split.joints.shape == (n, 5, 2)
-    # To float32 rounding: a part is a program of another shape, which XLA:CPU may vectorise
-    # differently at a chunk's edge on some processors (1 ulp at 3 of 7,700 values on an AMD EPYC).
-    np.testing.assert_allclose(split.joints, whole.joints, rtol=1e-6, atol=1e-5)
+CHUNK = 128  # small pieces keep the tests fast
+
+
+@pytest.fixture(scope="module")
+def bases():
+    return np.random.default_rng(0).uniform([-20.0, -10.0], [40.0, 30.0], (3 * CHUNK + 2, 2)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def whole(bases):
+    return estimate_batch(FINGER, GRID, bases, method="geometric", workers=1, chunk_size=CHUNK)
+
+
+def test_pieces_give_the_whole_batch_results_in_order(bases, whole):
+    # 4 pieces of 128 rows, the last padded by 126, run 3 at a time: every row is computed by the
+    # same program in every case, so the results are bitwise those of one worker.
+    split = estimate_batch(FINGER, GRID, bases, method="geometric", workers=3, chunk_size=CHUNK)
+    assert split.joints.shape == (len(bases), 5, 2)
+    np.testing.assert_array_equal(split.joints, whole.joints)
     np.testing.assert_array_equal(split.case, whole.case)
     assert len(set(np.asarray(whole.case).tolist())) >= 3  # a scene with contacts, not only case (a)
+
+
+@pytest.mark.parametrize("size", [1, 7, CHUNK, CHUNK + 1, 300])
+def test_a_row_is_the_same_in_every_batch_size(bases, whole, size):
+    part = estimate_batch(FINGER, GRID, bases[:size], method="geometric", chunk_size=CHUNK)
+    assert part.joints.shape == (size, 5, 2)
+    np.testing.assert_array_equal(part.joints, whole.joints[:size])
+    np.testing.assert_array_equal(part.valid, whole.valid[:size])
+
+
+def test_new_batch_sizes_compile_nothing_and_map_no_memory(bases, whole):
+    def maps():
+        with open("/proc/self/maps") as f:
+            return sum(1 for _ in f)
+
+    estimate_batch(FINGER, GRID, bases[:5], method="geometric", chunk_size=CHUNK)  # warm: every helper compiled
+    before, compiled = maps(), []
+    with jax.log_compiles(True):
+        import logging
+
+        class Catch(logging.Handler):
+            def emit(self, record):
+                compiled.append(record.getMessage())
+
+        handler = Catch()
+        logging.getLogger("jax").addHandler(handler)
+        try:
+            for size in np.random.default_rng(1).integers(1, len(bases), 40):
+                estimate_batch(FINGER, GRID, bases[:size], method="geometric", chunk_size=CHUNK)
+        finally:
+            logging.getLogger("jax").removeHandler(handler)
+    assert [m for m in compiled if "Compiling" in m or "compil" in m.lower()] == []
+    assert maps() - before < 20  # (allocator growth, not a program per size)
+
+
+def test_progress_is_reported_after_each_piece_ending_with_the_whole_batch(bases, whole):
+    calls = []
+    estimate_batch(FINGER, GRID, bases[:300], method="geometric", chunk_size=CHUNK, workers=2,
+                   progress=lambda done, total: calls.append((done, total)))
+    assert calls == [(128, 300), (256, 300), (300, 300)]
 
 
 def test_part_count_rules():
@@ -69,7 +119,7 @@ def test_traced_batches_run_as_one_part():
     assert np.isfinite(jax.grad(loss)(jnp.float32(0.5)))
 
 
-def test_a_new_shape_compiles_once_for_all_parts():
+def test_every_batch_size_traces_one_piece_program():
     traces = []
 
     @functools.partial(jax.jit, static_argnames="chunk_size")
@@ -77,13 +127,14 @@ def test_a_new_shape_compiles_once_for_all_parts():
         traces.append(x.shape)  # runs only while tracing
         return {"twice": 2.0 * x}
 
-    xs = jnp.arange(4 * MIN_PART * 2, dtype=jnp.float32).reshape(-1, 2)
-    out = run_in_parts(double, (), xs, (), 4, 2048)
-    np.testing.assert_array_equal(out["twice"], 2.0 * xs)
-    assert traces == [(MIN_PART, 2)]
+    for rows in (1, 100, 256, 257, 1000):
+        xs = jnp.arange(rows * 2, dtype=jnp.float32).reshape(-1, 2)
+        out = run_in_pieces(double, (), xs, (), 4, 256)
+        np.testing.assert_array_equal(out["twice"], 2.0 * xs)
+    assert traces == [(256, 2)]
 
 
-@pytest.mark.slow  # compiles the score for several part shapes: about 50 s
+@pytest.mark.slow  # compiles the score: about 50 s
 def test_score_in_parts_matches_one_part():
     n = 2 * MIN_PART + 1
     rng = np.random.default_rng(3)
@@ -92,6 +143,6 @@ def test_score_in_parts_matches_one_part():
     gripper = Gripper(FINGER, FINGER, 50.0)
     whole = score(gripper, GRID, poses, method="geometric", workers=1)
     split = score(gripper, GRID, poses, method="geometric", workers=2)
-    np.testing.assert_allclose(split.score, whole.score, rtol=1e-6, atol=1e-6)  # float32 rounding, as above
+    np.testing.assert_array_equal(split.score, whole.score)  # the same piece program for every row
     np.testing.assert_array_equal(split.valid, whole.valid)
     assert np.isfinite(np.asarray(whole.score)).sum() > 10  # some poses are valid, so scores were compared
