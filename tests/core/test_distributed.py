@@ -35,9 +35,11 @@ WORKER = textwrap.dedent("""
     from tests.core.test_distributed import BASES, DISC, FINGER, GRIPPER, POSES
     from softgrip_jax import estimate_batch, score
     assert jax.process_count() == 2 and len(jax.devices()) == 2 and len(jax.local_devices()) == 1, jax.devices()
-    est = estimate_batch(FINGER, DISC, BASES, method="geometric", chunk_size=4)
+    steps = []
+    est = estimate_batch(FINGER, DISC, BASES, method="geometric", chunk_size=4, progress=lambda d, n: steps.append(d))
     sc = score(GRIPPER, DISC, POSES, method="geometric", chunk_size=4)
-    assert len(est.joints.sharding.device_set) == 2, est.joints.sharding  # both processes' devices took part
+    n = len(BASES)
+    assert steps == [min(8 * k, n) for k in range(1, -(-n // 8) + 1)], steps  # rounds of a 4-base piece per device
     np.savez(out, joints=np.asarray(est.joints), case=np.asarray(est.case), valid=np.asarray(est.valid),
              score=np.asarray(sc.score), score_valid=np.asarray(sc.valid), left=np.asarray(sc.grasp.left.joints))
     jax.distributed.shutdown()
@@ -102,8 +104,10 @@ LOCAL = textwrap.dedent("""
     assert len(jax.devices()) == 2, jax.devices()
     from tests.core.test_distributed import BASES, DISC, FINGER
     from softgrip_jax import estimate_batch
-    est = estimate_batch(FINGER, DISC, BASES, method="geometric", chunk_size=4)
-    assert len(est.joints.sharding.device_set) == 2, est.joints.sharding
+    steps = []
+    est = estimate_batch(FINGER, DISC, BASES, method="geometric", chunk_size=4, progress=lambda d, n: steps.append(d))
+    n = len(BASES)
+    assert steps == [min(8 * k, n) for k in range(1, -(-n // 8) + 1)], steps  # rounds of a 4-base piece per device
     empty = estimate_batch(FINGER, DISC, np.zeros((0, 2), np.float32), method="geometric", chunk_size=4)
     assert empty.joints.shape == (0, FINGER.n_links + 1, 2) and empty.valid.shape == (0,), empty.joints.shape
     np.savez(sys.argv[1], joints=np.asarray(est.joints), case=np.asarray(est.case), valid=np.asarray(est.valid))

@@ -89,8 +89,9 @@ SHARDED = textwrap.dedent("""
     disc = PolygonSDF.regular((0.0, 38.0), 15.0, 128)
     rng = np.random.default_rng(0)
     poses = rng.uniform([-20, -20, -0.2], [20, 20, 0.2], (101, 3)).astype(np.float32)
-    sharded = score(g, disc, poses, chunk_size=16, method="geometric")
-    assert len(sharded.score.sharding.device_set) == 2  # the batch really was split
+    steps = []
+    sharded = score(g, disc, poses, chunk_size=16, method="geometric", progress=lambda done, total: steps.append(done))
+    assert steps == [32, 64, 96, 101], steps  # rounds of one 16-pose piece per device
     single = jax.jit(jax.vmap(lambda p: score_pose(g, disc, p, method="geometric")), device=jax.devices()[0])(poses)
     np.testing.assert_array_equal(np.asarray(sharded.valid), np.asarray(single.valid))
     ok = np.asarray(single.valid)
