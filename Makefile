@@ -12,8 +12,10 @@ PIP_INSTALL := $(PIP) install --quiet --disable-pip-version-check --no-compile -
 # `make test` adds the development extras (every backend, pytest) to the same .venv.
 CORE_STAMP := $(VENV)/.installed-core
 TEST_STAMP := $(VENV)/.installed-test
+# `make docs` adds the docs extra (mkdocs, mkdocstrings) to the same .venv.
+DOCS_STAMP := $(VENV)/.installed-docs
 
-.PHONY: setup setup-demo test test-fast test-slow test-all demo bench clean
+.PHONY: setup setup-demo test test-fast test-slow test-all demo bench docs clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -56,5 +58,14 @@ demo: $(CORE_STAMP)
 bench: $(TEST_STAMP)
 	$(PY) benchmarks/bench_estimate.py
 
+# The documentation site (docs/ and the API reference from the docstrings) into site/; --strict:
+# a broken link or a docstring griffe cannot read fails the build.
+$(DOCS_STAMP): $(CORE_STAMP)
+	$(PIP_INSTALL) -e '.[docs]'
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	$(PY) -m mkdocs build --strict
+
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build site *.egg-info

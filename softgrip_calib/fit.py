@@ -265,8 +265,8 @@ def fit(
         estimator: the estimate the residuals go through: ``Geometric()`` (eq. 9) or
             ``Mechanics(config)`` (the spring chain at equilibrium, solver settings ``config``);
             None: ``Mechanics()``, as everywhere else.
-        method, mechanics: the older spelling of ``estimator``: ``"geometric"`` or ``"mechanics"``,
-            and the latter's :class:`~softgrip_jax.MechanicsConfig`.
+        method: the older spelling of ``estimator``: ``"geometric"`` or ``"mechanics"``.
+        mechanics: with ``method="mechanics"``, its :class:`~softgrip_jax.MechanicsConfig`.
         max_steps: Levenberg-Marquardt iteration cap.
         skipped: pairs already left out upstream (``{"frame", "reason"}``), carried into the report.
         progress: show a progress bar on stderr. Its per-step report is a host callback: with
@@ -477,8 +477,11 @@ def free_closure_observation(
     next to the fitted one.
 
     Args:
-        open_frame, closed_frame: the frames (open gripper; closed gripper without an object).
-        settings, n_links, measure: as for :func:`observations_from_frames`.
+        open_frame: the frame of the open gripper.
+        closed_frame: the frame of the gripper closed without an object.
+        settings: as for :func:`observations_from_frames`.
+        n_links: as for :func:`observations_from_frames`.
+        measure: as for :func:`observations_from_frames`.
         label: how reports and warnings name the pair.
         closed_name: how the error names the closed frame (e.g. its folder).
 

@@ -82,7 +82,12 @@ def fit_stiffness_model(
     """Fit ``parameters`` plus the stiffness model the pairs support (see the module docstring).
 
     Args:
-        observations, start, config, max_steps, skipped, progress: as for :func:`softgrip_calib.fit.fit`.
+        observations: as for :func:`softgrip_calib.fit.fit`.
+        start: as for :func:`softgrip_calib.fit.fit`.
+        config: as for :func:`softgrip_calib.fit.fit`.
+        max_steps: as for :func:`softgrip_calib.fit.fit`.
+        skipped: as for :func:`softgrip_calib.fit.fit`.
+        progress: as for :func:`softgrip_calib.fit.fit`.
         parameters: what every model fits (``theta_entire``, optionally ``base_offset``); the
             stiffness parameters are added per model.
         estimator: the mechanics estimate (``Mechanics(config)``); None: ``Mechanics()``. The

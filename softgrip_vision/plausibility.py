@@ -329,7 +329,8 @@ def check_profile_match(keypoints, separation_mm: float, profile, *, source: str
         separation_mm: the measured distance between the bases, mm.
         profile: the calibration profile (``fingers[side].length``, ``.half_thickness``,
             ``base_separation``, mm).
-        source, profile_source: how the frame and the profile are named in the message.
+        source: how the frame is named in the message.
+        profile_source: how the profile is named in the message.
         lengths: compare the finger lengths (False when the frame's own lengths are used).
 
     Raises:
