@@ -43,6 +43,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from softgrip_jax._batch import DEFAULT_CHUNK, as_candidates, grasp_chunk, map_chunks, run_batch
 from softgrip_jax._checks import check_gripper, check_sdf
 from softgrip_jax._compile import tuned_jit
+from softgrip_jax._concurrent import run_in_pieces
 from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._errors import SoftgripError, check_number_fields
 from softgrip_jax._export import exportable
@@ -531,6 +532,10 @@ _refine_batch = exportable(tuned_jit(_refine_poses, static_argnames=("max_steps"
                            ("max_steps", "estimator"))
 
 
+#: Poses of a batch refined together by :func:`refine` (each runs its own BFGS under ``vmap``).
+REFINE_CHUNK = 16
+
+
 def refine(
     gripper: Gripper,
     sdf: AbstractSDF,
@@ -544,6 +549,9 @@ def refine(
     method: str | None = None,
     mechanics: MechanicsConfig | None = None,
     uncertainty: Uncertainty | None = None,
+    chunk_size: int = REFINE_CHUNK,
+    workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Refined:
     """Improve one pose (3,) or a batch (B, 3) by gradient ascent of the score (optimistix BFGS):
     the grasp quality in force closure, robust with ``uncertainty`` (as for :func:`score`).
@@ -559,9 +567,13 @@ def refine(
     changing, the edge of the valid set) a pose refined alone may end elsewhere than the same pose
     in a batch; each result keeps the guarantee above.
 
+    A batch is refined ``chunk_size`` poses at a time by one compiled program whatever B is
+    (pieces, ``workers`` at once, ``progress(done, total)`` after each, as for :func:`score`).
+
     Args:
         pose: (3,) or (B, 3) start poses: gripper centre x, y (mm) and angle (rad).
         max_steps: BFGS iterations at most (static).
+        chunk_size: poses of a batch refined together (static).
 
     Returns:
         :class:`Refined` (leading axis B for a batch): ``pose`` (3,), its :class:`Score`,
@@ -573,5 +585,14 @@ def refine(
     check_sdf(sdf)
     estimator = as_estimator(estimator, method, mechanics)
     poses = as_candidates(pose, 3, gripper.base_separation.dtype, "refine: pose", single=True)
-    return _refine_batch(gripper, sdf, poses, weights, config, uncertainty, max_steps,
-                         jnp.asarray(angle_scale, poses.dtype), estimator)
+    scale = jnp.asarray(angle_scale, poses.dtype)
+    if poses.ndim == 1:
+        return _refine_batch(gripper, sdf, poses, weights, config, uncertainty, max_steps, scale, estimator)
+    return run_in_pieces(_refine_piece, (gripper, sdf), poses, (weights, config, uncertainty, scale), workers,
+                         chunk_size, progress, max_steps=max_steps, estimator=estimator)
+
+
+
+def _refine_piece(gripper, sdf, poses, weights, config, uncertainty, scale, *, chunk_size, max_steps, estimator):
+    del chunk_size  # the piece is the batch: BFGS runs on all its poses at once
+    return _refine_batch(gripper, sdf, poses, weights, config, uncertainty, max_steps, scale, estimator)
