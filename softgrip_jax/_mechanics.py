@@ -555,6 +555,38 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
         return y, aux, {}
 
 
+def _solve_equilibrium(problem: _Problem, y0, mechanics: MechanicsConfig):
+    """The equilibrium ``y`` of ``problem`` from ``y0`` (:class:`ChainGaussNewton`), and the solver's
+    ``(pushed stations (M,), last step (mm), steps, converged)``.
+
+    Gradients through ``y`` by the implicit function theorem on the optimality condition of the
+    least squares (the gradient of 0.5 |r|^2 vanishes), with JAX's ``custom_root`` and a dense
+    solve of its Jacobian (the chain's few variables), rather than optimistix's adjoint: that one
+    solves the tangent system with lineax, whose checks are host callbacks under reverse mode unless
+    ``EQX_ON_ERROR`` was set before equinox was imported, and a program with host callbacks never
+    enters the persistent compilation cache.
+    """
+    solver = ChainGaussNewton(rtol=mechanics.contact_tol, atol=mechanics.step_tol)
+
+    def optimality(y):
+        return jax.grad(lambda z: 0.5 * jnp.sum(_residual_fn(z, problem) ** 2))(y)
+
+    def solve(_, start):
+        solution = optx.least_squares(_residual_fn, solver, start, args=problem, max_steps=mechanics.max_steps,
+                                      throw=False)
+        # Auxiliary outputs as floats: custom_root gives them zero tangents of their own dtype.
+        aux = (solution.state.pushed.astype(start.dtype), solution.state.moved.astype(start.dtype),
+               jnp.asarray(solution.stats["num_steps"], start.dtype),
+               (solution.result == optx.RESULTS.successful).astype(start.dtype))
+        return solution.value, aux
+
+    def tangent_solve(linear, rhs):
+        return jnp.linalg.solve(jax.jacfwd(linear)(rhs), rhs)
+
+    y, (pushed, moved, steps, converged) = jax.lax.custom_root(optimality, y0, solve, tangent_solve, has_aux=True)
+    return y, (pushed > 0.5, moved, steps.astype(jnp.int32), converged > 0.5)
+
+
 def closing_start(
     finger: FingerModel, contact: Contact, config: ContactConfig = ContactConfig()
 ) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, " n"]]:
@@ -886,12 +918,7 @@ def solve_equilibrium(
             jax.lax.stop_gradient(problem), jax.lax.stop_gradient(start_actuation),
             jax.lax.stop_gradient(start_psi), jax.lax.stop_gradient(start_turning), config)
     y0 = jax.lax.stop_gradient(problem.variables(start_psi, start_turning))
-    solver = ChainGaussNewton(rtol=mechanics.contact_tol, atol=mechanics.step_tol)
-    solution = optx.least_squares(
-        _residual_fn, solver, y0, args=problem, max_steps=mechanics.max_steps, throw=False,
-    )
-    y = solution.value
-    converged = solution.result == optx.RESULTS.successful
+    y, (pushed, moved, steps, converged) = _solve_equilibrium(problem, y0, mechanics)
     sensitivity, newton, gradient = _second_order(problem, y)
     y = y + jax.lax.stop_gradient(_polish(problem, y, newton, gradient, converged))
     psi, turning = problem.shape(y)
@@ -900,7 +927,7 @@ def solve_equilibrium(
     d = problem.distance(points)
     r, length, n = finger.half_thickness, finger.length, finger.n_links
     # The case (see the docstring): stations that carry force, by the contact area they lie in.
-    pressed = solution.state.pushed | (d < r)
+    pressed = pushed | (d < r)
     touching = (d <= r + mechanics.contact_tol) | pressed
     at_tip = arc >= length * (1.0 - config.tip_tolerance / n)
     station = jnp.arange(d.shape[0])
@@ -916,7 +943,7 @@ def solve_equilibrium(
     penetration = jnp.maximum(jnp.max(r - d), 0.0)
     return Equilibrium(
         psi=psi, turning=turning, case=case, converged=converged,
-        penetration=penetration, tip_foot=tip_foot, steps=solution.stats["num_steps"],
-        residual=solution.state.moved, slid_off=tip_pressed & ~tip, sensitivity=sensitivity,
+        penetration=penetration, tip_foot=tip_foot, steps=steps,
+        residual=moved, slid_off=tip_pressed & ~tip, sensitivity=sensitivity,
         near_fold=sensitivity > mechanics.fold_sensitivity,
     )

@@ -129,9 +129,9 @@ def test_refine_geometric_compiles_without_host_callbacks() -> None:
 
 
 @pytest.mark.slow
-def test_refine_mechanics_compiles_without_host_callbacks_under_eqx_on_error_nan() -> None:
-    """A gradient through the mechanics equilibrium goes through lineax (optimistix's implicit
-    adjoint): callback-free only with EQX_ON_ERROR=nan, which the CLI sets. A fresh process, since
+def test_refine_mechanics_compiles_without_host_callbacks_whatever_eqx_on_error() -> None:
+    """A gradient through the mechanics equilibrium (implicit, by custom_root, not lineax): no host
+    callback with EQX_ON_ERROR=raise (equinox's default) either. A fresh process per value, since
     equinox reads the variable at import."""
     script = textwrap.dedent("""
         import jax.numpy as jnp
@@ -152,7 +152,7 @@ def test_refine_mechanics_compiles_without_host_callbacks_under_eqx_on_error_nan
                              check=True, timeout=600)
         counts[mode] = out.stdout.split()
     assert counts["nan"] == ["True", "0"]
-    assert counts["raise"][0] == "False" and int(counts["raise"][1]) > 0  # the check is a real one
+    assert counts["raise"] == ["False", "0"]
 
 
 def test_fit_compiles_without_host_callbacks_unless_a_progress_bar_is_shown() -> None:
