@@ -203,14 +203,14 @@ def check_equinox_environment() -> None:
     value = os.environ.get("EQX_ON_ERROR")
     if value is not None and value not in EQX_ON_ERROR_VALUES:
         raise SoftgripError(f"the environment variable EQX_ON_ERROR={one_line(value)!r} is not one of equinox's "
-                            f"values ({', '.join(EQX_ON_ERROR_VALUES)}): unset it (softgrip then uses nan) or set "
+                            f"values ({', '.join(EQX_ON_ERROR_VALUES)}): unset it or set "
                             f"one of them")
     if value == "breakpoint":
         # equinox then stops in a debugger inside the compiled solves, which softgrip runs as exported
         # programs: they cannot hold the debugger's host callback.
         raise SoftgripError("the environment variable EQX_ON_ERROR='breakpoint' (equinox's interactive debugger) "
                             "is not supported by the softgrip command, whose solvers run as compiled exported "
-                            "programs: unset it (softgrip then uses nan), or set EQX_ON_ERROR=raise to stop on "
+                            "programs: unset it, or set EQX_ON_ERROR=raise to stop on "
                             "the first failed check")
     frames = os.environ.get("EQX_ON_ERROR_BREAKPOINT_FRAMES")
     if frames is not None:
@@ -306,10 +306,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if closed is not None:  # before any work: the results would be lost
         print(f"softgrip: error: {closed}", file=sys.stderr)
         return EXIT_USER_ERROR
-    # equinox's runtime checks (inside optimistix's and lineax's solves) as NaNs, not host callbacks:
-    # programs with callbacks never enter the compilation cache. Read once, when equinox is imported,
-    # so it is set before anything below imports it; a value the user set (e.g. "raise") is kept.
-    os.environ.setdefault("EQX_ON_ERROR", "nan")
     safe_streams()
     # Every write to stdout through a guard: a full disk or an I/O error is one line and exit 2, and
     # an interrupted command's output is made absent (GuardedStdout.discard), never left partial.

@@ -39,17 +39,10 @@ __all__ = [
 def enable_compilation_cache() -> None:
     """Keep JAX's compiled programs on disk (``softgrip_jax.enable_compilation_cache`` with its default
     folder), so that the second run of a command starts in seconds. ``SOFTGRIP_JAX_CACHE=0`` turns it
-    off. The command sets ``EQX_ON_ERROR=nan`` before equinox is imported (``softgrip_cli._main``), so
-    its warning about equinox's checks only concerns a caller that imported equinox first: not shown.
-    A cache folder that other users can write is refused with a warning (the cache is then off)."""
-    import warnings
-
+    off. A cache folder that other users can write is refused with a warning (the cache is then off)."""
     from softgrip_jax import enable_compilation_cache as enable
-    from softgrip_jax._cache import CacheWarning
 
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*EQX_ON_ERROR", category=CacheWarning)
-        enable()
+    enable()
 
 
 #: The commands' diagnostics on stderr (stdout is reserved for results): :func:`warn`, :func:`note`

@@ -5,16 +5,11 @@ progress bar, ...) takes seconds to tens of seconds to compile. With the cache o
 process that calls them with shapes it has seen before loads the compiled programs from disk.
 
 JAX refuses to store a program that calls back into Python (``jax.debug.callback``,
-``jax.pure_callback``). The core's geometric paths contain none. Two things can add one:
-
-* equinox's runtime errors (``equinox.error_if``), which lineax's linear solves use inside
-  optimistix's implicit differentiation: a gradient through the mechanics estimate has them.
-  ``EQX_ON_ERROR=nan`` in the environment *before equinox is first imported* turns these checks into
-  NaNs without a callback (the equinox maintainers' advice for caching); a failed solve then shows as
-  a non-finite result, which the estimates and scores already report per candidate
-  (``valid=False``, a :class:`~softgrip_jax.Status`). The ``softgrip`` command sets it; a library
-  user sets it in the shell or at the top of the program (:func:`equinox_errors_cacheable` tells).
-* a progress bar (``softgrip_calib.fit.fit(progress=True)``).
+``jax.pure_callback``, equinox's runtime errors). The core's programs contain none, whatever
+``EQX_ON_ERROR`` is: its solvers run with ``throw=False`` and report failures per candidate (a
+:class:`~softgrip_jax.Status`), and its implicit gradients (the first contact, the mechanics
+equilibrium) use JAX's ``custom_root`` with dense solves instead of lineax, whose checks are
+callbacks under reverse mode. Only a progress bar adds one (``softgrip_calib.fit.fit(progress=True)``).
 
 The cache holds compiled machine code, which JAX loads and runs. A folder that another user can
 write is therefore refused (:func:`untrusted_reason`, :class:`UntrustedCacheWarning`): the cache is
@@ -77,10 +72,6 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
         The folder in use, or None when the cache is off (``SOFTGRIP_JAX_CACHE=0``, or a folder that
         cannot be created: the program then runs, compiling as without the cache).
 
-    Gradients through the mechanics estimate (``refine`` with ``Mechanics()``, the mechanics fit) are
-    only cached when ``EQX_ON_ERROR=nan`` was set before equinox was imported; without it this
-    function warns once (see the module docstring).
-
     Example:
         >>> import tempfile, softgrip_jax
         >>> folder = softgrip_jax.enable_compilation_cache(tempfile.mkdtemp())  # doctest: +SKIP
@@ -112,12 +103,6 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     if not keep:
         _reset_cache_backend(jax)
-    if not equinox_errors_cacheable():
-        warnings.warn(
-            "softgrip_jax: EQX_ON_ERROR is not 'nan', so gradients through the mechanics estimate "
-            "(refine with method='mechanics', the mechanics fit) compile with host callbacks and are not "
-            "cached; set EQX_ON_ERROR=nan before importing softgrip_jax (or equinox) to cache them",
-            CacheWarning, stacklevel=2)
     return folder
 
 

@@ -14,8 +14,8 @@ array arguments, the tree structure of the arguments (which holds every static f
 and configs), the static arguments (an estimator by its class, name and settings:
 :func:`static_ident`), and the versions that decide the program: jax, jaxlib,
 equinox, lineax, optimistix, a hash of this package's source files, ``EQX_ON_ERROR``, the x64 flag
-and the backend. A function that cannot be exported (host callbacks, e.g. equinox's runtime errors
-without ``EQX_ON_ERROR=nan``) runs on the ordinary ``jax.jit`` path, silently. Results are those of
+and the backend. A function that cannot be exported (host callbacks: a caller's own, or equinox's
+runtime errors in code outside this package) runs on the ordinary ``jax.jit`` path, silently. Results are those of
 the jitted function: the same program, compiled with the same options.
 
 Nothing read from the folder can run Python code. A file is plain data (see "the file format"

@@ -563,7 +563,7 @@ def _solve_equilibrium(problem: _Problem, y0, mechanics: MechanicsConfig):
     least squares (the gradient of 0.5 |r|^2 vanishes), with JAX's ``custom_root`` and a dense
     solve of its Jacobian (the chain's few variables), rather than optimistix's adjoint: that one
     solves the tangent system with lineax, whose checks are host callbacks under reverse mode unless
-    ``EQX_ON_ERROR`` was set before equinox was imported, and a program with host callbacks never
+    ``EQX_ON_ERROR`` was set before equinox was imported; a program with host callbacks never
     enters the persistent compilation cache.
     """
     solver = ChainGaussNewton(rtol=mechanics.contact_tol, atol=mechanics.step_tol)

@@ -43,8 +43,8 @@ def restore_cache_config():
 def test_enable_compilation_cache_uses_the_given_folder(tmp_path, restore_cache_config, monkeypatch) -> None:
     monkeypatch.delenv("SOFTGRIP_JAX_CACHE", raising=False)
     folder = tmp_path / "a" / "b"
-    with warnings.catch_warnings():  # (a CacheWarning when EQX_ON_ERROR is not nan)
-        warnings.simplefilter("ignore")
+    with warnings.catch_warnings():  # no CacheWarning, whatever EQX_ON_ERROR is
+        warnings.simplefilter("error", softgrip_jax.CacheWarning)
         assert softgrip_jax.enable_compilation_cache(folder) == folder
     assert folder.is_dir()
     assert jax.config.jax_compilation_cache_dir == str(folder)
