@@ -7,6 +7,7 @@ seconds of the whole process, imports included.
     python benchmarks/bench_startup.py               # all cases
     python benchmarks/bench_startup.py planner refine
     python benchmarks/bench_startup.py --json
+    python benchmarks/bench_startup.py planner --root /tmp/old-checkout   # another source tree's figures
 
 Cases:
 * ``planner``: the README's "A planner" example (score 605 poses geometrically, refine the best);
@@ -86,20 +87,23 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("cases", nargs="*", default=["planner", "refine", "demo"])
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--root", type=Path, default=ROOT,
+                        help="the source tree to run (default: this one), e.g. a `git worktree` of an older commit")
     args = parser.parse_args()
     from benchmarks._machine import describe
 
     python = sys.executable
-    pythonpath = {"PYTHONPATH": str(ROOT)}
-    results: dict[str, object] = {"machine": describe()}
+    root = args.root.resolve()
+    pythonpath = {"PYTHONPATH": str(root)}
+    results: dict[str, object] = {"machine": describe(), "root": str(root)}
     for case in args.cases:
         if case == "planner":
-            results["planner"] = _cold_then_warm([python, "-c", PLANNER], pythonpath, ROOT)
+            results["planner"] = _cold_then_warm([python, "-c", PLANNER], pythonpath, root)
         elif case == "refine":
             results["refine_mechanics_eqx_nan"] = _cold_then_warm([python, "-c", REFINE],
-                                                                 {**pythonpath, "EQX_ON_ERROR": "nan"}, ROOT)
+                                                                 {**pythonpath, "EQX_ON_ERROR": "nan"}, root)
             results["refine_mechanics_eqx_raise"] = _cold_then_warm([python, "-c", REFINE],
-                                                                  {**pythonpath, "EQX_ON_ERROR": "raise"}, ROOT)
+                                                                  {**pythonpath, "EQX_ON_ERROR": "raise"}, root)
         elif case == "demo":
             with tempfile.TemporaryDirectory(prefix="softgrip-demo-") as out:
                 argv = [python, "-m", "softgrip_cli", "demo", "--json", "--out", str(Path(out) / "demo")]
@@ -107,10 +111,10 @@ def main() -> None:
                 with tempfile.TemporaryDirectory(prefix="softgrip-cache-") as cache:
                     env = {**os.environ, **pythonpath, "JAX_COMPILATION_CACHE_DIR": cache}
                     env.pop("SOFTGRIP_JAX_CACHE", None)
-                    cold_warm["empty_cache_s"] = round(_run(argv, env, ROOT)[0], 1)
+                    cold_warm["empty_cache_s"] = round(_run(argv, env, root)[0], 1)
                     cold_warm["cache_entries"] = len(list(Path(cache).iterdir()))
                     argv[-1] = str(Path(out) / "demo2")
-                    cold_warm["warm_cache_s"] = round(_run(argv, env, ROOT)[0], 1)
+                    cold_warm["warm_cache_s"] = round(_run(argv, env, root)[0], 1)
                 results["demo"] = cold_warm
         else:
             parser.error(f"unknown case {case!r}")

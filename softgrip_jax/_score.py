@@ -434,7 +434,10 @@ def score(
     Example (the README's planner: score a grid of poses, refine the best, read both fingers'
     contacts; ``tests/test_readme.py`` keeps the README's copy identical):
         >>> import jax.numpy as jnp
-        >>> from softgrip_jax import CASE_NAMES, FingerModel, Geometric, Gripper, PolygonSDF, refine, score
+        >>> from softgrip_jax import (CASE_NAMES, FingerModel, Geometric, Gripper, PolygonSDF, enable_compilation_cache,
+        ...                           refine, score)
+        >>> # Compiled programs kept on disk (a per-user folder): a new process starts in seconds.
+        >>> cache_folder = enable_compilation_cache()
         >>> finger = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=20)  # mm, rad
         >>> gripper = Gripper(left=finger, right=finger, base_separation=56.0)  # mm
         >>> obj = PolygonSDF.regular(center=(0.0, 38.0), radius=15.0, n_vertices=128)  # a 30 mm disc
