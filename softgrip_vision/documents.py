@@ -1,7 +1,7 @@
 """Results -> JSON documents: what ``softgrip estimate --json`` and ``softgrip score --json`` write.
 
-Each command writes ONE JSON document (schemas in ``schemas/estimate.schema.json`` and
-``schemas/score.schema.json``, :func:`schema`) that says what its numbers mean: ``units``,
+Each command writes ONE JSON document (schemas in ``softgrip_base/schemas/estimate.schema.json``
+and ``softgrip_base/schemas/score.schema.json``, :func:`schema`) that says what its numbers mean: ``units``,
 ``conventions`` (origin, axes, units and the plane's depth: :func:`softgrip_vision.scene.conventions`), the
 ``profile`` it was made with (:func:`profile_identity`), then a list per frame (estimate) or per
 candidate pose (score). Every enum is written by name (cases ``"none"``, ``"tip"``, ...; statuses
@@ -34,6 +34,7 @@ import hashlib
 import json
 import math
 import os
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -48,8 +49,9 @@ SIDES: tuple[str, str] = ("left", "right")
 DOCUMENT_VERSIONS = {"estimate": 1, "score": 2}
 #: The estimate document's version (kept for callers of the first releases).
 DOCUMENT_VERSION = DOCUMENT_VERSIONS["estimate"]
-#: Where the JSON Schemas live (in the repository, next to the packages).
-SCHEMA_DIR = Path(__file__).resolve().parents[1] / "schemas"
+#: Where the JSON Schemas live: package data of softgrip_base (``softgrip_base/schemas/``), in a
+#: checkout and in an installed wheel alike.
+SCHEMA_DIR = Path(str(resources.files("softgrip_base") / "schemas"))
 
 
 def schema(kind: str) -> dict:
