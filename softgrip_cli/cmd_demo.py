@@ -1,7 +1,7 @@
 """``softgrip demo``: the whole pipeline on the sample frames (no camera, no arguments).
 
-The frames ship with the package (``softgrip_cli/sample_data/`` in an installed wheel, mapped from
-the repository's ``data/``; a source checkout reads ``data/`` itself).
+The frames ship with the package (:func:`softgrip_vision.samples.sample_data_dir`: package data in
+an installed wheel, the repository's ``data/`` in a source checkout).
 
 Calibrate from the calibration pair (one frame, eqs. 4-5), estimate every scene from its open
 frame and compare with the observed closure in its closed frame (eq. 10), score a default grid of
@@ -17,7 +17,6 @@ import os
 import sys
 import threading
 import time
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -26,18 +25,9 @@ from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_estimator
 from softgrip_jax import SoftgripError, joint_errors
 from softgrip_base.atomic_write import write_atomic
+from softgrip_vision.samples import sample_data_dir
 
-
-def _sample_data_dir() -> Path:
-    """The sample frames' folder: ``softgrip_cli/sample_data`` in an installed wheel, else the source
-    checkout's ``data/`` (an editable install or a run from the checkout)."""
-    packaged = resources.files("softgrip_cli") / "sample_data"
-    if packaged.is_dir():
-        return Path(str(packaged))
-    return Path(__file__).resolve().parents[1] / "data"
-
-
-DATA_DIR = _sample_data_dir()
+DATA_DIR = sample_data_dir()
 CALIB_OPEN, CALIB_CLOSED = "calib_open", "calib_closed"
 SAMPLE_PROFILE = "sample_profile.json"
 DEFAULT_N_LINKS = 20

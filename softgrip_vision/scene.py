@@ -26,13 +26,12 @@ The profile is anything with the methods of :class:`ProfileLike` (a
 :class:`softgrip_calib.profile.CalibrationProfile` has them): ``softgrip_vision`` does not import ``softgrip_calib``.
 
 Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps the two identical):
-    >>> from pathlib import Path
     >>> import numpy as np
-    >>> import softgrip_vision
     >>> from softgrip_calib.profile import load_profile
     >>> from softgrip_jax import Geometric
+    >>> from softgrip_vision.samples import sample_data_dir
     >>> from softgrip_vision.scene import frame_scene, rank
-    >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+    >>> data = sample_data_dir()  # the sample frames and profile, shipped with the package
     >>> scene = frame_scene(data / "circle_open", load_profile(data / "sample_profile.json"))
     >>> print(scene.summary())
     circle_open: gripper at x 0.0 mm, y -45.1 mm, angle -0.001 rad; object 29.3 x 29.3 mm; plane 120.0 mm deep
