@@ -26,13 +26,23 @@ from __future__ import annotations
 import io
 import math
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from softgrip_base.input_guard import one_line
 from softgrip_jax import SoftgripError
 from softgrip_jax._quality import DEFAULT_MU
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from softgrip_jax import Score
+    from softgrip_vision.scene import Scene
+
+#: A grid of candidate poses as its three axes: gripper-centre x (mm), y (mm) and angle (rad), each (n,).
+PoseGrid = tuple[Any, Any, Any]
 
 INSTALL_HINT = "pip install softgrip-jax[plots]"
 #: RGBA of a position (or pose) with valid candidates but none in force closure, and of one with none valid.
@@ -68,7 +78,7 @@ def figure_format(path: str | os.PathLike[str], what: str = "output") -> str:
     return suffix
 
 
-def save_figure(figure, path: str | os.PathLike[str], *, inputs=(), force: bool = False, what: str = "output",
+def save_figure(figure: Figure, path: str | os.PathLike[str], *, inputs=(), force: bool = False, what: str = "output",
                 dpi: int = 120, tight: bool = True) -> None:
     """Write ``figure`` to ``path`` in the format its extension names, atomically (the output
     policy of :mod:`softgrip_base.atomic_write`): cropped to what is drawn (``tight``), or the
@@ -100,7 +110,7 @@ def _best_over_angles(values: np.ndarray, grid) -> np.ndarray:
     return best.T
 
 
-def closure_quality(result, robust: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def closure_quality(result: Score, robust: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Each candidate's grasp quality where it is valid and in force closure (NaN elsewhere), and
     whether it is valid: two (B,) arrays of a numpy :class:`softgrip_jax.Score`. ``robust``: the
     probability of force closure instead (robust scoring's ``p_closure``, NaN where 0)."""
@@ -112,7 +122,7 @@ def closure_quality(result, robust: bool = False) -> tuple[np.ndarray, np.ndarra
     return np.where(closure, np.asarray(result.quality, np.float64), np.nan), valid
 
 
-def quality_cells(result, grid, robust: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def quality_cells(result: Score, grid: PoseGrid, robust: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(NY, NX) best quality over the angles at each gripper-centre position of ``grid`` (NaN: no
     candidate there in force closure), and (NY, NX) whether any candidate there is valid.
     ``robust``: the best probability of force closure instead."""
@@ -182,8 +192,9 @@ def _draw_fingers(ax, grasp, colour) -> np.ndarray:
     return np.concatenate(drawn)
 
 
-def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None = None, *,
-                   title: str | None = None, mu: float = DEFAULT_MU, robust: bool = False):
+def heatmap_figure(scene: Scene, poses: Float[np.ndarray, "b 3"], result: Score, grid: PoseGrid | None = None,
+                   best: int | None = None, *, title: str | None = None, mu: float = DEFAULT_MU,
+                   robust: bool = False) -> Figure:
     """A matplotlib ``Figure`` of the grasp quality of ``poses`` on ``scene`` (see the module docstring).
 
     Args:
@@ -294,8 +305,9 @@ def _draw_contact(ax, point: np.ndarray, normal: np.ndarray, force, mu: float, c
                     arrowprops={"arrowstyle": "-|>", "color": "black", "lw": 1.4, "shrinkA": 0, "shrinkB": 0})
 
 
-def grasps_figure(scene, poses: np.ndarray, result, order=None, *, top: int = TOP_GRASPS, mu: float = DEFAULT_MU,
-                  title: str | None = None, cone_mm: float = 8.0):
+def grasps_figure(scene: Scene, poses: Float[np.ndarray, "b 3"], result: Score, order: ArrayLike | None = None, *,
+                  top: int = TOP_GRASPS, mu: float = DEFAULT_MU, title: str | None = None,
+                  cone_mm: float = 8.0) -> Figure:
     """A matplotlib ``Figure`` of the best ``top`` valid candidates on ``scene`` (see the module
     docstring): each one's estimated fingers in its own colour, its rank at its centre, and at each
     of its contacts the friction cone (``cone_mm`` mm long, half-angle ``atan(mu)``) and the contact

@@ -61,12 +61,19 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from softgrip_jax import CASE_NAMES, AbstractEstimator, Gripper, SoftgripError, as_estimator
 from softgrip_vision.frames import Frame
+
+if TYPE_CHECKING:
+    from softgrip_jax import GraspEstimate, Score, ScoreWeights, SDFGrid, Uncertainty
+    from softgrip_vision.geometry import PlaneCamera
+    from softgrip_vision.keypoints import FingerKeypoints
+    from softgrip_vision.segmentation import Segmentation
 
 SIDES: tuple[str, str] = ("left", "right")
 #: Warn when the frame's bases are this much closer or farther apart than the profile says (mm).
@@ -97,8 +104,10 @@ class ProfileLike(Protocol):
     """What :func:`frame_scene` needs of a calibration profile
     (:class:`softgrip_calib.profile.CalibrationProfile`)."""
 
-    base_separation: float
-    camera: dict[str, Any]
+    @property
+    def base_separation(self) -> float: ...
+    @property
+    def camera(self) -> dict[str, Any]: ...
 
     def segmentation_settings(self) -> Any: ...
     def measure_settings(self) -> Any: ...
@@ -208,14 +217,14 @@ class Scene:
     """
 
     path: str
-    frame: Any
-    segmentation: Any
-    camera: Any
-    keypoints: tuple[Any, Any]
-    bases_mm: np.ndarray
-    pose: np.ndarray
-    sdf: Any
-    gripper: Any
+    frame: Frame
+    segmentation: Segmentation
+    camera: PlaneCamera
+    keypoints: tuple[FingerKeypoints, FingerKeypoints]
+    bases_mm: Float[np.ndarray, "2 2"]
+    pose: Float[np.ndarray, "3"]
+    sdf: SDFGrid
+    gripper: Gripper
 
     @property
     def name(self) -> str:
@@ -268,7 +277,8 @@ class Scene:
             text += "no object; "
         return text + f"plane {self.camera.depth_mm:.1f} mm deep"
 
-    def estimate(self, poses: Any = None, *, estimator: AbstractEstimator | None = None, method: str | None = None):
+    def estimate(self, poses: Float[ArrayLike, "*b 3"] | None = None, *, estimator: AbstractEstimator | None = None,
+                 method: str | None = None) -> GraspEstimate:
         """Both fingers' estimates, as numpy (a :class:`softgrip_jax.GraspEstimate`).
 
         Args:
@@ -297,8 +307,9 @@ class Scene:
                                       estimator=estimator)
         return take_rows(to_numpy(result), len(batch))
 
-    def score(self, poses: Any, *, estimator: AbstractEstimator | None = None, method: str | None = None,
-              weights=None, uncertainty=None):
+    def score(self, poses: Float[ArrayLike, "*b 3"], *, estimator: AbstractEstimator | None = None,
+              method: str | None = None, weights: ScoreWeights | None = None,
+              uncertainty: Uncertainty | None = None) -> Score:
         """Score poses (numpy or JAX, (3,) or (B, 3): x mm, y mm, angle rad) in one compiled call.
 
         ``estimator`` (or the older ``method``) is as for :meth:`estimate`. Batches are padded to a
@@ -326,7 +337,7 @@ class Scene:
         return take_rows(to_numpy(result), len(batch))
 
     @staticmethod
-    def case_name(grasp, side: str) -> str:
+    def case_name(grasp: GraspEstimate, side: str) -> str:
         """The contact case of finger ``side`` of a single (unbatched) estimate, by name."""
         return CASE_NAMES[int(getattr(grasp, side).case)]
 
@@ -342,7 +353,7 @@ def take_rows(tree, count: int):
     return jax.tree_util.tree_map(lambda x: x[:count], tree)
 
 
-def rank(result) -> np.ndarray:
+def rank(result: Score) -> np.ndarray:
     """Candidate indices of a :class:`softgrip_jax.Score`, best first; invalid candidates last, each
     group in input order."""
     key = np.where(np.asarray(result.valid) & np.isfinite(result.score), result.score, -np.inf)
