@@ -20,6 +20,7 @@ import numbers
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -145,7 +146,7 @@ def _concatenate(outputs: list, overlap: int):
     leaves = [jax.tree_util.tree_flatten(out)[0] for out in outputs]
     treedef = jax.tree_util.tree_structure(outputs[0])
     outputs.clear()
-    joined = [None] * len(leaves[0])
+    joined: list[Any] = [None] * len(leaves[0])
     for k in sorted(range(len(joined)), key=lambda k: -leaves[0][k].nbytes):
         parts = [part[k] for part in leaves]
         for part in leaves:

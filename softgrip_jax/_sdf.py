@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, cast
 
 import equinox as eqx
 import jax
@@ -292,7 +292,7 @@ def _cubic_taps(values: Array, row0: Array, col0: Array) -> list[list[Array]]:
 
 
 def _contract(wy: list[Array], wx: list[Array], taps: list[list[Array]]) -> Array:
-    return sum(wy[a] * sum(wx[b] * taps[a][b] for b in range(4)) for a in range(4))
+    return cast(Array, sum(wy[a] * sum(wx[b] * taps[a][b] for b in range(4)) for a in range(4)))
 
 
 @jax.custom_jvp

@@ -36,7 +36,7 @@ import math
 import os
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -96,7 +96,15 @@ def finger_contacts_mm(estimate) -> np.ndarray:
     return np.stack(points)
 
 
-def quality_contacts(contacts, index: int) -> dict[str, np.ndarray | None]:
+class QualityContacts(TypedDict):
+    """One finger's touching contacts (:func:`quality_contacts`): parallel (P, 2) arrays."""
+
+    points: np.ndarray  #: (P, 2) mm on the object
+    normals: np.ndarray  #: (P, 2) the object's outward unit normals
+    forces: np.ndarray | None  #: (P, 2) EI / L^2 on the object; None for an estimate without forces
+
+
+def quality_contacts(contacts, index: int) -> QualityContacts:
     """One finger's contacts of a scored candidate: ``contacts`` is the numpy
     :class:`softgrip_jax._quality.FingerContacts` of a ``Score`` (leaves of leading axis 2: left,
     right), ``index`` 0 (left) or 1 (right). Returns the slots that touch, in order, as parallel
@@ -111,7 +119,7 @@ def quality_contacts(contacts, index: int) -> dict[str, np.ndarray | None]:
             "forces": None if np.isnan(forces).all() else forces[touching]}
 
 
-def finger_json(side: str, estimate, finger, camera, contacts: dict | None = None) -> dict:
+def finger_json(side: str, estimate, finger, camera, contacts: QualityContacts | None = None) -> dict:
     """One finger's fields (see the module docstring) from a numpy ``Estimate``; with ``contacts``
     (:func:`quality_contacts`), a scored candidate's: those contacts, their normals and forces."""
     joints_mm = np.asarray(estimate.joints, np.float64)

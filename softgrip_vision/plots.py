@@ -26,7 +26,7 @@ from __future__ import annotations
 import io
 import math
 import os
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from jaxtyping import ArrayLike, Float
@@ -92,7 +92,8 @@ def save_figure(figure: Figure, path: str | os.PathLike[str], *, inputs=(), forc
     if fmt == "png":  # matplotlib writes RGBA; an opaque plot is an RGB PNG, as every other picture here
         import cv2
 
-        data = cv2.imencode(".png", cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR))[1].tobytes()
+        opaque: np.ndarray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)  # type: ignore[assignment]
+        data = cv2.imencode(".png", opaque)[1].tobytes()
     try:
         write_atomic(path, data, inputs=inputs, force=force, what=what)
     except OSError as err:
@@ -155,7 +156,8 @@ def _cell_edges(values: np.ndarray) -> tuple[float, float]:
     return float(values[0] - step / 2), float(values[-1] + step / 2)
 
 
-def _frame_axes(scene, figsize: tuple[float, float], layout: str | None = "constrained"):
+def _frame_axes(scene: Scene, figsize: tuple[float, float],
+                layout: Literal["constrained", "compressed", "tight"] | None = "constrained"):
     """A ``Figure`` (Agg canvas, no pyplot; matplotlib's ``layout``) with one axes showing the frame
     in the gripper plane's mm; and the axes, with the x and y spans (mm) drawn so far."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -249,8 +251,8 @@ def heatmap_figure(scene: Scene, poses: Float[np.ndarray, "b 3"], result: Score,
     bar = figure.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, shrink=0.85)
     bar.set_label(label if finite.size else f"{label} (no force closure)")
 
-    handles = [Patch(facecolor=NO_CLOSURE_RGBA, edgecolor="grey", label="valid, no force closure"),
-               Patch(facecolor=NO_VALID_RGBA, label="no valid candidate")]
+    handles: list[Any] = [Patch(facecolor=NO_CLOSURE_RGBA, edgecolor="grey", label="valid, no force closure"),
+                          Patch(facecolor=NO_VALID_RGBA, label="no valid candidate")]
     if best is not None and bool(valid[best]):
         chosen = _row(result, best)
         _draw_fingers(ax, chosen.grasp, "tab:blue")
@@ -348,8 +350,9 @@ def grasps_figure(scene: Scene, poses: Float[np.ndarray, "b 3"], result: Score, 
     figure.subplots_adjust(left=0.08, right=0.68, bottom=0.08, top=0.86)
     if drawn:  # zoomed on the grasps: the fingers, contacts and centres drawn
         spans_x, spans_y = [], []
-    colours = colormaps["tab10"].colors
-    handles, lines = [], []
+    colours = colormaps["tab10"].colors  # type: ignore[attr-defined]  # tab10 is a ListedColormap
+    handles: list[Any] = []
+    lines: list[str] = []
     for n, (k, i) in enumerate(drawn):
         colour, chosen = colours[n % len(colours)], rows[i]
         joints = _draw_fingers(ax, chosen.grasp, colour)

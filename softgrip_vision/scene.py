@@ -430,7 +430,8 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
         warn(f"{label}: {note}")
     bases = profile.corrected_bases(np.stack([k.base_mm for k in keypoints]))
     pose = pose_from_bases(bases[0], bases[1])
-    lengths = tuple(k.length_mm for k in keypoints) if length_from_frame else None
+    lengths: tuple[float, float] | None = ((keypoints[0].length_mm, keypoints[1].length_mm) if length_from_frame
+                                           else None)
     try:
         gripper = with_lengths(profile.gripper(), lengths)
     except SoftgripError as err:
