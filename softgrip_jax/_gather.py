@@ -17,8 +17,8 @@ from jaxtyping import Array, Bool
 _SOLVE_GROUPS = 8
 
 
-def where_needed(fn, need: Bool[Array, " b"] | Bool[np.ndarray, " b"], inputs, groups: int = _SOLVE_GROUPS, kinds=None,
-                 n_kinds: int = 1, group_size: int | None = None):
+def where_needed(fn, need: Bool[Array, " b"] | Bool[np.ndarray, " b"], inputs, groups: int = _SOLVE_GROUPS,
+                 kinds=None, n_kinds: int = 1, group_size: int | None = None):
     """``jax.vmap(fn)(inputs)`` evaluated only where ``need`` holds (elsewhere: zeros).
 
     The needed elements are gathered to the front and mapped a group at a time; groups with
