@@ -4,7 +4,7 @@
 first error into one line that names the field as a path and says what it expects, e.g.
 ``fingers.left.theta_entire: expected a number in [0, pi/2), got "abc"``. Each leaf field carries
 that expectation in its ``description`` (:func:`number`, :func:`text`), which is also what
-:func:`json_schema` (``schemas/profile.schema.json``) tells other tools. What a field's type cannot
+:func:`json_schema` (``softgrip_base/schemas/profile.schema.json``) tells other tools. What a field's type cannot
 say (the format version, one value per frame, the free-closure pair among the frames) is checked
 in :mod:`softgrip_calib.profile` after this.
 """
@@ -179,7 +179,7 @@ def validate(data: Any) -> tuple[ProfileDocument | None, str | None]:
 
 
 def json_schema() -> dict[str, Any]:
-    """The profile's JSON Schema (``schemas/profile.schema.json`` is this, written out)."""
+    """The profile's JSON Schema (``softgrip_base/schemas/profile.schema.json`` is this, written out)."""
     return {"$schema": "https://json-schema.org/draft/2020-12/schema", **ProfileDocument.model_json_schema(),
             "title": "softgrip-jax calibration profile"}
 

@@ -1,4 +1,7 @@
-"""``softgrip demo``: the whole pipeline on the sample frames in ``data/`` (no camera, no arguments).
+"""``softgrip demo``: the whole pipeline on the sample frames (no camera, no arguments).
+
+The frames ship with the package (:func:`softgrip_vision.samples.sample_data_dir`: package data in
+an installed wheel, the repository's ``data/`` in a source checkout).
 
 Calibrate from the calibration pair (one frame, eqs. 4-5), estimate every scene from its open
 frame and compare with the observed closure in its closed frame (eq. 10), score a default grid of
@@ -22,8 +25,9 @@ from softgrip_cli import _pipeline as pipe
 from softgrip_cli._args import add_method_argument, resolve_estimator
 from softgrip_jax import SoftgripError, joint_errors
 from softgrip_base.atomic_write import write_atomic
+from softgrip_vision.samples import sample_data_dir
 
-DATA_DIR = Path(__file__).resolve().parents[1] / "data"
+DATA_DIR = sample_data_dir()
 CALIB_OPEN, CALIB_CLOSED = "calib_open", "calib_closed"
 SAMPLE_PROFILE = "sample_profile.json"
 DEFAULT_N_LINKS = 20
@@ -43,15 +47,15 @@ The output folder gets (files of the same names are replaced, nothing else is to
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
-        "demo", help="calibrate, estimate, score and refine on the sample frames in data/", epilog=EPILOG,
+        "demo", help="calibrate, estimate, score and refine on the shipped sample frames", epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Run the whole pipeline on the sample frames shipped in data/: calibrate from the "
+        description="Run the whole pipeline on the sample frames shipped with the package: calibrate from the "
                     "calibration pair, estimate each scene, score a grid of poses and refine the best.",
     )
     parser.add_argument("-o", "--output", "--out", dest="out", default="demo-out", metavar="DIR",
                         help="output folder (default: demo-out)")
     parser.add_argument("--data", default=None, metavar="DIR",
-                        help=f"sample frames (default: the repository's data/, {DATA_DIR})")
+                        help=f"sample frames (default: the shipped ones, {DATA_DIR})")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
     add_method_argument(parser, from_profile=False)  # its one-frame profile records no estimate
     parser.set_defaults(func=run)
@@ -118,8 +122,8 @@ def run(args: argparse.Namespace) -> int:
 def _scene_names(data: Path) -> list[str]:
     """Scene names with an open frame ``<name>_open`` in ``data`` (the calibration pair aside), sorted."""
     if not data.is_dir():
-        raise SoftgripError(f"the sample frames folder {data} does not exist: run softgrip demo from a source "
-                            f"checkout, pass --data DIR, or regenerate it with data/make_samples.py")
+        raise SoftgripError(f"the sample frames folder {data} does not exist: pass --data DIR (a folder with "
+                            f"calib_open/, calib_closed/ and <name>_open/ frames), or reinstall softgrip-jax")
     for needed in (CALIB_OPEN, CALIB_CLOSED):
         if not (data / needed).is_dir():
             raise SoftgripError(f"{data}: the calibration frame {needed}/ is missing; regenerate the samples "

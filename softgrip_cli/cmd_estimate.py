@@ -24,7 +24,7 @@ Each FRAME is a frame folder (color.png, depth.png, intrinsics.json) of the OPEN
 object between the fingers. The gripper's pose is read from the frame (the midpoint of the finger
 bases); the estimate says what the fingers will do when the gripper closes there.
 
-With --json (or -o FILE), one JSON document (schema: schemas/estimate.schema.json):
+With --json (or -o FILE), one JSON document (schema: softgrip_base/schemas/estimate.schema.json):
   {"format": "softgrip-estimate/1", "kind": "estimate", "units": {"length": "mm", "angle": "rad", "image": "px"},
    "conventions": {"units", "origin", "axes", "angle", "pose", "plane"}, "profile": {"path", "sha256",
    "camera", "fit_method", "estimate_method", "base_separation", "fingers"}, "method": ...,
@@ -69,7 +69,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--profile", required=True, metavar="P", help="calibration profile (JSON)")
     formats = parser.add_mutually_exclusive_group()
     formats.add_argument("--json", action="store_true",
-                        help="print one JSON document on stdout (schemas/estimate.schema.json): units, "
+                        help="print one JSON document on stdout (softgrip_base/schemas/estimate.schema.json): units, "
                              "conventions, the profile, and a list of frames")
     formats.add_argument("--jsonl", action="store_true",
                         help="print one JSON object per frame and line (the format before the document; each "

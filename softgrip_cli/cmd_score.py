@@ -46,7 +46,7 @@ Poses:
               (as spreadsheets save CSV; a UTF-8 byte-order mark is fine); a decimal comma (0,5) is
               refused: save with a decimal point
 
-With --json (or -o FILE), one JSON document (schema: schemas/score.schema.json): {"format":
+With --json (or -o FILE), one JSON document (schema: softgrip_base/schemas/score.schema.json): {"format":
 "softgrip-score/2", "kind": "score", "units", "conventions" (origin, axes, units, the gripper plane's
 depth_mm, normal and tilt_deg), "profile" (path, sha256, camera, fit, geometry), "frame", "method",
 "friction": {"mu"}, "n_links", "n_candidates", "n_valid", "frame_pose" (the gripper's pose read from

@@ -80,7 +80,7 @@ def enable_compilation_cache(path: str | os.PathLike[str] | None = None) -> Path
 
     if os.environ.get(DISABLE_VARIABLE, "1") == "0":
         return None
-    configured = jax.config.jax_compilation_cache_dir
+    configured = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]  # set at run time
     keep = bool(configured) and path is None
     folder = Path(configured) if keep else Path(path) if path is not None else default_cache_dir()
     try:

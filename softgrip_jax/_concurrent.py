@@ -21,6 +21,7 @@ import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -150,7 +151,7 @@ def join_pieces(outputs: list, b: int):
     treedef = jax.tree_util.tree_structure(outputs[0])
     outputs.clear()
     on_cpu = all(d.platform == "cpu" for leaf in leaves[0] for d in leaf.devices())
-    joined = [None] * len(leaves[0])
+    joined: list[Any] = [None] * len(leaves[0])
     for k in sorted(range(len(joined)), key=lambda k: -leaves[0][k].nbytes):
         parts = [part[k] for part in leaves]
         for part in leaves:

@@ -453,7 +453,7 @@ class BracketedNewton(optx.AbstractRootFinder):
     Converged when the last step and |f| are both within ``atol``.
     """
 
-    atol: float
+    atol: float  # type: ignore[misc]  # optimistix's abstract fields read to mypy as having defaults
     rtol: float = 0.0
     norm: Callable = jnp.abs
 

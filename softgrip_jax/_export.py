@@ -85,7 +85,7 @@ def active_folder() -> Path | None:
     is unset or ``SOFTGRIP_JAX_CACHE=0``."""
     if os.environ.get("SOFTGRIP_JAX_CACHE", "1") == "0":
         return None
-    configured = jax.config.jax_compilation_cache_dir
+    configured = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]  # set at run time
     if not configured:
         return None
     return Path(configured) / EXPORT_SUBFOLDER
@@ -133,7 +133,8 @@ def static_ident(value) -> str | None:
 
 
 def _backend_settings() -> str:
-    return (f"backend={jax.default_backend()};x64={jax.config.jax_enable_x64};"
+    x64 = jax.config.jax_enable_x64  # type: ignore[attr-defined]  # set at run time
+    return (f"backend={jax.default_backend()};x64={x64};"
             f"options={sorted(compiler_options().items())}")
 
 
@@ -307,7 +308,7 @@ def _read(path: Path, ident: str):
         exported = export.deserialize(bytearray(payload))
     except Exception as err:  # noqa: BLE001 - whatever the flatbuffer parser raises
         raise ValueError(f"jax.export cannot read it ({type(err).__name__})") from None
-    if out_treedef.num_leaves != len(exported.out_avals):
+    if out_treedef.num_leaves != len(exported.out_avals):  # type: ignore[attr-defined]  # jaxlib has no stub
         raise ValueError("its outputs do not match its program")
     return exported, out_treedef
 

@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import ArrayLike, Bool
+import numpy as np
+from jaxtyping import Array, Bool
 
 #: A chunk's needed candidates are mapped in groups of ceil(chunk / _SOLVE_GROUPS) by default.
 _SOLVE_GROUPS = 8
 
 
-def where_needed(fn, need: Bool[ArrayLike, " b"], inputs, groups: int = _SOLVE_GROUPS, kinds=None,
-                 n_kinds: int = 1, group_size: int | None = None):
+def where_needed(fn, need: Bool[Array, " b"] | Bool[np.ndarray, " b"], inputs, groups: int = _SOLVE_GROUPS,
+                 kinds=None, n_kinds: int = 1, group_size: int | None = None):
     """``jax.vmap(fn)(inputs)`` evaluated only where ``need`` holds (elsewhere: zeros).
 
     The needed elements are gathered to the front and mapped a group at a time; groups with

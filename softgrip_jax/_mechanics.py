@@ -93,6 +93,7 @@ millimetre where eq. 9's cases (b) and (c) miss the tip by a millimetre or so.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -127,7 +128,7 @@ _STRETCH_MAX = 16.0
 _CG_ITERATIONS = 3
 
 
-def check_method(method: str, where: str = "method") -> None:
+def check_method(method: object, where: str = "method") -> None:
     """Raise a :class:`SoftgripError` unless ``method`` names an estimate."""
     if not isinstance(method, str) or method not in METHODS:
         raise SoftgripError(f"{where} must be one of {', '.join(repr(m) for m in METHODS)}, got {method!r}")
@@ -283,7 +284,7 @@ def _cholesky(s: Float[Array, "k k"]) -> list:
     """The lower Cholesky factor of a small symmetric positive-definite s, unrolled (fuses under
     vmap), as nested lists of scalars for :func:`_cholesky_solve`."""
     k = s.shape[0]
-    low = [[None] * k for _ in range(k)]
+    low: list[list[Any]] = [[None] * k for _ in range(k)]
     for j in range(k):
         diag = s[j, j] - sum((low[j][p] ** 2 for p in range(j)), jnp.zeros((), s.dtype))
         low[j][j] = jnp.sqrt(jnp.maximum(diag, 1e-12))
@@ -296,10 +297,10 @@ def _cholesky(s: Float[Array, "k k"]) -> list:
 def _cholesky_solve(low: list, b: Float[Array, " k"]) -> Float[Array, " k"]:
     """Solve s x = b with the factor of :func:`_cholesky`."""
     k = len(low)
-    fwd = []
+    fwd: list[Array] = []
     for i in range(k):
         fwd.append((b[i] - sum((low[i][p] * fwd[p] for p in range(i)), jnp.zeros((), b.dtype))) / low[i][i])
-    x = [None] * k
+    x: list[Any] = [None] * k
     for i in reversed(range(k)):
         x[i] = (fwd[i] - sum((low[p][i] * x[p] for p in range(i + 1, k)), jnp.zeros((), b.dtype))) / low[i][i]
     return jnp.stack(x)

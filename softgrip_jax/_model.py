@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -66,6 +67,12 @@ class FingerModel(eqx.Module):
     stiffness_ratio: Float[Array, ""] = eqx.field(converter=_as_float, default=1.0)
     base_compliance: Float[Array, ""] = eqx.field(converter=_as_float, default=0.0)
 
+    if TYPE_CHECKING:  # the signature the converters accept (type checkers do not apply them)
+        def __init__(self, length: Float[ArrayLike, ""], theta_entire: Float[ArrayLike, ""],
+                     half_thickness: Float[ArrayLike, ""], n_links: int,
+                     stiffness_ratio: Float[ArrayLike, ""] = 1.0,
+                     base_compliance: Float[ArrayLike, ""] = 0.0) -> None: ...
+
     def __check_init__(self):
         if not isinstance(self.n_links, (int, np.integer)) or isinstance(self.n_links, bool) or self.n_links < 1:
             raise SoftgripError(f"FingerModel.n_links must be an integer >= 1, got {self.n_links!r}")
@@ -112,6 +119,10 @@ class Gripper(eqx.Module):
     left: FingerModel
     right: FingerModel
     base_separation: Float[Array, ""] = eqx.field(converter=_as_float)
+
+    if TYPE_CHECKING:  # the signature the converter accepts (type checkers do not apply it)
+        def __init__(self, left: FingerModel, right: FingerModel,
+                     base_separation: Float[ArrayLike, ""]) -> None: ...
 
     def __check_init__(self):
         value = _concrete(self.base_separation)

@@ -34,6 +34,7 @@ is the direction the finger actually pushes along, within the corner's range of 
 from __future__ import annotations
 
 import itertools
+from typing import cast
 
 import equinox as eqx
 import jax
@@ -175,7 +176,7 @@ def epsilon_l1(wrenches: Float[Array, "w 3"], tolerance: float = 1e-6) -> Float[
 
 def _heights(wrenches: Float[Array, "w 3"], directions: Float[Array, "d 3"]) -> Float[Array, "w d"]:
     """``wrenches @ directions.T``, as three broadcast products."""
-    return sum(wrenches[:, i, None] * directions[None, :, i] for i in range(3))
+    return cast(Array, sum(wrenches[:, i, None] * directions[None, :, i] for i in range(3)))
 
 
 def _pairs(w: int) -> np.ndarray:

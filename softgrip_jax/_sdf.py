@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable
-from typing import Literal
+from typing import TYPE_CHECKING, Literal, cast
 
 import equinox as eqx
 import jax
@@ -146,6 +146,11 @@ class SDFGrid(AbstractSDF):
     spacing: Float[Array, "2"] = eqx.field(converter=_as_pair)
     far: float = eqx.field(static=True, default=FAR_MM)
     interpolation: str = eqx.field(static=True, default="cubic")  # "cubic" or "linear", checked below
+
+    if TYPE_CHECKING:  # the signature the converters accept (type checkers do not apply them)
+        def __init__(self, values: Float[ArrayLike, "h w"], origin: Float[ArrayLike, "2"],
+                     spacing: Float[ArrayLike, "2"] | float, far: float = FAR_MM,
+                     interpolation: str = "cubic") -> None: ...
 
     def __check_init__(self):
         if self.interpolation not in ("cubic", "linear"):
@@ -287,7 +292,7 @@ def _cubic_taps(values: Array, row0: Array, col0: Array) -> list[list[Array]]:
 
 
 def _contract(wy: list[Array], wx: list[Array], taps: list[list[Array]]) -> Array:
-    return sum(wy[a] * sum(wx[b] * taps[a][b] for b in range(4)) for a in range(4))
+    return cast(Array, sum(wy[a] * sum(wx[b] * taps[a][b] for b in range(4)) for a in range(4)))
 
 
 @jax.custom_jvp
@@ -347,6 +352,9 @@ class PolygonSDF(AbstractSDF):
     """
 
     vertices: Float[Array, "v 2"] = eqx.field(converter=_as_array)
+
+    if TYPE_CHECKING:  # the signature the converter accepts (type checkers do not apply it)
+        def __init__(self, vertices: Float[ArrayLike, "v 2"]) -> None: ...
 
     def __check_init__(self):
         shape = jnp.shape(self.vertices)

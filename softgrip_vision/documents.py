@@ -1,7 +1,7 @@
 """Results -> JSON documents: what ``softgrip estimate --json`` and ``softgrip score --json`` write.
 
-Each command writes ONE JSON document (schemas in ``schemas/estimate.schema.json`` and
-``schemas/score.schema.json``, :func:`schema`) that says what its numbers mean: ``units``,
+Each command writes ONE JSON document (schemas in ``softgrip_base/schemas/estimate.schema.json``
+and ``softgrip_base/schemas/score.schema.json``, :func:`schema`) that says what its numbers mean: ``units``,
 ``conventions`` (origin, axes, units and the plane's depth: :func:`softgrip_vision.scene.conventions`), the
 ``profile`` it was made with (:func:`profile_identity`), then a list per frame (estimate) or per
 candidate pose (score). Every enum is written by name (cases ``"none"``, ``"tip"``, ...; statuses
@@ -34,8 +34,9 @@ import hashlib
 import json
 import math
 import os
+from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -48,8 +49,9 @@ SIDES: tuple[str, str] = ("left", "right")
 DOCUMENT_VERSIONS = {"estimate": 1, "score": 2}
 #: The estimate document's version (kept for callers of the first releases).
 DOCUMENT_VERSION = DOCUMENT_VERSIONS["estimate"]
-#: Where the JSON Schemas live (in the repository, next to the packages).
-SCHEMA_DIR = Path(__file__).resolve().parents[1] / "schemas"
+#: Where the JSON Schemas live: package data of softgrip_base (``softgrip_base/schemas/``), in a
+#: checkout and in an installed wheel alike.
+SCHEMA_DIR = Path(str(resources.files("softgrip_base") / "schemas"))
 
 
 def schema(kind: str) -> dict:
@@ -94,7 +96,15 @@ def finger_contacts_mm(estimate) -> np.ndarray:
     return np.stack(points)
 
 
-def quality_contacts(contacts, index: int) -> dict[str, np.ndarray | None]:
+class QualityContacts(TypedDict):
+    """One finger's touching contacts (:func:`quality_contacts`): parallel (P, 2) arrays."""
+
+    points: np.ndarray  #: (P, 2) mm on the object
+    normals: np.ndarray  #: (P, 2) the object's outward unit normals
+    forces: np.ndarray | None  #: (P, 2) EI / L^2 on the object; None for an estimate without forces
+
+
+def quality_contacts(contacts, index: int) -> QualityContacts:
     """One finger's contacts of a scored candidate: ``contacts`` is the numpy
     :class:`softgrip_jax._quality.FingerContacts` of a ``Score`` (leaves of leading axis 2: left,
     right), ``index`` 0 (left) or 1 (right). Returns the slots that touch, in order, as parallel
@@ -109,7 +119,7 @@ def quality_contacts(contacts, index: int) -> dict[str, np.ndarray | None]:
             "forces": None if np.isnan(forces).all() else forces[touching]}
 
 
-def finger_json(side: str, estimate, finger, camera, contacts: dict | None = None) -> dict:
+def finger_json(side: str, estimate, finger, camera, contacts: QualityContacts | None = None) -> dict:
     """One finger's fields (see the module docstring) from a numpy ``Estimate``; with ``contacts``
     (:func:`quality_contacts`), a scored candidate's: those contacts, their normals and forces."""
     joints_mm = np.asarray(estimate.joints, np.float64)

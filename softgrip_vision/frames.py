@@ -217,7 +217,7 @@ class Intrinsics:
 
         Keys other than the seven fields (and ``model``, ``coeffs``) are ignored. Integers are accepted
         for the float fields. The layout is the pydantic model :class:`softgrip_vision.intrinsics_schema.IntrinsicsDocument`
-        (its JSON Schema: ``schemas/intrinsics.schema.json``).
+        (its JSON Schema: ``softgrip_base/schemas/intrinsics.schema.json``).
         """
         from softgrip_vision.intrinsics_schema import validate  # pydantic: imported only where intrinsics are read
 

@@ -4,7 +4,7 @@
 pydantic's first error into the message :meth:`softgrip_vision.frames.Intrinsics.from_dict` gives (the field,
 what it must be, the value), e.g. ``fx must be a finite number, got nan``. Each field's
 ``description`` says what it expects, which is also what :func:`json_schema`
-(``schemas/intrinsics.schema.json``) tells other tools. Keys other than these fields are allowed
+(``softgrip_base/schemas/intrinsics.schema.json``) tells other tools. Keys other than these fields are allowed
 and ignored. What the types cannot say (how many coefficients a distortion model takes, no
 coefficients without a model) is checked by :class:`softgrip_vision.frames.Intrinsics` after this.
 """
@@ -67,7 +67,7 @@ def validate(data: Any) -> tuple[IntrinsicsDocument | None, str | None]:
 
 
 def json_schema() -> dict[str, Any]:
-    """The JSON Schema of ``intrinsics.json`` (``schemas/intrinsics.schema.json`` is this, written out)."""
+    """The JSON Schema of ``intrinsics.json`` (``softgrip_base/schemas/intrinsics.schema.json`` is this, written out)."""
     return {"$schema": "https://json-schema.org/draft/2020-12/schema", **IntrinsicsDocument.model_json_schema()}
 
 

@@ -26,13 +26,23 @@ from __future__ import annotations
 import io
 import math
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from softgrip_base.input_guard import one_line
 from softgrip_jax import SoftgripError
 from softgrip_jax._quality import DEFAULT_MU
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from softgrip_jax import Score
+    from softgrip_vision.scene import Scene
+
+#: A grid of candidate poses as its three axes: gripper-centre x (mm), y (mm) and angle (rad), each (n,).
+PoseGrid = tuple[Any, Any, Any]
 
 INSTALL_HINT = "pip install softgrip-jax[plots]"
 #: RGBA of a position (or pose) with valid candidates but none in force closure, and of one with none valid.
@@ -68,7 +78,7 @@ def figure_format(path: str | os.PathLike[str], what: str = "output") -> str:
     return suffix
 
 
-def save_figure(figure, path: str | os.PathLike[str], *, inputs=(), force: bool = False, what: str = "output",
+def save_figure(figure: Figure, path: str | os.PathLike[str], *, inputs=(), force: bool = False, what: str = "output",
                 dpi: int = 120, tight: bool = True) -> None:
     """Write ``figure`` to ``path`` in the format its extension names, atomically (the output
     policy of :mod:`softgrip_base.atomic_write`): cropped to what is drawn (``tight``), or the
@@ -82,7 +92,8 @@ def save_figure(figure, path: str | os.PathLike[str], *, inputs=(), force: bool 
     if fmt == "png":  # matplotlib writes RGBA; an opaque plot is an RGB PNG, as every other picture here
         import cv2
 
-        data = cv2.imencode(".png", cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR))[1].tobytes()
+        opaque: np.ndarray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)  # type: ignore[assignment]
+        data = cv2.imencode(".png", opaque)[1].tobytes()
     try:
         write_atomic(path, data, inputs=inputs, force=force, what=what)
     except OSError as err:
@@ -100,7 +111,7 @@ def _best_over_angles(values: np.ndarray, grid) -> np.ndarray:
     return best.T
 
 
-def closure_quality(result, robust: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def closure_quality(result: Score, robust: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Each candidate's grasp quality where it is valid and in force closure (NaN elsewhere), and
     whether it is valid: two (B,) arrays of a numpy :class:`softgrip_jax.Score`. ``robust``: the
     probability of force closure instead (robust scoring's ``p_closure``, NaN where 0)."""
@@ -112,7 +123,7 @@ def closure_quality(result, robust: bool = False) -> tuple[np.ndarray, np.ndarra
     return np.where(closure, np.asarray(result.quality, np.float64), np.nan), valid
 
 
-def quality_cells(result, grid, robust: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def quality_cells(result: Score, grid: PoseGrid, robust: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(NY, NX) best quality over the angles at each gripper-centre position of ``grid`` (NaN: no
     candidate there in force closure), and (NY, NX) whether any candidate there is valid.
     ``robust``: the best probability of force closure instead."""
@@ -145,7 +156,8 @@ def _cell_edges(values: np.ndarray) -> tuple[float, float]:
     return float(values[0] - step / 2), float(values[-1] + step / 2)
 
 
-def _frame_axes(scene, figsize: tuple[float, float], layout: str | None = "constrained"):
+def _frame_axes(scene: Scene, figsize: tuple[float, float],
+                layout: Literal["constrained", "compressed", "tight"] | None = "constrained"):
     """A ``Figure`` (Agg canvas, no pyplot; matplotlib's ``layout``) with one axes showing the frame
     in the gripper plane's mm; and the axes, with the x and y spans (mm) drawn so far."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -182,8 +194,9 @@ def _draw_fingers(ax, grasp, colour) -> np.ndarray:
     return np.concatenate(drawn)
 
 
-def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None = None, *,
-                   title: str | None = None, mu: float = DEFAULT_MU, robust: bool = False):
+def heatmap_figure(scene: Scene, poses: Float[np.ndarray, "b 3"], result: Score, grid: PoseGrid | None = None,
+                   best: int | None = None, *, title: str | None = None, mu: float = DEFAULT_MU,
+                   robust: bool = False) -> Figure:
     """A matplotlib ``Figure`` of the grasp quality of ``poses`` on ``scene`` (see the module docstring).
 
     Args:
@@ -238,8 +251,8 @@ def heatmap_figure(scene, poses: np.ndarray, result, grid=None, best: int | None
     bar = figure.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax, shrink=0.85)
     bar.set_label(label if finite.size else f"{label} (no force closure)")
 
-    handles = [Patch(facecolor=NO_CLOSURE_RGBA, edgecolor="grey", label="valid, no force closure"),
-               Patch(facecolor=NO_VALID_RGBA, label="no valid candidate")]
+    handles: list[Any] = [Patch(facecolor=NO_CLOSURE_RGBA, edgecolor="grey", label="valid, no force closure"),
+                          Patch(facecolor=NO_VALID_RGBA, label="no valid candidate")]
     if best is not None and bool(valid[best]):
         chosen = _row(result, best)
         _draw_fingers(ax, chosen.grasp, "tab:blue")
@@ -294,8 +307,9 @@ def _draw_contact(ax, point: np.ndarray, normal: np.ndarray, force, mu: float, c
                     arrowprops={"arrowstyle": "-|>", "color": "black", "lw": 1.4, "shrinkA": 0, "shrinkB": 0})
 
 
-def grasps_figure(scene, poses: np.ndarray, result, order=None, *, top: int = TOP_GRASPS, mu: float = DEFAULT_MU,
-                  title: str | None = None, cone_mm: float = 8.0):
+def grasps_figure(scene: Scene, poses: Float[np.ndarray, "b 3"], result: Score, order: ArrayLike | None = None, *,
+                  top: int = TOP_GRASPS, mu: float = DEFAULT_MU, title: str | None = None,
+                  cone_mm: float = 8.0) -> Figure:
     """A matplotlib ``Figure`` of the best ``top`` valid candidates on ``scene`` (see the module
     docstring): each one's estimated fingers in its own colour, its rank at its centre, and at each
     of its contacts the friction cone (``cone_mm`` mm long, half-angle ``atan(mu)``) and the contact
@@ -336,8 +350,9 @@ def grasps_figure(scene, poses: np.ndarray, result, order=None, *, top: int = TO
     figure.subplots_adjust(left=0.08, right=0.68, bottom=0.08, top=0.86)
     if drawn:  # zoomed on the grasps: the fingers, contacts and centres drawn
         spans_x, spans_y = [], []
-    colours = colormaps["tab10"].colors
-    handles, lines = [], []
+    colours = colormaps["tab10"].colors  # type: ignore[attr-defined]  # tab10 is a ListedColormap
+    handles: list[Any] = []
+    lines: list[str] = []
     for n, (k, i) in enumerate(drawn):
         colour, chosen = colours[n % len(colours)], rows[i]
         joints = _draw_fingers(ax, chosen.grasp, colour)

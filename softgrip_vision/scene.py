@@ -26,13 +26,12 @@ The profile is anything with the methods of :class:`ProfileLike` (a
 :class:`softgrip_calib.profile.CalibrationProfile` has them): ``softgrip_vision`` does not import ``softgrip_calib``.
 
 Example (the README's "From a frame to a scene"; ``tests/test_readme.py`` keeps the two identical):
-    >>> from pathlib import Path
     >>> import numpy as np
-    >>> import softgrip_vision
     >>> from softgrip_calib.profile import load_profile
     >>> from softgrip_jax import Geometric
+    >>> from softgrip_vision.samples import sample_data_dir
     >>> from softgrip_vision.scene import frame_scene, rank
-    >>> data = Path(softgrip_vision.__file__).resolve().parents[1] / "data"  # the sample frames and profile
+    >>> data = sample_data_dir()  # the sample frames and profile, shipped with the package
     >>> scene = frame_scene(data / "circle_open", load_profile(data / "sample_profile.json"))
     >>> print(scene.summary())
     circle_open: gripper at x 0.0 mm, y -45.1 mm, angle -0.001 rad; object 29.3 x 29.3 mm; plane 120.0 mm deep
@@ -62,12 +61,19 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 from softgrip_jax import CASE_NAMES, AbstractEstimator, Gripper, SoftgripError, as_estimator
 from softgrip_vision.frames import Frame
+
+if TYPE_CHECKING:
+    from softgrip_jax import GraspEstimate, Score, ScoreWeights, SDFGrid, Uncertainty
+    from softgrip_vision.geometry import PlaneCamera
+    from softgrip_vision.keypoints import FingerKeypoints
+    from softgrip_vision.segmentation import Segmentation
 
 SIDES: tuple[str, str] = ("left", "right")
 #: Warn when the frame's bases are this much closer or farther apart than the profile says (mm).
@@ -95,8 +101,10 @@ class ProfileLike(Protocol):
     """What :func:`frame_scene` needs of a calibration profile
     (:class:`softgrip_calib.profile.CalibrationProfile`)."""
 
-    base_separation: float
-    camera: dict[str, Any]
+    @property
+    def base_separation(self) -> float: ...
+    @property
+    def camera(self) -> dict[str, Any]: ...
 
     def segmentation_settings(self) -> Any: ...
     def measure_settings(self) -> Any: ...
@@ -199,14 +207,14 @@ class Scene:
     """
 
     path: str
-    frame: Any
-    segmentation: Any
-    camera: Any
-    keypoints: tuple[Any, Any]
-    bases_mm: np.ndarray
-    pose: np.ndarray
-    sdf: Any
-    gripper: Any
+    frame: Frame
+    segmentation: Segmentation
+    camera: PlaneCamera
+    keypoints: tuple[FingerKeypoints, FingerKeypoints]
+    bases_mm: Float[np.ndarray, "2 2"]
+    pose: Float[np.ndarray, "3"]
+    sdf: SDFGrid
+    gripper: Gripper
 
     @property
     def name(self) -> str:
@@ -259,7 +267,8 @@ class Scene:
             text += "no object; "
         return text + f"plane {self.camera.depth_mm:.1f} mm deep"
 
-    def estimate(self, poses: Any = None, *, estimator: AbstractEstimator | None = None, method: str | None = None):
+    def estimate(self, poses: Float[ArrayLike, "*b 3"] | None = None, *, estimator: AbstractEstimator | None = None,
+                 method: str | None = None) -> GraspEstimate:
         """Both fingers' estimates, as numpy (a :class:`softgrip_jax.GraspEstimate`).
 
         Args:
@@ -284,15 +293,18 @@ class Scene:
         from softgrip_jax import estimate_grasp_batch
 
         batch = _poses(poses, "Scene.estimate")
-        return to_numpy(estimate_grasp_batch(self.gripper, self.sdf, jnp.asarray(batch, dtype), estimator=estimator))
+        return to_numpy(estimate_grasp_batch(self.gripper, self.sdf, batch.astype(dtype), estimator=estimator))
 
-    def score(self, poses: Any, *, estimator: AbstractEstimator | None = None, method: str | None = None,
-              weights=None, uncertainty=None, progress=None):
+    def score(self, poses: Float[ArrayLike, "*b 3"], *, estimator: AbstractEstimator | None = None,
+              method: str | None = None, weights: ScoreWeights | None = None,
+              uncertainty: Uncertainty | None = None,
+              progress: Callable[[int, int], None] | None = None) -> Score:
         """Score poses (numpy or JAX, (3,) or (B, 3): x mm, y mm, angle rad) in one compiled call.
 
         ``estimator`` (or the older ``method``) is as for :meth:`estimate`. Every batch size runs
         through one compiled program (:func:`softgrip_jax.score` evaluates pieces of one size);
-        ``progress(done, total)`` is called after each piece. ``weights``: a :class:`softgrip_jax.ScoreWeights` (None: the defaults), e.g.
+        ``progress(done, total)`` is called after each piece. ``weights``: a
+        :class:`softgrip_jax.ScoreWeights` (None: the defaults), e.g.
         ``ScoreWeights(mu=0.8)`` for another friction coefficient; its values are run-time, so
         changing them never recompiles. Returns a :class:`softgrip_jax.Score` with numpy leaves of
         leading axis B (``score`` is -inf where not valid; ``quality``, ``force_closure`` and the
@@ -309,13 +321,15 @@ class Scene:
             raise SoftgripError(f"Scene.score: weights must be a softgrip_jax.ScoreWeights (e.g. "
                                 f"ScoreWeights(mu=0.5)), got {type(weights).__name__}")
         batch = _poses(poses, "Scene.score")
-        result = jax.block_until_ready(score(self.gripper, self.sdf, jnp.asarray(batch, self.gripper.base_separation.dtype),
+        # numpy poses: the core splits them into pieces on the host (jnp.asarray of a new batch
+        # size would compile a small program for it).
+        result = jax.block_until_ready(score(self.gripper, self.sdf, batch.astype(self.gripper.base_separation.dtype),
                                              weights, estimator=as_estimator(estimator, method),
                                              uncertainty=uncertainty, progress=progress))
         return to_numpy(result)
 
     @staticmethod
-    def case_name(grasp, side: str) -> str:
+    def case_name(grasp: GraspEstimate, side: str) -> str:
         """The contact case of finger ``side`` of a single (unbatched) estimate, by name."""
         return CASE_NAMES[int(getattr(grasp, side).case)]
 
@@ -331,7 +345,7 @@ def take_rows(tree, count: int):
     return jax.tree_util.tree_map(lambda x: x[:count], tree)
 
 
-def rank(result) -> np.ndarray:
+def rank(result: Score) -> np.ndarray:
     """Candidate indices of a :class:`softgrip_jax.Score`, best first; invalid candidates last, each
     group in input order."""
     key = np.where(np.asarray(result.valid) & np.isfinite(result.score), result.score, -np.inf)
@@ -408,7 +422,8 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
         warn(f"{label}: {note}")
     bases = profile.corrected_bases(np.stack([k.base_mm for k in keypoints]))
     pose = pose_from_bases(bases[0], bases[1])
-    lengths = tuple(k.length_mm for k in keypoints) if length_from_frame else None
+    lengths: tuple[float, float] | None = ((keypoints[0].length_mm, keypoints[1].length_mm) if length_from_frame
+                                           else None)
     try:
         gripper = with_lengths(profile.gripper(), lengths)
     except SoftgripError as err:

@@ -145,3 +145,144 @@ def test_readme_setup_then_demo_on_a_fresh_copy(tmp_path, work):
     refined = summary["refine"]
     assert refined["score"] is not None and refined["score"] >= refined["start_score"] - 1e-6
     assert "demo finished" in demo.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# The built wheel alone: what `pip install softgrip-jax` gives a user outside any checkout.
+
+RUNTIME_PACKAGES = ("softgrip_base", "softgrip_jax", "softgrip_vision", "softgrip_calib", "softgrip_cli")
+
+
+def _readme_python_blocks() -> list[str]:
+    """The README's ```python blocks, as the README holds them now."""
+    import re
+
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    return re.findall(r"^```python\n(.*?)^```", text, flags=re.S | re.M)
+
+
+def _build_wheel(source: Path, out: Path) -> Path:
+    """``pip wheel`` of ``source`` (the git-tracked files, copied) into ``out``; the wheel's path."""
+    built = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                            "--disable-pip-version-check", "-q", "-w", str(out), str(source)],
+                           cwd=source, capture_output=True, text=True, timeout=600)
+    assert built.returncode == 0, built.stdout[-3000:] + built.stderr[-3000:]
+    wheels = list(out.glob("softgrip_jax-*.whl"))
+    assert len(wheels) == 1, wheels
+    return wheels[0]
+
+
+def _copy_tracked(to: Path) -> None:
+    for name in _tracked_files():
+        source = REPO / name
+        if source.is_file():
+            (to / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, to / name)
+
+
+@pytest.mark.slow
+def test_the_wheel_holds_schemas_sample_frames_and_py_typed(tmp_path):
+    import zipfile
+
+    source = tmp_path / "src"
+    _copy_tracked(source)
+    wheel = _build_wheel(source, tmp_path / "dist")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")}
+    assert tops == set(RUNTIME_PACKAGES)  # no `synthetic`, `tests`, `data` or `schemas` at the top level
+    for package in RUNTIME_PACKAGES:
+        assert f"{package}/py.typed" in names
+    for kind in ("estimate", "score", "intrinsics", "profile"):
+        assert f"softgrip_base/schemas/{kind}.schema.json" in names
+    frames = ["calib", "circle", "square", "star_a"]
+    for frame in frames:
+        for state in ("open", "closed"):
+            for part in ("color.png", "depth.png", "intrinsics.json"):
+                assert f"softgrip_vision/sample_data/{frame}_{state}/{part}" in names
+    assert "softgrip_vision/sample_data/sample_profile.json" in names
+    assert "softgrip_vision/sample_data/truth.json" not in names
+
+
+@pytest.mark.slow
+def test_a_fresh_venv_with_only_the_wheel_runs_the_demo_and_the_readme_examples(tmp_path):
+    """A new venv (the machine's base Python, no system site-packages) with the built wheel and mypy,
+    nothing else of this checkout: ``softgrip demo`` and every README Python block run from a folder
+    outside the checkout, and mypy (default settings) finds no error in the blocks or in a file that
+    imports every public module."""
+    source = tmp_path / "src"
+    _copy_tracked(source)
+    wheel = _build_wheel(source, tmp_path / "dist")
+    env = _clean_env()
+    venv = tmp_path / "venv"
+    made = subprocess.run([_base_python(), "-m", "venv", str(venv)], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert made.returncode == 0, made.stderr
+    python = str(venv / "bin" / "python")
+    try:
+        t0 = time.perf_counter()
+        install = subprocess.run([python, "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
+                                  "--no-compile", "-c", str(source / "constraints.txt"), str(wheel), "mypy"],
+                                 env=env, capture_output=True, text=True, timeout=900)
+        t_install = time.perf_counter() - t0
+        assert install.returncode == 0, install.stdout[-3000:] + install.stderr[-3000:]
+        run = tmp_path / "elsewhere"  # not the checkout, not the copy: the installed wheel is all there is
+        run.mkdir()
+        where = subprocess.run([python, "-c", "import softgrip_vision, softgrip_vision.samples as s; "
+                                "print(softgrip_vision.__file__); print(s.sample_data_dir())"],
+                               cwd=run, env=env, capture_output=True, text=True, timeout=120)
+        assert where.returncode == 0, where.stderr
+        package_file, data_dir = where.stdout.split()
+        assert Path(package_file).resolve().is_relative_to(venv.resolve())
+        assert Path(data_dir).resolve().is_relative_to(venv.resolve()) and Path(data_dir).name == "sample_data"
+
+        t0 = time.perf_counter()
+        demo = subprocess.run([str(venv / "bin" / "softgrip"), "demo", "--json", "--out", "demo-out"], cwd=run,
+                              env=env, capture_output=True, text=True, timeout=900)
+        t_demo = time.perf_counter() - t0
+        print(f"wheel alone: install {t_install:.0f} s, softgrip demo {t_demo:.0f} s")
+        assert demo.returncode == 0, f"softgrip demo failed:\n{demo.stdout[-3000:]}\n{demo.stderr[-3000:]}"
+        assert "Traceback" not in demo.stderr
+        summary = json.loads(demo.stdout)
+        assert Path(summary["data"]).resolve() == Path(data_dir).resolve()
+        assert [s["scene"] for s in summary["scenes"]] == list(SCENES)
+        assert all(s["valid"] for s in summary["scenes"])
+        assert (run / "demo-out" / "summary.json").is_file()
+
+        blocks = _readme_python_blocks()
+        assert blocks, "the README has Python examples"
+        files = []
+        t0 = time.perf_counter()
+        for i, block in enumerate(blocks):
+            path = run / f"readme_example_{i}.py"
+            path.write_text(block, encoding="utf-8")
+            files.append(path.name)
+            ran = subprocess.run([python, path.name], cwd=run, env=env, capture_output=True, text=True,
+                                 timeout=900)
+            assert ran.returncode == 0, f"README block {i} failed:\n{block}\n{ran.stderr[-3000:]}"
+            # What it prints is what the README shows, as `# ` comments.
+            shown = {line[2:].strip() for line in block.splitlines() if line.startswith("# ")}
+            for line in ran.stdout.splitlines():
+                assert line.strip() in shown, f"README block {i} printed {line!r}, which the README does not show"
+        t_examples = time.perf_counter() - t0
+
+        # Every public module (no leading underscore) imported, so that mypy reads them all from the wheel.
+        modules = subprocess.run([python, "-c", "import importlib.util, pkgutil\n"
+                                  f"for p in {RUNTIME_PACKAGES!r}:\n"
+                                  "    print(p)\n"
+                                  "    path = importlib.util.find_spec(p).submodule_search_locations\n"
+                                  "    for m in pkgutil.iter_modules(path):\n"
+                                  "        if not m.name.startswith('_') and not m.ispkg: print(p + '.' + m.name)\n"],
+                                 cwd=run, env=env, capture_output=True, text=True, timeout=120)
+        assert modules.returncode == 0, modules.stderr
+        public = [m for m in modules.stdout.split() if m != "softgrip_vision.sample_data"]
+        assert "softgrip_vision.scene" in public and "softgrip_calib.profile" in public
+        (run / "public_api.py").write_text("".join(f"import {m}\n" for m in public), encoding="utf-8")
+        t0 = time.perf_counter()
+        checked = subprocess.run([python, "-m", "mypy", "--no-incremental", "public_api.py", *files], cwd=run,
+                                 env=env, capture_output=True, text=True, timeout=900)
+        t_mypy = time.perf_counter() - t0
+        assert checked.returncode == 0, f"mypy:\n{checked.stdout[-5000:]}{checked.stderr[-2000:]}"
+        assert "Success: no issues found" in checked.stdout
+        print(f"wheel alone: {len(blocks)} README blocks {t_examples:.0f} s, mypy {t_mypy:.0f} s")
+    finally:
+        shutil.rmtree(venv, ignore_errors=True)  # about 1 GB

@@ -382,14 +382,14 @@ def test_a_non_finite_number_in_the_detection_record_is_named(tmp_path: Path) ->
 
 
 def test_the_profile_schema_file_is_the_models_and_an_independent_validator_agrees(tmp_path: Path) -> None:
-    """schemas/profile.schema.json is what softgrip_calib.profile_schema says (regenerate it with
+    """softgrip_base/schemas/profile.schema.json is what softgrip_calib.profile_schema says (regenerate it with
     ``json_schema()`` after a change), and jsonschema, a validator independent of pydantic, accepts
     the sample profile and refuses what load_profile refuses."""
     jsonschema = pytest.importorskip("jsonschema")
     from softgrip_calib.profile_schema import json_schema
 
     root = Path(__file__).resolve().parents[2]
-    on_disk = json.loads((root / "schemas" / "profile.schema.json").read_text())
+    on_disk = json.loads((root / "softgrip_base" / "schemas" / "profile.schema.json").read_text())
     assert on_disk == json_schema()
     validator = jsonschema.Draft202012Validator(on_disk)
     sample = json.loads((root / "data" / "sample_profile.json").read_text())

@@ -84,7 +84,7 @@ def check_finger(finger: dict, side: str, n_links: int, scored: bool = False) ->
 
 
 def check_schema(document: dict, kind: str) -> None:
-    """``document`` is valid under the repository's JSON Schema ``schemas/KIND.schema.json``."""
+    """``document`` is valid under the repository's JSON Schema ``softgrip_base/schemas/KIND.schema.json``."""
     import jsonschema
 
     from softgrip_vision.documents import schema

@@ -16,11 +16,11 @@ GOOD = {"width": 640, "height": 480, "fx": 385.0, "fy": 385, "ppx": 320.0, "ppy"
 
 
 def test_the_intrinsics_schema_file_is_the_model_and_an_independent_validator_agrees():
-    """schemas/intrinsics.schema.json is what softgrip_vision.intrinsics_schema says (regenerate it with
+    """softgrip_base/schemas/intrinsics.schema.json is what softgrip_vision.intrinsics_schema says (regenerate it with
     ``json_schema()`` after a change), and jsonschema, a validator independent of pydantic, accepts
     the sample frames' intrinsics and refuses what Intrinsics.from_dict refuses."""
     jsonschema = pytest.importorskip("jsonschema")
-    on_disk = json.loads((ROOT / "schemas" / "intrinsics.schema.json").read_text())
+    on_disk = json.loads((ROOT / "softgrip_base" / "schemas" / "intrinsics.schema.json").read_text())
     assert on_disk == json_schema()
     validator = jsonschema.Draft202012Validator(on_disk)
     samples = sorted(ROOT.glob("data/*/intrinsics.json"))
