@@ -243,7 +243,8 @@ def estimate_grasp_batch(
 
     Args:
         poses: (B, 3) gripper poses: centre x, y (mm) and angle (rad).
-        workers, progress: as for :func:`estimate_batch`.
+        workers: as for :func:`estimate_batch`.
+        progress: as for :func:`estimate_batch`.
 
     Returns:
         :class:`GraspEstimate` with leading axis B: ``left`` and ``right`` :class:`Estimate` s
