@@ -712,10 +712,23 @@ def score_poses(scene: pipe.FrameScene, poses: np.ndarray, estimator=None, mu: f
         The ``Score`` with numpy leaves of leading axis B, and the seconds it took (compilation
         included the first time an estimator is used).
     """
+    from tqdm import tqdm
+
     from softgrip_jax import ScoreWeights
 
+    name = getattr(estimator, "name", None) or "mechanics"
+    # The first call of an estimator compiles for up to a minute or two: said before it starts, and a
+    # bar over the poses on a terminal (tqdm's disable=None: off when stderr is not a terminal).
+    pipe.note(f"scoring {len(poses)} candidate poses ({name} estimate; the first run of an estimator "
+              f"compiles it, later runs load it from the compilation cache)")
     start = time.perf_counter()
-    result = scene.score(poses, estimator=estimator, weights=ScoreWeights(mu=mu), uncertainty=uncertainty)
+    with tqdm(total=len(poses), desc="score", unit="pose", file=sys.stderr, leave=False,
+              disable=True if pipe.quiet() else None) as bar:
+        def progress(done: int, total: int) -> None:
+            bar.update(done - bar.n)
+
+        result = scene.score(poses, estimator=estimator, weights=ScoreWeights(mu=mu), uncertainty=uncertainty,
+                             progress=progress)
     return result, time.perf_counter() - start
 
 
