@@ -70,7 +70,7 @@ from softgrip_jax import CASE_NAMES, AbstractEstimator, Gripper, SoftgripError, 
 from softgrip_vision.frames import Frame
 
 if TYPE_CHECKING:
-    from softgrip_jax import GraspEstimate, Score, ScoreWeights, SDFGrid, Uncertainty
+    from softgrip_jax import GraspEstimate, Refined, Score, ScoreWeights, SDFGrid, Uncertainty
     from softgrip_vision.geometry import PlaneCamera
     from softgrip_vision.keypoints import FingerKeypoints
     from softgrip_vision.segmentation import Segmentation
@@ -327,6 +327,36 @@ class Scene:
                                              weights, estimator=as_estimator(estimator, method),
                                              uncertainty=uncertainty, progress=progress))
         return to_numpy(result)
+
+    def refine(self, poses: Float[ArrayLike, "*b 3"] | None = None, *, estimator: AbstractEstimator | None = None,
+               weights: ScoreWeights | None = None, uncertainty: Uncertainty | None = None, max_steps: int = 40,
+               progress: Callable[[int, int], None] | None = None) -> Refined:
+        """Improve poses by gradient ascent of the score (:func:`softgrip_jax.refine` on this
+        scene's gripper and object), in the coordinates :meth:`score` takes: x mm, y mm, angle rad.
+
+        Args:
+            poses: None (the frame's own pose), one pose (3,) or B poses (B, 3), numpy or JAX,
+                e.g. the best rows of a :meth:`score`.
+            estimator, weights, uncertainty: as for :meth:`score`.
+            max_steps: BFGS iterations at most (a new value compiles once more).
+            progress: ``progress(done, total)`` after each piece of a batch.
+
+        Returns:
+            A :class:`softgrip_jax.Refined` with numpy leaves (leading axis B for a batch): the
+            ``pose``, its ``score`` (a :class:`softgrip_jax.Score`), the ``start_score`` and the
+            ``status`` (a :class:`softgrip_jax.RefineStatus`); never worse than the start.
+        """
+        from softgrip_jax import ScoreWeights, refine
+
+        weights = ScoreWeights() if weights is None else weights
+        if not isinstance(weights, ScoreWeights):
+            raise SoftgripError(f"Scene.refine: weights must be a softgrip_jax.ScoreWeights (e.g. "
+                                f"ScoreWeights(mu=0.5)), got {type(weights).__name__}")
+        dtype = self.gripper.base_separation.dtype
+        batch = _poses(self.pose if poses is None else poses, "Scene.refine").astype(dtype)
+        start = batch if poses is not None and np.ndim(poses) == 2 else batch[0]
+        return to_numpy(refine(self.gripper, self.sdf, start, weights, estimator=as_estimator(estimator),
+                               uncertainty=uncertainty, max_steps=max_steps, progress=progress))
 
     @staticmethod
     def case_name(grasp: GraspEstimate, side: str) -> str:

@@ -678,6 +678,7 @@ def fit_with_empty(tmp_path_factory):
     return json.loads(out), err, output
 
 
+@pytest.mark.slow  # its fixture runs calibrate --fit: about 40 s
 def test_calibrate_fit_with_empty_reports_every_pairs_residual(fit_with_empty):
     report, err, output = fit_with_empty
     from softgrip_calib.profile import load_profile

@@ -106,6 +106,7 @@ def test_chunks_are_equal_and_never_above_chunk_size():
             estimate_batch(FINGER, GRID, np.zeros((3, 2), np.float32), chunk_size=bad, method="geometric")
 
 
+@pytest.mark.slow  # compiles a gradient through a batch: about 35 s
 def test_traced_batches_run_as_one_part():
     # Under jit or grad the inputs are tracers: one part, and the gradient still flows.
     assert jax.jit(lambda x: part_count(4, 10 * MIN_PART, (x,)))(jnp.zeros(1)) == 1

@@ -38,6 +38,7 @@ def _assert_same(a, b) -> None:
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+@pytest.mark.slow  # compiles a new estimator through three entry points: about 45 s
 def test_a_new_estimator_runs_through_estimate_estimate_batch_and_score():
     bases = jnp.array([[0.0, 0.0], [-60.0, 0.0], [3.0, -2.0]])  # touching, free, touching (mm)
     one = estimate(FINGER, DISC, bases[0], estimator=FreeClosure())

@@ -95,6 +95,7 @@ def test_score_flags_poisoned_poses_and_isolates_the_others(drawn):
         assert_same_candidate(out, i, alone)
 
 
+@pytest.mark.slow  # compiles every entry point for empty batches: about 35 s
 def test_empty_batches_return_empty_results():
     est = estimate_batch(FINGER, GRID, np.zeros((0, 2), np.float32), method="geometric")
     assert est.joints.shape == (0, FINGER.n_links + 1, 2) and est.valid.shape == (0,)
