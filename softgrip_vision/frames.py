@@ -27,6 +27,7 @@ import os
 import shutil
 import uuid
 import zlib
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -59,8 +60,9 @@ class Intrinsics:
     :meth:`undistort_points` and :func:`undistort_frame`.
 
     Other tools' intrinsics: :meth:`from_matrix` (a 3x3 K and OpenCV's coefficients),
-    :meth:`from_open3d` (``open3d.camera.PinholeCameraIntrinsic``) and :meth:`from_camera_info`
-    (a ROS ``sensor_msgs/CameraInfo`` as a dict).
+    :meth:`from_open3d` (``open3d.camera.PinholeCameraIntrinsic``), :meth:`from_realsense`
+    (pyrealsense2's ``rs.intrinsics``) and :meth:`from_camera_info` (a ROS ``sensor_msgs/CameraInfo``
+    message, or a dict).
     """
 
     width: int
@@ -151,6 +153,11 @@ class Intrinsics:
             320.0
         """
         if intrinsic is not None:
+            missing = [name for name in ("width", "height", "intrinsic_matrix") if not hasattr(intrinsic, name)]
+            if missing:
+                raise FrameError(f"from_open3d: intrinsic is a {type(intrinsic).__name__} without "
+                                 f"{', '.join(missing)}; pass an open3d.camera.PinholeCameraIntrinsic, or "
+                                 f"width=, height= and intrinsic_matrix= (3x3 K in pixels)")
             width, height, intrinsic_matrix = intrinsic.width, intrinsic.height, intrinsic.intrinsic_matrix
         if width is None or height is None or intrinsic_matrix is None:
             raise FrameError("from_open3d needs a PinholeCameraIntrinsic, or width, height and intrinsic_matrix")
@@ -161,8 +168,11 @@ class Intrinsics:
 
     @classmethod
     def from_camera_info(cls, info: Any, depth_scale: float = 0.001) -> Intrinsics:
-        """From a ROS ``sensor_msgs/CameraInfo`` as a dict (``K`` or ``k``: 9 numbers row by row,
-        ``D``/``d``, ``distortion_model``, ``width``, ``height``; ROS 1 and ROS 2 spellings).
+        """From a ROS ``sensor_msgs/CameraInfo``: the message object itself (fields read by attribute:
+        ROS 1's ``K``/``D``, ROS 2's ``k``/``d``) or a dict with the same keys. ``K``/``k``: 9 numbers
+        row by row (pixels); ``D``/``d``: the coefficients of ``distortion_model`` (``plumb_bob``,
+        ``rational_polynomial``, ``equidistant``); ``width``, ``height`` in pixels. ``depth_scale``:
+        metres per depth unit (CameraInfo does not carry it).
 
         Example:
             >>> info = {"width": 640, "height": 480, "distortion_model": "plumb_bob",
@@ -170,9 +180,13 @@ class Intrinsics:
             >>> Intrinsics.from_camera_info(info).model
             'brown_conrady'
         """
-        if not isinstance(info, dict):
-            raise FrameError(f"CameraInfo must be a dict, got {type(info).__name__}")
-        get = lambda *keys: next((info[k] for k in keys if k in info), None)  # noqa: E731
+        if isinstance(info, Mapping):
+            get = lambda *keys: next((info[k] for k in keys if k in info), None)  # noqa: E731
+        elif any(hasattr(info, key) for key in ("K", "k")):  # a message object (ROS 1 or ROS 2)
+            get = lambda *keys: next((getattr(info, k) for k in keys if hasattr(info, k)), None)  # noqa: E731
+        else:
+            raise FrameError(f"CameraInfo: got a {type(info).__name__}; pass a sensor_msgs/CameraInfo message "
+                             f"(fields K or k, D or d, distortion_model, width, height) or a dict with those keys")
         k, d, name = get("K", "k"), get("D", "d"), get("distortion_model") or "plumb_bob"
         if k is None or get("width") is None or get("height") is None:
             raise FrameError("CameraInfo needs K (or k), width and height")
@@ -186,6 +200,46 @@ class Intrinsics:
         coeffs = [] if d is None else list(np.ravel(d))
         return cls.from_matrix(k.reshape(3, 3), int(get("width")), int(get("height")), depth_scale,
                                dist=coeffs, model=model if any(coeffs) else "none")
+
+    @classmethod
+    def from_realsense(cls, intrinsics: Any, depth_scale: float = 0.001) -> Intrinsics:
+        """From pyrealsense2's ``rs.intrinsics`` (e.g. ``profile.as_video_stream_profile().get_intrinsics()``),
+        read by attribute: ``width``, ``height``, ``fx``, ``fy``, ``ppx``, ``ppy`` (pixels, the same
+        conventions as here), ``model`` (an ``rs.distortion``; its name is kept: ``brown_conrady``,
+        ``inverse_brown_conrady``, ``modified_brown_conrady``, ``kannala_brandt4``, ``none``) and
+        ``coeffs`` (five numbers; the first four for ``kannala_brandt4``). All-zero coefficients read as
+        ``"none"``. ``depth_scale``: metres per depth unit (``depth_sensor.get_depth_scale()``; not part of
+        ``rs.intrinsics``). librealsense's float32 values are kept at their shortest decimals.
+
+        Raises:
+            FrameError: an object without those attributes, or a distortion model softgrip cannot undo
+                (``ftheta``), named.
+
+        Example (any object with the same attributes):
+            >>> from types import SimpleNamespace
+            >>> rs_intr = SimpleNamespace(width=640, height=480, fx=615.0, fy=614.5, ppx=320.25, ppy=240.5,
+            ...                           model="distortion.brown_conrady", coeffs=[0.1, -0.2, 0.0, 0.0, 0.05])
+            >>> intr = Intrinsics.from_realsense(rs_intr)
+            >>> intr.model, intr.coeffs[0], intr.fx
+            ('brown_conrady', 0.1, 615.0)
+        """
+        missing = [name for name in (*_FIELDS[:6], "model", "coeffs") if not hasattr(intrinsics, name)]
+        if missing:
+            raise FrameError(f"from_realsense: got a {type(intrinsics).__name__} without {', '.join(missing)}; "
+                             f"pass pyrealsense2's rs.intrinsics (video_stream_profile.get_intrinsics())")
+        model = intrinsics.model
+        name = str(getattr(model, "name", model)).rsplit(".", 1)[-1]
+        coeffs = tuple(_f32(c) for c in intrinsics.coeffs)
+        if not any(coeffs):
+            name, coeffs = "none", ()
+        elif name not in DISTORTION_MODELS:
+            raise FrameError(f"from_realsense: distortion model {name!r} (coeffs {list(coeffs)}) is not supported; "
+                             f"use one of {', '.join(DISTORTION_MODELS)}, or undistort the frames before")
+        elif name == "kannala_brandt4":
+            coeffs = coeffs[:4]
+        return cls(width=intrinsics.width, height=intrinsics.height, fx=_f32(intrinsics.fx), fy=_f32(intrinsics.fy),
+                   ppx=_f32(intrinsics.ppx), ppy=_f32(intrinsics.ppy), depth_scale=depth_scale, model=name,
+                   coeffs=coeffs)
 
     def undistort_points(self, points: Any) -> np.ndarray:
         """Pixel positions (..., 2) as an ideal pinhole camera with the same K would see them
@@ -232,6 +286,12 @@ class Intrinsics:
 
 
 _FIELDS = ("width", "height", "fx", "fy", "ppx", "ppy", "depth_scale")
+
+
+def _f32(value: Any) -> float:
+    """Shortest decimal of a float32 (librealsense's type): 0.001, not 0.0010000000474974513."""
+    return float(str(np.float32(value)))
+
 
 #: Distortion models (pyrealsense2's names, plus OpenCV's rational polynomial) and how many
 #: coefficients each takes. brown_conrady: OpenCV's k1, k2, p1, p2, k3 (ROS plumb_bob);

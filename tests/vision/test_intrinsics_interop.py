@@ -123,3 +123,70 @@ def test_distortion_is_stored_with_the_frame_and_undone_on_the_image(tmp_path) -
     assert abs(xs.mean() - ideal[0, 0]) < 1.0 and abs(ys.mean() - ideal[0, 1]) < 1.0
     assert np.abs(seen.ravel() - ideal.ravel()).max() > 3.0  # the dot moved
     assert undistort_frame(plain) is plain
+
+
+# --- issue 33: RealSense intrinsics, CameraInfo message objects, Open3D's wrong object -------------
+
+RS_FIELDS = dict(width=640, height=480, fx=612.5, fy=611.0, ppx=321.25, ppy=242.75)
+
+
+def test_from_realsense_stand_in_maps_distortion_names() -> None:
+    class Distortion:  # pybind11 enums: .name, and str() is "distortion.<name>"
+        name = "inverse_brown_conrady"
+
+    for model in (Distortion(), "distortion.inverse_brown_conrady"):
+        intr = Intrinsics.from_realsense(SimpleNamespace(**RS_FIELDS, model=model, coeffs=list(DIST)), 0.0001)
+        assert intr.model == "inverse_brown_conrady" and intr.coeffs == tuple(DIST)
+        assert (intr.fx, intr.ppy, intr.width, intr.depth_scale) == (612.5, 242.75, 640, 0.0001)
+    plain = Intrinsics.from_realsense(SimpleNamespace(**RS_FIELDS, model="distortion.brown_conrady", coeffs=[0.0] * 5))
+    assert plain.model == "none" and plain.coeffs == ()
+    fisheye = Intrinsics.from_realsense(SimpleNamespace(**RS_FIELDS, model="distortion.kannala_brandt4",
+                                                        coeffs=[0.1, 0.01, 0.0, 0.001, 0.0]))
+    assert fisheye.model == "kannala_brandt4" and len(fisheye.coeffs) == 4
+    # float32 values at their shortest decimals, as librealsense reports them
+    assert Intrinsics.from_realsense(SimpleNamespace(**{**RS_FIELDS, "fx": float(np.float32(612.3))},
+                                                     model="distortion.none", coeffs=[0.0] * 5)).fx == 612.3
+
+
+def test_from_realsense_refuses_ftheta_and_wrong_objects() -> None:
+    with pytest.raises(FrameError, match="distortion model 'ftheta'"):
+        Intrinsics.from_realsense(SimpleNamespace(**RS_FIELDS, model="distortion.ftheta", coeffs=[0.5, 0, 0, 0, 0]))
+    with pytest.raises(FrameError, match="from_realsense: got a dict without .*rs.intrinsics"):
+        Intrinsics.from_realsense({"fx": 600.0})
+
+
+def test_from_realsense_with_real_rs_intrinsics() -> None:
+    from softgrip_vision.realsense import CameraError, import_realsense
+
+    try:
+        rs = import_realsense()
+    except CameraError:
+        pytest.skip("pyrealsense2 does not import here")
+    rs_intr = rs.intrinsics()
+    rs_intr.width, rs_intr.height = 640, 480
+    rs_intr.fx, rs_intr.fy, rs_intr.ppx, rs_intr.ppy = 612.5, 611.0, 321.25, 242.75
+    rs_intr.model = rs.distortion.brown_conrady
+    rs_intr.coeffs = [0.125, -0.25, 0.001, -0.0005, 0.0625]
+    intr = Intrinsics.from_realsense(rs_intr)
+    assert intr.model == "brown_conrady"
+    assert intr.coeffs == (0.125, -0.25, 0.001, -0.0005, 0.0625)
+    assert (intr.width, intr.height, intr.fx, intr.fy, intr.ppx, intr.ppy) == (640, 480, 612.5, 611.0, 321.25, 242.75)
+
+
+def test_camera_info_message_objects_ros1_and_ros2() -> None:
+    k = [612.5, 0.0, 321.25, 0.0, 611.0, 242.75, 0.0, 0.0, 1.0]
+    ros1 = SimpleNamespace(width=640, height=480, distortion_model="plumb_bob", D=list(DIST), K=tuple(k),
+                           R=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0], P=[0.0] * 12)
+    ros2 = SimpleNamespace(width=640, height=480, distortion_model="plumb_bob", d=np.array(DIST), k=np.array(k))
+    for message in (ros1, ros2):
+        intr = Intrinsics.from_camera_info(message)
+        assert intr.model == "brown_conrady" and intr.coeffs == tuple(DIST)
+        np.testing.assert_array_equal(intr.matrix, K)
+    with pytest.raises(FrameError, match="CameraInfo: got a str; pass a sensor_msgs/CameraInfo message"):
+        Intrinsics.from_camera_info("camera_info.yaml")
+
+
+def test_from_open3d_wrong_object_names_the_expected_type() -> None:
+    with pytest.raises(FrameError, match="from_open3d: intrinsic is a ndarray without width, height, "
+                                         "intrinsic_matrix; pass an open3d.camera.PinholeCameraIntrinsic"):
+        Intrinsics.from_open3d(K)
