@@ -337,7 +337,9 @@ class Scene:
         Args:
             poses: None (the frame's own pose), one pose (3,) or B poses (B, 3), numpy or JAX,
                 e.g. the best rows of a :meth:`score`.
-            estimator, weights, uncertainty: as for :meth:`score`.
+            estimator: as for :meth:`score`.
+            weights: as for :meth:`score`.
+            uncertainty: as for :meth:`score`.
             max_steps: BFGS iterations at most (a new value compiles once more).
             progress: ``progress(done, total)`` after each piece of a batch.
 
