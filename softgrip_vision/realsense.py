@@ -34,7 +34,8 @@ import numpy as np
 from tqdm import tqdm
 
 from softgrip_base.errors import SoftgripError
-from softgrip_vision.frames import DISTORTION_MODELS, Frame, FrameError, Intrinsics, next_frame_dir, save_frame
+from softgrip_vision.frames import (DISTORTION_MODELS, Frame, FrameError, Intrinsics, _f32, next_frame_dir,
+                                    save_frame)
 
 RECORDING_SUFFIXES = (".db3", ".bag")
 _CAMERA_WAIT_MS = 5000
@@ -641,9 +642,6 @@ def _rgb(rs: ModuleType, color: Any) -> np.ndarray:
     return np.array(pixels, dtype=np.uint8) if code is None else cv2.cvtColor(pixels, code)
 
 
-def _f32(value: float) -> float:
-    """Shortest decimal of a float32 (librealsense's type): 0.001, not 0.0010000000474974513."""
-    return float(str(np.float32(value)))
 
 
 def _save_frames(frames: Sequence[Frame], out_root: str | os.PathLike[str]) -> list[Path]:
