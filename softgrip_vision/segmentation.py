@@ -54,7 +54,7 @@ from softgrip_jax import SoftgripError
 from softgrip_vision.frames import COLOR_FILE, Frame, greyscale_problem
 
 Backend = Literal["opencv", "kornia"]
-Split = Literal["components", "center_column", "center_hint", "neck"]
+Split = Literal["components", "center_column", "center_hint", "neck", "none"]
 
 #: A neck is at most this fraction of the smaller of the column counts (px per column) of the two
 #: halves' peaks: the region is much thinner there than across either finger.
@@ -193,6 +193,8 @@ class Segmentation:
             (one region, cut at the caller's ``center_hint``) or ``"neck"`` (one region, cut at its
             neck found in this frame, :func:`neck_column`). For every split but ``"components"``
             the two masks may meet along ``center_column``, which is then not a finger outline.
+            ``"none"``: a frame of the object alone (:func:`segment_object`), both finger masks
+            empty and ``center_column`` NaN.
     """
 
     gripper: np.ndarray
@@ -241,6 +243,38 @@ def segment(frame: Frame, settings: SegmentationSettings | None = None, *,
         ((480, 640), True, False)
     """
     return segment_batch([frame], settings, center_hints=[center_hint])[0]
+
+
+def segment_object(frame: Frame, settings: SegmentationSettings | None = None) -> Segmentation:
+    """Segment a frame taken before the gripper is in view: the object only (stage 1 and the
+    object's cleaning, as :func:`segment`; no finger is looked for).
+
+    The finger masks are empty and ``split`` is ``"none"``; ``gripper`` holds whatever light,
+    unsaturated foreground the frame shows (e.g. part of the approaching gripper), which is not the
+    object. An empty object mask is not an error (no object: contact case (a)).
+
+    Raises:
+        SegmentationError: a greyscale colour image or a region of interest outside the frame.
+
+    Example (a rendered disc, no gripper in view):
+        >>> from synthetic.render import Scene, render, d405_intrinsics
+        >>> angles = np.linspace(0.0, 2.0 * np.pi, 64, endpoint=False)
+        >>> disc = np.stack([12.0 * np.cos(angles), 30.0 + 12.0 * np.sin(angles)], axis=-1)  # mm
+        >>> seg = segment_object(render(Scene([], object_polygon=disc), d405_intrinsics()))
+        >>> bool(seg.object.any()), bool(seg.fingers.any()), seg.split
+        (True, False, 'none')
+    """
+    settings = SegmentationSettings() if settings is None else settings
+    grey = greyscale_problem(frame.color)
+    if grey is not None:
+        raise SegmentationError(f"{COLOR_FILE} {grey}")
+    cutoff = background_cutoff_mm(frame, settings)
+    roi = _roi_mask(frame.depth.shape, settings.roi)
+    gripper, obj = _classify_opencv(frame, settings, cutoff, roi)
+    none = np.zeros_like(gripper)
+    return Segmentation(gripper=gripper, left_finger=none, right_finger=none.copy(),
+                        object=_drop_small(obj, settings.min_object_px), background_cutoff_mm=cutoff,
+                        center_column=float("nan"), split="none")
 
 
 def segment_batch(
