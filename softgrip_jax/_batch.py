@@ -32,7 +32,7 @@ from softgrip_jax._estimators import AbstractEstimator, as_estimator
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._export import exportable
 from softgrip_jax._frames import FingerFrame
-from softgrip_jax._grasp import GraspEstimate, finger_frames
+from softgrip_jax._grasp import GraspEstimate, finger_frames, per_finger
 from softgrip_jax._gather import where_needed
 from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import FingerModel, Gripper
@@ -156,8 +156,8 @@ def _estimate_sharded(finger, sdf, bases, config, chunk_size, estimator):
 
 def grasp_chunk(gripper, sdf, poses, config, estimator):
     left, right = jax.vmap(lambda p: finger_frames(gripper, p))(poses)
-    left = finger_chunk(gripper.left, sdf, left, config, estimator)
-    right = finger_chunk(gripper.right, sdf, right, config, estimator)
+    left, right = per_finger(lambda finger, frames: finger_chunk(finger, sdf, frames, config, estimator),
+                             gripper, (left, right))
     return jax.vmap(lambda a, b: GraspEstimate(left=a, right=b, valid=a.valid & b.valid))(left, right)
 
 

@@ -544,12 +544,11 @@ def refine_contact(
     # estimated centreline r deep into the object. P_o1 and P_o2 are reported on the true surface.
     theta_o1 = direction_angle(p_g1 - base)
     theta_remain = theta - theta_o1  # eq. 8
-    p_o1 = surface_point(dist, p_g1)
 
     # Second contact (Fig. 8).
     dilated = lambda q: dist(q) - r
     has_second, p_g2, theta_o1o2 = _second_contact(dilated, p_g1, length - l_g1, config.n_circle)
-    p_o2 = surface_point(dist, p_g2)
+    p_o1, p_o2 = jax.vmap(lambda q: surface_point(dist, q))(jnp.stack([p_g1, p_g2]))  # one traced copy
 
     at_tip = n_g1 >= n - config.tip_tolerance
     case = jnp.where(

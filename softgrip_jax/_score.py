@@ -48,7 +48,7 @@ from softgrip_jax._contact import ContactCase, ContactConfig
 from softgrip_jax._errors import SoftgripError, check_number_fields
 from softgrip_jax._export import exportable
 from softgrip_jax._gather import where_needed
-from softgrip_jax._grasp import GraspEstimate, estimate_grasp
+from softgrip_jax._grasp import GraspEstimate, estimate_grasp, per_finger
 from softgrip_jax._kinematics import chain_stations
 from softgrip_jax._estimators import AbstractEstimator, Mechanics, as_estimator
 from softgrip_jax._mechanics import MechanicsConfig, contact_forces
@@ -150,7 +150,7 @@ class Score(eqx.Module):
 
 
 def _finger_terms(finger: FingerModel, sdf: AbstractSDF, est: Estimate, weights: ScoreWeights, config, estimator,
-                  handedness: float):
+                  handedness: Float[ArrayLike, ""]):
     theta = finger.theta_entire
     touches = est.case != ContactCase.NONE
     # Closing onto the object counts fully when it happens before the last tenth of the closure.
@@ -234,8 +234,9 @@ def score_pose(
 def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weights: ScoreWeights, config,
                  estimator) -> Score:
     """The :class:`Score` of both fingers' estimates at one pose."""
-    left = _finger_terms(gripper.left, sdf, grasp.left, weights, config, estimator, 1.0)
-    right = _finger_terms(gripper.right, sdf, grasp.right, weights, config, estimator, -1.0)
+    one = jnp.ones((), gripper.base_separation.dtype)
+    left, right = per_finger(lambda finger, est, hand: _finger_terms(finger, sdf, est, weights, config, estimator, hand),
+                             gripper, (grasp.left, grasp.right), (one, -one))
     touch, wrap, tip, penetration = (jnp.stack([a, b]) for a, b in zip(left[:4], right[:4]))
     opposition = -jnp.dot(left[4], right[4]) * touch[0] * touch[1]
     contacts = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), left[5], right[5])

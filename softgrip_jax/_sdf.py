@@ -93,11 +93,15 @@ def surface_point(distance: Callable[[Array], Array], point: Float[Array, "2"]) 
     of the surface, out in the free space of the corner (by 0.29 of the distance at a right angle);
     the Newton steps carry it onto the surface, into the corner the finger nestles in.
     """
-    x = point - distance(point) * unit_gradient(distance, point)
-    for _ in range(_SURFACE_STEPS):
+    def step(x, first):
         d, g = jax.value_and_grad(distance)(x)
-        x = x - d * g / jnp.maximum(jnp.sum(g * g), _MIN_GRADIENT_SQ)
-    return x
+        scale = jnp.where(first, safe_divide(jnp.ones_like(d), safe_norm(g)), 1.0 / jnp.maximum(jnp.sum(g * g), _MIN_GRADIENT_SQ))
+        return x - d * scale * g, None
+
+    # One traced copy of the distance and its gradient, looped (not unrolled): the distance of a
+    # polygon is a large program, and each copy adds to the compile time of everything above it.
+    firsts = jnp.arange(_SURFACE_STEPS + 1) == 0
+    return jax.lax.scan(step, jnp.asarray(point), firsts)[0]
 
 
 class SDFGrid(AbstractSDF):
