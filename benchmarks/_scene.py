@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+from softgrip_jax import Geometric
 
 SPACING_MM = 120.0 / 385.0
 
@@ -34,5 +35,5 @@ def touching_bases(n_links: int, batch: int) -> np.ndarray:
     import softgrip_jax as current
 
     pool = mixed_bases(20_000)
-    first = current.estimate_batch(finger(current, n_links), disc_grid(current), pool, method="geometric")
+    first = current.estimate_batch(finger(current, n_links), disc_grid(current), pool, estimator=Geometric())
     return np.resize(pool[np.asarray(first.valid & (first.case != 0))], (batch, 2))

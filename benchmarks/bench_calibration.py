@@ -53,6 +53,7 @@ from synthetic.render import Scene, d405_intrinsics, render  # noqa: E402
 from synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints  # noqa: E402
 from synthetic.scenes import gripper_centrelines  # noqa: E402
 from synthetic.shapes import shape  # noqa: E402
+from softgrip_jax import Geometric
 
 LENGTH, HALF_THICKNESS, SEPARATION, N_LINKS = 52.0, 4.0, 64.0, 10
 THETA = {"left": 0.55, "right": 0.45}
@@ -138,7 +139,7 @@ def held_out_errors(profile: CalibrationProfile, pairs: list[Pair]) -> tuple[np.
         for k, (side, hand) in enumerate(zip(SIDES, (1.0, -1.0))):
             frame = FingerFrame(origin=jnp.asarray(bases[k], jnp.float32), angle=jnp.zeros(()),
                                 handedness=jnp.asarray(hand))
-            est = _estimate(profile.fingers[side].model(), pair.observation.sdf, frame, method="geometric")
+            est = _estimate(profile.fingers[side].model(), pair.observation.sdf, frame, estimator=Geometric())
             errors.append(np.asarray(joint_errors(est.joints, jnp.asarray(pair.truth[k], jnp.float32)))[1:])
             cases.append(int(est.case))
     return np.array(errors), np.array(cases)
@@ -168,7 +169,7 @@ def main() -> None:
     def run_fit(pairs_, parameters=("theta_entire",)):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # skipped pairs are counted in the table
-            return fit([p.observation for p in pairs_], one_frame, parameters, method="geometric", progress=False)
+            return fit([p.observation for p in pairs_], one_frame, parameters, estimator=Geometric(), progress=False)
 
     t = time.perf_counter()
     fitted_all = run_fit(train)

@@ -45,6 +45,8 @@ from softgrip_jax import (ContactCase, ContactConfig, FingerModel, MechanicsConf
 from synthetic.rod import RodMechanics, close_rod, observed_joints  # noqa: E402
 from synthetic.smooth import DiscSDF  # noqa: E402
 from synthetic.shapes import shape  # noqa: E402
+from softgrip_jax import Mechanics
+from softgrip_jax import as_estimator
 
 L, R, N = 52.0, 4.0, 20
 VERBOSE = False
@@ -69,7 +71,7 @@ def rod_pattern(in_contact: np.ndarray, n_links: int) -> tuple[bool, bool]:
 
 def against_rod(quick: bool) -> list[str]:
     offsets = np.linspace(-8.0, 8.0, 3 if quick else 7)
-    run = jax.jit(estimate, static_argnames="method")
+    run = jax.jit(estimate)
     rows = ["| scene | fingers | contact pattern agrees | mean joint error (mm) | worst finger (mm) | flagged events |",
             "|---|---|---|---|---|---|"]
     totals = []
@@ -80,7 +82,7 @@ def against_rod(quick: bool) -> list[str]:
         for dx in offsets:
             for dy in offsets:
                 base = (float(dx), float(dy))
-                est = run(finger, sdf, jnp.asarray(base, jnp.float32), method="mechanics")
+                est = run(finger, sdf, jnp.asarray(base, jnp.float32), estimator=Mechanics())
                 if int(est.status) == Status.INITIAL_OVERLAP:
                     continue
                 closure = close_rod(base, theta, L, R, sdf, mechanics=RodMechanics(stiffness_ratio=ratio, n_steps=60))
@@ -122,13 +124,13 @@ def sweeps(quick: bool) -> list[str]:
     rows = ["| object | base | sweep | poses | touching | flagged | max tip jump, unflagged, one case (mm) | "
             "d tip_x / d base: grad, central h=0.004, h=0.05 |", "|---|---|---|---|---|---|---|---|"]
     for name, sdf in SWEEP_OBJECTS.items():
-        tip_x = jax.jit(lambda b, sdf=sdf: estimate(finger, sdf, b, method="mechanics").joints[-1, 0])
-        grad = jax.jit(jax.grad(lambda b, sdf=sdf: estimate(finger, sdf, b, method="mechanics").joints[-1, 0]))
+        tip_x = jax.jit(lambda b, sdf=sdf: estimate(finger, sdf, b, estimator=Mechanics()).joints[-1, 0])
+        grad = jax.jit(jax.grad(lambda b, sdf=sdf: estimate(finger, sdf, b, estimator=Mechanics()).joints[-1, 0]))
         for centre in SWEEP_CENTRES:
             for axis in (0, 1):
                 bases = np.tile(np.asarray(centre, np.float32), (steps.size, 1))
                 bases[:, axis] += steps
-                est = estimate_batch(finger, sdf, jnp.asarray(bases), method="mechanics")
+                est = estimate_batch(finger, sdf, jnp.asarray(bases), estimator=Mechanics())
                 tips = np.asarray(est.joints[:, -1])
                 jump = np.linalg.norm(np.diff(tips, axis=0), axis=-1)
                 ok = np.asarray(est.valid) & ~np.asarray(est.event)
@@ -139,7 +141,7 @@ def sweeps(quick: bool) -> list[str]:
                 c = jnp.asarray(centre, jnp.float32)
                 g = float(grad(c)[axis])
                 central = [float((tip_x(c + h * e) - tip_x(c - h * e)) / (2 * h)) for h in (0.004, 0.05)]
-                centre_flagged = bool(estimate(finger, sdf, c, method="mechanics").event)
+                centre_flagged = bool(estimate(finger, sdf, c, estimator=Mechanics()).event)
                 rows.append(f"| {name} | {centre} | {'xy'[axis]} | {steps.size} | "
                             f"{int(np.asarray(est.contact.touches).sum())} | {int(np.asarray(est.event).sum())} | "
                             f"{jump[plain].max() if plain.any() else float('nan'):.5f} | "
@@ -156,7 +158,7 @@ def independence(quick: bool) -> tuple[list[str], list[str]]:
         sdf = PolygonSDF(jnp.asarray(vertices, jnp.float32))
         finger = FingerModel(L, theta, R, N, stiffness_ratio=ratio)
         bases = rng.uniform(-10.0, 10.0, (batch, 2)).astype(np.float32)
-        ref = jax.tree_util.tree_map(np.asarray, estimate_batch(finger, sdf, jnp.asarray(bases), method="mechanics"))
+        ref = jax.tree_util.tree_map(np.asarray, estimate_batch(finger, sdf, jnp.asarray(bases), estimator=Mechanics()))
         status = ref.status
         touching = int((ref.valid & ref.contact.touches).sum())  # the closing finger met the object
         conv.append(f"| {name} | {batch} | {touching} | {int((status == Status.MECHANICS_NOT_CONVERGED).sum())} | "
@@ -166,7 +168,7 @@ def independence(quick: bool) -> tuple[list[str], list[str]]:
             idx = rng.permutation(batch)[:size]
             other = bases[idx].copy()
             other[k::7] = [[np.nan, 0.0], [500.0, 0.0], [1e4, 1e4]][k]
-            out = jax.tree_util.tree_map(np.asarray, estimate_batch(finger, sdf, jnp.asarray(other), method="mechanics"))
+            out = jax.tree_util.tree_map(np.asarray, estimate_batch(finger, sdf, jnp.asarray(other), estimator=Mechanics()))
             keep = np.ones(size, bool)
             keep[k::7] = False
             a, b = ref.joints[idx][keep], out.joints[keep]
@@ -185,7 +187,8 @@ def throughput(quick: bool, repeats: int = 3) -> list[str]:
                "mechanics, one-increment path": ("mechanics", MechanicsConfig(path_step=10.0, path_iterations=1))}
 
     def go(method, mech):
-        return jax.block_until_ready(estimate_batch(finger, grid, bases, method=method, mechanics=mech))
+        chosen = as_estimator(method=method, mechanics=mech)
+        return jax.block_until_ready(estimate_batch(finger, grid, bases, estimator=chosen))
 
     first = {}
     for k, c in configs.items():

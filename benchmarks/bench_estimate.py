@@ -27,6 +27,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from softgrip_jax import Geometric
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 # Measure this checkout's package, not whichever one the interpreter has installed (editable).
@@ -50,12 +51,12 @@ def run_one(n_links: int, batch: int, chunk: int, repeats: int, scene: str) -> d
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
     t0 = time.perf_counter()
-    out = jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=chunk, method="geometric"))
+    out = jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=chunk, estimator=Geometric()))
     first = time.perf_counter() - t0
     times = []
     for _ in range(repeats if batch > 1 else 50 * repeats):
         t0 = time.perf_counter()
-        out = jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=chunk, method="geometric"))
+        out = jax.block_until_ready(estimate_batch(finger, grid, bases, chunk_size=chunk, estimator=Geometric()))
         times.append(time.perf_counter() - t0)
     # Throughput: the best call. Latency (one candidate): the median of many calls, as a caller sees it.
     steady = min(times) if batch > 1 else float(np.median(times))

@@ -8,7 +8,7 @@ Run from the repository root:
 Two tables, printed as markdown:
 
 1. Throughput of ``estimate_batch`` at N = 20 (candidate-fingers per second, after compilation;
-   compile time separately), ``method="geometric"`` and ``method="mechanics"`` in the same run, on
+   compile time separately), ``Geometric()`` and ``Mechanics()`` in the same run, on
    the scene of ``bench_estimate.py``: a 480x640 SDF grid at the D405's scale at 120 mm (0.31
    mm/px) with a 30 mm circle, candidate bases spread so that all four contact cases occur (and
    many candidates start in collision, as in a planner's raw sample). Timings alternate between
@@ -38,6 +38,8 @@ import numpy as np  # noqa: E402
 
 from softgrip_jax import (CASE_NAMES, FingerModel, MechanicsConfig, PolygonSDF, SDFGrid, Status,  # noqa: E402
                           estimate_batch)
+from softgrip_jax import Geometric, Mechanics
+from softgrip_jax import as_estimator
 
 N_LINKS = 20
 
@@ -61,8 +63,8 @@ def throughput(batch: int, budgets: list[int], repeats: int) -> list[dict]:
     configs = [("geometric", None)] + [("mechanics", MechanicsConfig(max_steps=s)) for s in budgets]
 
     def run(method, mechanics):
-        kwargs = {} if mechanics is None else {"mechanics": mechanics}
-        return jax.block_until_ready(estimate_batch(finger, grid, bases, method=method, **kwargs))
+        estimator = as_estimator(method=method, mechanics=mechanics)
+        return jax.block_until_ready(estimate_batch(finger, grid, bases, estimator=estimator))
 
     first, outputs = {}, {}
     for c in configs:
@@ -126,9 +128,8 @@ def accuracy(budgets: list[int], ratios: list[float]) -> list[dict]:
     estimates = {}
     for s in budgets:
         config = MechanicsConfig(max_steps=s)
-        estimates[s] = jax.jit(lambda f, sdf, c=config: estimate(f, sdf, jnp.zeros(2), method="mechanics",
-                                                                 mechanics=c))
-    geometric = jax.jit(lambda f, sdf: estimate(f, sdf, jnp.zeros(2), method="geometric"))
+        estimates[s] = jax.jit(lambda f, sdf, c=config: estimate(f, sdf, jnp.zeros(2), estimator=Mechanics(c)))
+    geometric = jax.jit(lambda f, sdf: estimate(f, sdf, jnp.zeros(2), estimator=Geometric()))
     rows = []
     for ratio in ratios:
         for name, spec in SCENES.items():

@@ -57,6 +57,7 @@ from softgrip_calib.profile import CalibrationProfile  # noqa: E402
 from reproduce_paper import rod_case  # noqa: E402
 from softgrip_jax import CASE_NAMES, FingerFrame, estimate_in_frame, joint_errors  # noqa: E402
 from synthetic.rod import RodMechanics  # noqa: E402
+from softgrip_jax import as_estimator
 
 _estimate = eqx.filter_jit(estimate_in_frame)
 
@@ -71,7 +72,7 @@ def held_out(profile: CalibrationProfile, pairs: list, method: str, n_links: int
         for k, (side, hand) in enumerate(zip(bc.SIDES, (1.0, -1.0))):
             frame = FingerFrame(origin=jnp.asarray(bases[k], jnp.float32), angle=jnp.zeros(()),
                                 handedness=jnp.asarray(hand))
-            est = _estimate(profile.fingers[side].model(), observation.sdf, frame, method=method)
+            est = _estimate(profile.fingers[side].model(), observation.sdf, frame, estimator=as_estimator(method=method))
             errors = np.asarray(joint_errors(est.joints, jnp.asarray(pair.truth[k], jnp.float32)))
             mid.append(errors[n_links // 2])
             tip.append(errors[n_links])
@@ -110,7 +111,8 @@ def run_gripper(stiffness_ratio: float, n_links: int, n_train: int, n_test: int,
         t = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # skipped pairs are counted in the table
-            profile = fit([p.observation for p in train] + [calibration_pair], one_frame, parameters, method=method,
+            profile = fit([p.observation for p in train] + [calibration_pair], one_frame, parameters,
+                          estimator=as_estimator(method=method),
                           progress=False)
         return profile, time.perf_counter() - t
 

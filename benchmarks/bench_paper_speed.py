@@ -48,6 +48,7 @@ if str(_HERE.parent) not in sys.path:
     sys.path.insert(1, str(_HERE.parent))
 
 import paper_pixel  # noqa: E402
+from softgrip_jax import Geometric
 
 LENGTH_MM = (50.0, 54.0)
 THETA_RAD = (0.4, 0.6)
@@ -144,7 +145,7 @@ def jax_scene_estimates(scenes: list[Scene], n_links: int, sweep: str = "pcc"):
                          for s in scenes]).astype(np.float32)
 
     def one(length, theta, r, verts, base):
-        return estimate(FingerModel(length, theta, r, n_links), PolygonSDF(verts), base, config, method="geometric")
+        return estimate(FingerModel(length, theta, r, n_links), PolygonSDF(verts), base, config, estimator=Geometric())
 
     column = lambda f: jnp.asarray(np.array([f(s) for s in scenes], np.float32))
     out = jax.jit(jax.vmap(one))(column(lambda s: s.length), column(lambda s: s.theta),
@@ -247,12 +248,12 @@ def time_jax(finger, grid, bases, repeats: int) -> tuple[float, float, object]:
 
     bases = jnp.asarray(bases, jnp.float32)
     t0 = time.perf_counter()
-    out = jax.block_until_ready(estimate_batch(finger, grid, bases, method="geometric"))
+    out = jax.block_until_ready(estimate_batch(finger, grid, bases, estimator=Geometric()))
     first = time.perf_counter() - t0
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        out = jax.block_until_ready(estimate_batch(finger, grid, bases, method="geometric"))
+        out = jax.block_until_ready(estimate_batch(finger, grid, bases, estimator=Geometric()))
         times.append(time.perf_counter() - t0)
     best = min(times)
     return best, max(first - best, 0.0), out

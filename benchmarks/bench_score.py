@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _machine import describe  # noqa: E402
 
 from softgrip_jax import FingerModel, Gripper, SDFGrid, score  # noqa: E402
+from softgrip_jax import Geometric
 
 
 def grid_poses(n: int) -> np.ndarray:
@@ -42,12 +43,12 @@ def main() -> None:
     for n in (1_000, 100_000):
         poses = jnp.asarray(grid_poses(n))
         t0 = time.perf_counter()
-        jax.block_until_ready(score(gripper, sdf, poses, method="geometric"))
+        jax.block_until_ready(score(gripper, sdf, poses, estimator=Geometric()))
         first = time.perf_counter() - t0
         times = []
         for _ in range(3):
             t0 = time.perf_counter()
-            out = jax.block_until_ready(score(gripper, sdf, poses, method="geometric"))
+            out = jax.block_until_ready(score(gripper, sdf, poses, estimator=Geometric()))
             times.append(time.perf_counter() - t0)
         best = min(times)
         print(f"| {poses.shape[0]:,} | {poses.shape[0] / best:,.0f} | {first - best:.1f} | "

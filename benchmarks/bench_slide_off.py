@@ -45,6 +45,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from _machine import describe  # noqa: E402
+from softgrip_jax import Mechanics
 
 STEPS = np.arange(-0.2, 0.2 + 1e-9, 0.002)
 CENTRES = [(0.0, 0.0), (0.0, -0.16), (-3.46, 1.50)]
@@ -106,7 +107,7 @@ def sweeps(versions: dict) -> list[str]:
         finger = pkg.FingerModel(52.0, 0.7, 4.0, 20)
         for name, sdf in objects(pkg).items():
             est = jax.tree_util.tree_map(np.asarray, pkg.estimate_batch(finger, sdf, jnp.asarray(bases),
-                                                                        method="mechanics"))
+                                                                        estimator=Mechanics()))
             steps = solve_steps(pkg, finger, sdf, bases)
             steps = steps[steps >= 0]
             bad = est.status == pkg.Status.MECHANICS_NOT_CONVERGED

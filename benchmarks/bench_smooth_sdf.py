@@ -109,13 +109,12 @@ def tight_sweeps_and_gradients(sdf, bases: jax.Array) -> tuple[list, float, list
     h = 0.01
     poses = np.asarray(GRADIENT_POSES, np.float32)
     shifts = np.concatenate([poses[:, None, :] + s * h * np.eye(2)[None] for s in (1, -1)], axis=1).reshape(-1, 2)
-    est = estimate_batch(FINGER, sdf, jnp.concatenate([bases, jnp.asarray(shifts, jnp.float32)]), method="mechanics",
-                         mechanics=TIGHT)
+    est = estimate_batch(FINGER, sdf, jnp.concatenate([bases, jnp.asarray(shifts, jnp.float32)]), estimator=Mechanics(TIGHT))
     n = bases.shape[0]
     sweeps = worst_steps(jax.tree_util.tree_map(lambda x: x[:n], est))
     tips = np.asarray(est.joints[n:, -1], np.float64).reshape(len(poses), 4, 2)
     central = ((tips[:, :2] - tips[:, 2:]) / (2 * h)).transpose(0, 2, 1)  # (P, tip axis, base axis)
-    tip = lambda b: estimate(FINGER, sdf, b, method="mechanics", mechanics=TIGHT).joints[-1]  # noqa: E731
+    tip = lambda b: estimate(FINGER, sdf, b, estimator=Mechanics(TIGHT)).joints[-1]  # noqa: E731
     jacobians = np.asarray(jax.jit(jax.vmap(jax.jacrev(tip)))(jnp.asarray(poses)), np.float64)
     norms = np.linalg.norm(central, axis=(1, 2))
     return sweeps, float((np.linalg.norm(jacobians - central, axis=(1, 2)) / norms).max()), norms.tolist()
@@ -166,7 +165,7 @@ def main() -> None:
     bases = jnp.asarray(sweep_bases())
     gradients = {}
     for name, sdf in objects().items():
-        default = worst_steps(estimate_batch(FINGER, sdf, bases, method="mechanics"))
+        default = worst_steps(estimate_batch(FINGER, sdf, bases, estimator=Mechanics()))
         tight, *gradients[name] = tight_sweeps_and_gradients(sdf, bases)
         for sweep, (worst, pairs, flagged, cases), (t_worst, t_pairs, t_flagged, _) in zip(SWEEPS, default, tight):
             print(f"| {name} | {sweep} | {sorted(cases)} | {flagged} | {pairs} | {worst:.4f} | "

@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from softgrip_jax import Geometric
 
 # Profile this checkout's package, not whichever one the interpreter has installed.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -66,7 +67,7 @@ def main() -> None:
     bases = jnp.asarray(bases)
 
     def run(b, config=ContactConfig(), workers=args.workers, chunk=args.chunk):
-        return estimate_batch(finger, grid, b, config, chunk_size=chunk, method="geometric", workers=workers)
+        return estimate_batch(finger, grid, b, config, chunk_size=chunk, estimator=Geometric(), workers=workers)
 
     def alternate(label, variants):
         """Median throughput of each variant (keyword arguments of ``run``), alternating, 5 rounds."""

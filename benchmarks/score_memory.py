@@ -28,6 +28,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from softgrip_jax import FingerModel, Gripper, PolygonSDF, score  # noqa: E402
+from softgrip_jax import Geometric
 
 
 def rss_bytes() -> int:
@@ -69,10 +70,10 @@ def main(argv: list[str] | None = None) -> str:
     rng = np.random.default_rng(0)
     poses = jnp.asarray(np.column_stack([rng.uniform(-10, 10, args.batch), rng.uniform(-10, 10, args.batch),
                                          rng.uniform(-0.2, 0.2, args.batch)]).astype(np.float32))
-    jax.block_until_ready(score(gripper, disc, poses, method="geometric"))  # compile for this B
+    jax.block_until_ready(score(gripper, disc, poses, estimator=Geometric()))  # compile for this B
     before = rss_bytes()
     t0 = time.perf_counter()
-    result, peak = peak_during(lambda: score(gripper, disc, poses, method="geometric"))
+    result, peak = peak_during(lambda: score(gripper, disc, poses, estimator=Geometric()))
     seconds = time.perf_counter() - t0
     size = sum(leaf.nbytes for leaf in jax.tree_util.tree_leaves(result))
     line = (f"| {args.batch:,} | {size / 2**20:.0f} | {(peak - before) / 2**20:.0f} | {(peak - before) / size:.2f} "

@@ -40,6 +40,7 @@ from softgrip_calib.fit import PoorlyDeterminedWarning, fit  # noqa: E402
 from softgrip_jax import FingerFrame, FingerModel, PolygonSDF, estimate_in_frame  # noqa: E402
 from synthetic.render import Scene  # noqa: E402
 from synthetic.rod import RodMechanics  # noqa: E402
+from softgrip_jax import Mechanics
 
 CHANGE = 1.05  # the goal's 5 %
 
@@ -50,7 +51,7 @@ def _ratio_jacobian(ratio: float):
         finger = FingerModel(length=bc.LENGTH, theta_entire=theta, half_thickness=bc.HALF_THICKNESS, n_links=20,
                              stiffness_ratio=jnp.exp(log_ratio))
         frame = FingerFrame(origin=base, angle=jnp.zeros_like(theta), handedness=hand)
-        return estimate_in_frame(finger, sdf, frame, method="mechanics")
+        return estimate_in_frame(finger, sdf, frame, estimator=Mechanics())
     jacobian = jax.jacfwd(lambda *a: joints(*a).joints)
     return jax.jit(lambda sdf, base, hand, theta: (jacobian(jnp.log(ratio), sdf, base, hand, theta),
                                                     joints(jnp.log(ratio), sdf, base, hand, theta).status))
@@ -137,7 +138,7 @@ def main(argv: list[str] | None = None) -> str:
     for name, observations, start in cases:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            profile = fit(observations, start, ("theta_entire", "stiffness_ratio"), method="mechanics", progress=False)
+            profile = fit(observations, start, ("theta_entire", "stiffness_ratio"), estimator=Mechanics(), progress=False)
         f, se = profile.fingers, profile.fit.standard_errors
         poor = [side for side in bc.SIDES if any(isinstance(w.message, PoorlyDeterminedWarning)
                                                  and str(w.message).startswith(side) for w in caught)]

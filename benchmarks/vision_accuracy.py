@@ -504,7 +504,7 @@ def plane_errors(scene: AccuracyScene, section: str = "round", blur_px: float = 
     length = max(100.0 * abs(profile.fingers[side].length - LENGTH_MM) / LENGTH_MM for side in ("left", "right"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        grasp = frame_scene(open_frame, profile).estimate(method="geometric")
+        grasp = frame_scene(open_frame, profile).estimate(estimator=Geometric())
     arcs = np.arange(N_LINKS + 1) * LENGTH_MM / N_LINKS
     closure = 0.0
     for k, (estimate, line) in enumerate(zip((grasp.left, grasp.right), closed.fingers)):

@@ -15,8 +15,7 @@ solver minimises it: a badly segmented frame pulls with a bounded force instead 
 
 The estimate is chosen by ``estimator``: ``softgrip_jax.Geometric()`` (the paper's eq. 9) or
 ``softgrip_jax.Mechanics(config)`` (the spring-joint chain at equilibrium,
-:mod:`softgrip_jax._mechanics`), by default ``Mechanics()`` as everywhere else (the older
-``method="geometric" | "mechanics"`` and ``mechanics=`` are accepted instead); the residuals,
+:mod:`softgrip_jax._mechanics`), by default ``Mechanics()`` as everywhere else; the residuals,
 Jacobian and standard errors are those of the chosen estimate, differentiated through the
 mechanics solve by implicit differentiation.
 
@@ -79,14 +78,13 @@ from tqdm import tqdm
 
 from softgrip_calib.one_frame import frame_keypoints, frame_measurement
 from softgrip_calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
-from softgrip_jax import (METHODS, AbstractEstimator, AbstractSDF, ContactConfig, FingerFrame, FingerModel,
-                          MechanicsConfig, SoftgripError, Status, as_estimator, estimate_in_frame)
+from softgrip_jax import (AbstractEstimator, AbstractSDF, ContactConfig, FingerFrame, FingerModel, SoftgripError,
+                          Status, as_estimator, estimate_in_frame)
 from softgrip_vision.frames import Frame, load_frame
 from softgrip_vision.measure import MeasureSettings
 from softgrip_vision.segmentation import SegmentationSettings
 
 Loss = Literal["huber", "cauchy"]
-EstimateMethod = Literal["geometric", "mechanics"]
 
 #: Theta (rad) a fit starts from when nothing better is known.
 NOMINAL_THETA = 0.5
@@ -242,8 +240,6 @@ def fit(
     loss_scale_mm: float = 1.0,
     config: ContactConfig = ContactConfig(),
     estimator: AbstractEstimator | None = None,
-    method: EstimateMethod | None = None,
-    mechanics: MechanicsConfig | None = None,
     max_steps: int = 100,
     skipped: Sequence[dict[str, str]] = (),
     progress: bool = True,
@@ -265,8 +261,6 @@ def fit(
         estimator: the estimate the residuals go through: ``Geometric()`` (eq. 9) or
             ``Mechanics(config)`` (the spring chain at equilibrium, solver settings ``config``);
             None: ``Mechanics()``, as everywhere else.
-        method: the older spelling of ``estimator``: ``"geometric"`` or ``"mechanics"``.
-        mechanics: with ``method="mechanics"``, its :class:`~softgrip_jax.MechanicsConfig`.
         max_steps: Levenberg-Marquardt iteration cap.
         skipped: pairs already left out upstream (``{"frame", "reason"}``), carried into the report.
         progress: show a progress bar on stderr. Its per-step report is a host callback: with
@@ -314,7 +308,7 @@ def fit(
         >>> [round(fitted.fingers[s].theta_entire, 3) for s in ("left", "right")], fitted.fit.method
         ([0.55, 0.45], 'least-squares')
     """
-    names, estimator = _check_settings(parameters, loss, loss_scale_mm, max_steps, estimator, method, mechanics)
+    names, estimator = _check_settings(parameters, loss, loss_scale_mm, max_steps, estimator)
     n_links = _common_n_links(start, observations)
     free = [obs.label for obs in observations if obs.free_closure]
     if len(free) > 1:
@@ -592,27 +586,22 @@ def start_from_open_frame(
 # Checks on the host
 
 
-def _check_settings(parameters: Sequence[str], loss: str, scale: float, max_steps: int, estimator: object,
-                    method: object, mechanics: object) -> tuple[list[str], AbstractEstimator]:
+def _check_settings(parameters: Sequence[str], loss: str, scale: float, max_steps: int,
+                    estimator: object) -> tuple[list[str], AbstractEstimator]:
     """The parameter names, without repeats, and the estimator (:func:`softgrip_jax.as_estimator`)."""
     names = list(dict.fromkeys(parameters))
     unknown = [n for n in names if n not in PARAMETERS]
     if not names or unknown:
         raise FitError(f"unknown parameter(s) {', '.join(map(repr, unknown)) or '(none given)'}; the fit can "
                        f"adjust: {', '.join(PARAMETERS)}")
-    if method is not None and (not isinstance(method, str) or method not in METHODS):
-        raise FitError(f"method must be one of {', '.join(map(repr, METHODS))} (the estimate the residuals go "
-                       f"through), got {method!r}")
-    if mechanics is not None and not isinstance(mechanics, MechanicsConfig):
-        raise FitError(f"mechanics must be a softgrip_jax.MechanicsConfig, got {type(mechanics).__name__}")
     try:
-        estimator = as_estimator(estimator, method, mechanics)
-    except SoftgripError as err:  # (both estimator= and method=, or not an estimator)
+        estimator = as_estimator(estimator)
+    except SoftgripError as err:  # not an estimator
         raise FitError(str(err)) from None
     unused = [n for n in names if PARAMETERS[n].methods is not None and estimator.name not in PARAMETERS[n].methods]
     if unused:
-        raise FitError(f"{', '.join(unused)} only affect(s) the mechanics estimate, so method={estimator.name!r} cannot fit "
-                       f"them: fit with method='mechanics' (softgrip calibrate --fit ... --method mechanics), or "
+        raise FitError(f"{', '.join(unused)} only affect(s) the mechanics estimate, so {estimator.name!r} cannot fit "
+                       f"them: fit with estimator=Mechanics() (softgrip calibrate --fit ... --method mechanics), or "
                        f"leave them out")
     if loss not in ("huber", "cauchy"):
         raise FitError(f"loss must be 'huber' or 'cauchy', got {loss!r}")

@@ -34,7 +34,6 @@ from softgrip_jax._export import exportable
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._grasp import GraspEstimate, finger_frames, per_finger
 from softgrip_jax._gather import where_needed
-from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._sharding import device_mesh, run_sharded
@@ -181,8 +180,6 @@ def estimate_batch(
     *,
     chunk_size: int = DEFAULT_CHUNK,
     estimator: AbstractEstimator | None = None,
-    method: str | None = None,
-    mechanics: MechanicsConfig | None = None,
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Estimate:
@@ -190,7 +187,7 @@ def estimate_batch(
 
     Returns an :class:`Estimate` whose every leaf has a leading axis of length B. A bad base
     (NaN, outside the SDF grid) comes back ``valid=False`` and does not affect the others.
-    ``estimator`` (or the older ``method`` / ``mechanics``) is as for :func:`estimate`; with
+    ``estimator`` is as for :func:`estimate`; with
     ``Mechanics()`` (the default) the equilibrium is solved only for the candidates that touch the object. With several JAX devices
     (GPUs, or processes joined by ``jax.distributed``) the batch is split evenly across them, as
     :func:`~softgrip_jax.score` does (:mod:`softgrip_jax._sharding`); results are one device's.
@@ -209,16 +206,16 @@ def estimate_batch(
 
     Example:
         >>> import jax.numpy as jnp
-        >>> from softgrip_jax import CASE_NAMES, FingerModel, Geometric, PolygonSDF
+        >>> from softgrip_jax import FingerModel, Geometric, PolygonSDF
         >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
         >>> bases = jnp.array([[0.0, 0.0], [-60.0, 0.0], [jnp.nan, 0.0]])  # mm
         >>> est = estimate_batch(f, PolygonSDF.regular((20.0, 30.0), 8.0), bases, estimator=Geometric())
-        >>> est.joints.shape, [CASE_NAMES[int(c)] for c in est.case[:2]], est.valid.tolist()
+        >>> est.joints.shape, est.case_name[:2].tolist(), est.valid.tolist()
         ((3, 11, 2), ['other', 'none'], [True, True, False])
     """
     check_finger(finger)
     check_sdf(sdf)
-    estimator = as_estimator(estimator, method, mechanics)
+    estimator = as_estimator(estimator)
     bases = as_candidates(bases, 2, finger.length.dtype, "estimate_batch: bases")
     return run_batch(_estimate_batch, _estimate_sharded, (finger, sdf), bases, (config,), chunk_size, workers, estimator,
                      progress)
@@ -232,14 +229,12 @@ def estimate_grasp_batch(
     *,
     chunk_size: int = DEFAULT_CHUNK,
     estimator: AbstractEstimator | None = None,
-    method: str | None = None,
-    mechanics: MechanicsConfig | None = None,
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> GraspEstimate:
     """:func:`estimate_grasp` for B poses (x mm, y mm, angle rad), ``chunk_size`` at a time.
 
-    ``estimator`` (or the older ``method`` / ``mechanics``) is as for :func:`estimate_grasp`.
+    ``estimator`` is as for :func:`estimate_grasp`.
 
     Args:
         poses: (B, 3) gripper poses: centre x, y (mm) and angle (rad).
@@ -262,7 +257,7 @@ def estimate_grasp_batch(
     """
     check_gripper(gripper)
     check_sdf(sdf)
-    estimator = as_estimator(estimator, method, mechanics)
+    estimator = as_estimator(estimator)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "estimate_grasp_batch: poses")
     return run_batch(_estimate_grasp_batch, _estimate_grasp_sharded, (gripper, sdf), poses, (config,), chunk_size,
                      workers, estimator, progress)

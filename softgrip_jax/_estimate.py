@@ -13,7 +13,6 @@ from softgrip_jax._contact import ContactConfig
 from softgrip_jax._estimators import AbstractEstimator, as_estimator
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._checks import check_finger, check_sdf
-from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import FingerModel
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate, geometric_stage
@@ -26,16 +25,13 @@ def estimate_in_frame(
     config: ContactConfig = ContactConfig(),
     *,
     estimator: AbstractEstimator | None = None,
-    method: str | None = None,
-    mechanics: MechanicsConfig | None = None,
 ) -> Estimate:
     """Estimate one finger placed by ``frame`` (base, gripper angle, handedness); image-plane output.
 
     ``estimator`` chooses the deformation: ``Mechanics()`` (None: the default; the spring chain at
     equilibrium, :mod:`softgrip_jax._mechanics`, solved with ``Mechanics(config)``'s settings
-    wherever the finger touches the object) or ``Geometric()`` (the paper's eq. 9). The older
-    ``method="geometric" | "mechanics"`` (static under ``jit``) and ``mechanics=`` (a
-    :class:`MechanicsConfig`) are accepted instead (:func:`~softgrip_jax._estimators.as_estimator`).
+    wherever the finger touches the object) or ``Geometric()`` (the paper's eq. 9); a name such
+    as ``"geometric"`` becomes one with :func:`~softgrip_jax.as_estimator`.
 
     Example (a right finger, mirrored: it curls toward -x):
         >>> import jax, jax.numpy as jnp
@@ -49,7 +45,7 @@ def estimate_in_frame(
     """
     check_finger(finger)
     check_sdf(sdf)
-    estimator = as_estimator(estimator, method, mechanics)
+    estimator = as_estimator(estimator)
     stage = geometric_stage(finger, sdf, frame, config, estimator)
     return estimator.deform(finger, sdf, stage, config)
 
@@ -61,29 +57,26 @@ def estimate(
     config: ContactConfig = ContactConfig(),
     *,
     estimator: AbstractEstimator | None = None,
-    method: str | None = None,
-    mechanics: MechanicsConfig | None = None,
 ) -> Estimate:
     """Estimate the deformation of a finger hanging from ``base`` (mm) and curling toward +x.
 
     The whole pipeline for one finger: contact prediction (eqs. 5-8), then the deformation chosen by
     ``estimator``: ``Mechanics(config)`` (None: the default, ``Mechanics()``), the spring chain at
     equilibrium against the object (:mod:`softgrip_jax._mechanics`), or ``Geometric()``, the
-    paper's deformation of the predicted case (eq. 9). ``method=`` / ``mechanics=`` are the older
-    spelling, as for :func:`estimate_in_frame`. Pure and jit-, vmap- and grad-compatible (an
+    paper's deformation of the predicted case (eq. 9). Pure and jit-, vmap- and grad-compatible (an
     estimator has no array leaves: under ``jax.jit`` it is part of the compiled signature); a NaN or
     out-of-grid ``base`` gives ``valid=False`` and NaN joints without affecting other batch elements.
 
     Example:
         >>> import jax, jax.numpy as jnp
-        >>> from softgrip_jax import CASE_NAMES, Geometric, PolygonSDF
+        >>> from softgrip_jax import Geometric, PolygonSDF
         >>> finger = FingerModel(length=50.0, theta_entire=0.4, half_thickness=3.0, n_links=10)
         >>> run = jax.jit(estimate)  # compiles once per estimator; op by op is slower
         >>> est = run(finger, PolygonSDF.regular((60.0, 40.0), 8.0), jnp.zeros(2), estimator=Geometric())
-        >>> CASE_NAMES[int(est.case)], est.joints.shape  # joints: (N+1, 2) mm, base first
+        >>> est.case_name, est.joints.shape  # joints: (N+1, 2) mm, base first
         ('none', (11, 2))
     """
     check_finger(finger)
     check_sdf(sdf)
     frame = FingerFrame.hanging_from(jnp.asarray(base, finger.length.dtype))
-    return estimate_in_frame(finger, sdf, frame, config, estimator=estimator, method=method, mechanics=mechanics)
+    return estimate_in_frame(finger, sdf, frame, config, estimator=estimator)

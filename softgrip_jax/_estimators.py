@@ -14,8 +14,8 @@ settings) are equal and hash alike, so they share compiled programs and exported
 
 A new estimator is one subclass of :class:`AbstractEstimator`: a ``name`` and a :meth:`deform`,
 optionally its own checks of the finger's parameters and a batched :meth:`deform_batch`.
-:func:`as_estimator` turns the older ``method="geometric" | "mechanics"`` and ``mechanics=``
-keyword arguments into an estimator, in one place.
+:func:`as_estimator` turns an estimate's name (the command line's ``--method``, a profile's
+recorded estimate) into an estimator, in one place; every function takes the estimator itself.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ from jaxtyping import Array, Bool
 from softgrip_jax._contact import ContactConfig
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._gather import where_needed
-from softgrip_jax._mechanics import DEFAULT_METHOD, MechanicsConfig, check_method, closing_start, path_increments
+from softgrip_jax._mechanics import (DEFAULT_METHOD, METHODS, MechanicsConfig, check_method, closing_start,
+                                     path_increments)
 from softgrip_jax._model import FingerModel
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate, Stage, finish, mechanics_of, needs_mechanics
@@ -105,11 +106,11 @@ class Geometric(AbstractEstimator):
 
     Example:
         >>> import jax, jax.numpy as jnp
-        >>> from softgrip_jax import CASE_NAMES, FingerModel, PolygonSDF, estimate
+        >>> from softgrip_jax import FingerModel, PolygonSDF, estimate
         >>> finger = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
         >>> est = jax.jit(estimate)(finger, PolygonSDF.regular((20.0, 30.0), 8.0), jnp.zeros(2),
         ...                         estimator=Geometric())
-        >>> CASE_NAMES[int(est.case)], est.joints.shape  # joints: (N+1, 2) mm
+        >>> est.case_name, est.joints.shape  # joints: (N+1, 2) mm
         ('other', (11, 2))
     """
 
@@ -129,11 +130,11 @@ class Mechanics(AbstractEstimator):
 
     Example:
         >>> import jax, jax.numpy as jnp
-        >>> from softgrip_jax import CASE_NAMES, FingerModel, MechanicsConfig, PolygonSDF, estimate
+        >>> from softgrip_jax import FingerModel, MechanicsConfig, PolygonSDF, estimate
         >>> finger = FingerModel(52.0, 0.55, 4.0, 20, stiffness_ratio=2.0)
         >>> disc = PolygonSDF.regular((24.0, 30.0), 10.0, 64)
         >>> est = jax.jit(estimate)(finger, disc, jnp.zeros(2), estimator=Mechanics(MechanicsConfig(max_steps=8)))
-        >>> CASE_NAMES[int(est.case)], bool(est.valid)
+        >>> est.case_name, bool(est.valid)
         ('other', True)
         >>> Mechanics(MechanicsConfig(max_steps=8)) == Mechanics(MechanicsConfig(max_steps=8))
         True
@@ -167,16 +168,17 @@ class Mechanics(AbstractEstimator):
 
 
 def as_estimator(estimator: object = None, method: object = None, mechanics: object = None) -> AbstractEstimator:
-    """The estimator a public function was asked for: ``estimator`` itself, or the one the older
-    keyword arguments name (``method="geometric"``: :class:`Geometric`; ``method="mechanics"``:
-    ``Mechanics(mechanics)``), else the default (``DEFAULT_METHOD``, "mechanics":
-    ``Mechanics(mechanics or MechanicsConfig())``).
+    """The estimator a function was given (``estimator`` itself, checked), or the one a name
+    gives (``method="geometric"``: :class:`Geometric`; ``method="mechanics"``:
+    ``Mechanics(mechanics)``, as the command line's ``--method`` and a profile name them), else the
+    default (``DEFAULT_METHOD``, "mechanics": ``Mechanics(mechanics or MechanicsConfig())``).
 
     It takes any values and checks them itself (it is where a user's arguments arrive).
     ``mechanics`` alone (no ``method``) sets the default's solver settings; with
-    ``method="geometric"`` it is ignored, as it always was. Raises :class:`SoftgripError` when
-    ``estimator`` is given together with ``method`` or ``mechanics``, when ``estimator`` is not an
-    :class:`AbstractEstimator`, or when ``method`` names no estimate.
+    ``method="geometric"`` it is ignored. Raises :class:`SoftgripError` when ``estimator`` is given
+    together with ``method`` or ``mechanics``, when ``estimator`` is not an
+    :class:`AbstractEstimator` (a name says which one to pass), or when ``method`` names no
+    estimate.
 
     Example:
         >>> as_estimator(method="geometric") == Geometric(), as_estimator() == Mechanics()
@@ -187,6 +189,10 @@ def as_estimator(estimator: object = None, method: object = None, mechanics: obj
             given = " and ".join(f"{k}=" for k, v in (("method", method), ("mechanics", mechanics)) if v is not None)
             raise SoftgripError(f"give either estimator= or the older {given}, not both "
                                 f"(e.g. estimator=Mechanics(MechanicsConfig(...)))")
+        if isinstance(estimator, str) and estimator in METHODS:
+            raise SoftgripError(f"estimator={estimator!r}: pass the estimator itself, "
+                                f"{'Geometric()' if estimator == 'geometric' else 'Mechanics()'} (softgrip_jax), "
+                                f"or as_estimator(method={estimator!r})")
         if not isinstance(estimator, AbstractEstimator):
             raise SoftgripError(f"estimator must be a softgrip_jax estimator (Geometric(), Mechanics(config), or "
                                 f"another AbstractEstimator), got {type(estimator).__name__}")

@@ -18,7 +18,6 @@ from softgrip_jax._contact import ContactConfig
 from softgrip_jax._estimate import estimate_in_frame
 from softgrip_jax._estimators import AbstractEstimator, as_estimator
 from softgrip_jax._frames import FingerFrame, across_direction
-from softgrip_jax._mechanics import MechanicsConfig
 from softgrip_jax._model import Gripper
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate
@@ -63,18 +62,15 @@ def estimate_grasp(
     config: ContactConfig = ContactConfig(),
     *,
     estimator: AbstractEstimator | None = None,
-    method: str | None = None,
-    mechanics: MechanicsConfig | None = None,
 ) -> GraspEstimate:
     """Estimate both fingers of ``gripper`` at ``pose`` = (x mm, y mm, angle rad) against ``sdf``.
 
     ``estimator``: ``Mechanics(config)`` (None: the default, ``Mechanics()``; the spring chain at
-    equilibrium) or ``Geometric()`` (the paper's eq. 9), as for :func:`estimate_in_frame`; the older
-    ``method=`` (static under ``jit``) and ``mechanics=`` are accepted instead.
+    equilibrium) or ``Geometric()`` (the paper's eq. 9), as for :func:`estimate_in_frame`.
 
     Example:
         >>> import jax.numpy as jnp
-        >>> from softgrip_jax import FingerModel, Gripper, PolygonSDF, CASE_NAMES
+        >>> from softgrip_jax import FingerModel, Gripper, PolygonSDF
         >>> f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
         >>> g = Gripper(left=f, right=f, base_separation=50.0)
         >>> disc = PolygonSDF.regular((0.0, 35.0), 9.0)
@@ -82,15 +78,15 @@ def estimate_grasp(
         >>> from softgrip_jax import Geometric
         >>> run = jax.jit(estimate_grasp)  # compiles once per estimator; op by op is slower
         >>> est = run(g, disc, jnp.array([0.0, 0.0, 0.0]), estimator=Geometric())
-        >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
+        >>> [e.case_name for e in (est.left, est.right)]
         ['other', 'other']
         >>> est = run(g, disc, jnp.array([0.0, 0.0, 0.0]))  # the default: mechanics
-        >>> [CASE_NAMES[int(e.case)] for e in (est.left, est.right)]
+        >>> [e.case_name for e in (est.left, est.right)]
         ['tip', 'tip']
     """
     check_gripper(gripper)
     check_sdf(sdf)
-    estimator = as_estimator(estimator, method, mechanics)
+    estimator = as_estimator(estimator)
     left_frame, right_frame = finger_frames(gripper, pose)
     left, right = per_finger(lambda finger, frame: estimate_in_frame(finger, sdf, frame, config, estimator=estimator),
                              gripper, (left_frame, right_frame))

@@ -165,13 +165,13 @@ class MechanicsConfig(eqx.Module):
 
     Example:
         >>> import jax.numpy as jnp
-        >>> from softgrip_jax import FingerModel, PolygonSDF, estimate, CASE_NAMES
+        >>> from softgrip_jax import FingerModel, Mechanics, PolygonSDF, estimate
         >>> finger = FingerModel(52.0, 0.55, 4.0, 20, stiffness_ratio=2.0)
         >>> disc = PolygonSDF.regular((24.0, 30.0), 10.0, 64)
         >>> import jax
-        >>> run = jax.jit(estimate, static_argnames="method")  # compiles once; op by op is slower
-        >>> est = run(finger, disc, jnp.zeros(2), method="mechanics", mechanics=MechanicsConfig(max_steps=8))
-        >>> CASE_NAMES[int(est.case)], bool(est.valid)
+        >>> run = jax.jit(estimate)  # compiles once per estimator; op by op is slower
+        >>> est = run(finger, disc, jnp.zeros(2), estimator=Mechanics(MechanicsConfig(max_steps=8)))
+        >>> est.case_name, bool(est.valid)
         ('other', True)
     """
 

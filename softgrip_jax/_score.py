@@ -37,6 +37,7 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
@@ -51,8 +52,9 @@ from softgrip_jax._gather import where_needed
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp, per_finger
 from softgrip_jax._kinematics import chain_stations
 from softgrip_jax._estimators import AbstractEstimator, Mechanics, as_estimator
-from softgrip_jax._mechanics import MechanicsConfig, contact_forces
+from softgrip_jax._mechanics import contact_forces
 from softgrip_jax._model import FingerModel, Gripper
+from softgrip_jax._names import code_names
 from softgrip_jax._quality import (CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, closure_margin, edge_wrenches,
                                    finger_contacts)
 from softgrip_jax._robust import (NOISE_SIZE, OffsetSDF, Uncertainty, linear_moments, noise_deviations, perturbations,
@@ -148,6 +150,11 @@ class Score(eqx.Module):
     p_closure: Float[Array, ""]
     margin: Float[Array, ""]
 
+    @property
+    def status_name(self) -> str | np.ndarray:
+        """``status`` by name (:class:`Status`, lower case; an array of names for a batch; outside ``jit``)."""
+        return code_names(self.status, Status)
+
 
 def _finger_terms(finger: FingerModel, sdf: AbstractSDF, est: Estimate, weights: ScoreWeights, config, estimator,
                   handedness: Float[ArrayLike, ""]):
@@ -187,8 +194,6 @@ def score_pose(
     config: ContactConfig = ContactConfig(),
     *,
     estimator: AbstractEstimator | None = None,
-    method: str | None = None,
-    mechanics: MechanicsConfig | None = None,
     uncertainty: Uncertainty | None = None,
 ) -> Score:
     """Score one pose (x mm, y mm, angle rad). Pure; jit-, vmap- and grad-compatible.
@@ -197,8 +202,7 @@ def score_pose(
     its K draws (``quality_mean``, ``p_closure``), which then rank grasps in force closure.
 
     ``estimator`` chooses the fingers' deformation estimate, ``Mechanics(config)`` (None: the
-    default, ``Mechanics()``) or ``Geometric()``, as for :func:`estimate_grasp` (or the older
-    ``method=``, static under ``jit``, and ``mechanics=``).
+    default, ``Mechanics()``) or ``Geometric()``, as for :func:`estimate_grasp`.
 
     Example:
         >>> import jax.numpy as jnp
@@ -215,7 +219,7 @@ def score_pose(
     """
     check_gripper(gripper)
     check_sdf(sdf)
-    estimator = as_estimator(estimator, method, mechanics)
+    estimator = as_estimator(estimator)
     if uncertainty is not None and uncertainty.linear:
         def at(z):
             sample = perturbed(gripper, weights.mu, uncertainty, z)
@@ -391,8 +395,6 @@ def score(
     *,
     chunk_size: int = DEFAULT_CHUNK,
     estimator: AbstractEstimator | None = None,
-    method: str | None = None,
-    mechanics: MechanicsConfig | None = None,
     workers: int | None = None,
     uncertainty: Uncertainty | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -404,8 +406,7 @@ def score(
     present (GPUs, or hosts joined by ``jax.distributed``), each device runs pieces of the same size
     with ``jax.sharding``; results agree with a single device's to float32 rounding. Returns a
     :class:`Score` whose leaves have a leading axis B; rank with ``jnp.argsort(-result.score)``.
-    ``estimator`` (or the older ``method`` / ``mechanics``) chooses the deformation estimate, as for
-    :func:`score_pose`; with ``Mechanics()`` (the default) the equilibrium is solved only for
+    ``estimator`` chooses the deformation estimate, as for :func:`score_pose`; with ``Mechanics()`` (the default) the equilibrium is solved only for
     fingers that touch.
 
     Args:
@@ -435,8 +436,7 @@ def score(
     Example (the README's planner: score a grid of poses, refine the best, read both fingers'
     contacts; ``tests/test_readme.py`` keeps the README's copy identical):
         >>> import jax.numpy as jnp
-        >>> from softgrip_jax import (CASE_NAMES, FingerModel, Geometric, Gripper, PolygonSDF, enable_compilation_cache,
-        ...                           refine, score)
+        >>> from softgrip_jax import FingerModel, Geometric, Gripper, PolygonSDF, enable_compilation_cache, refine, score
         >>> # Compiled programs kept on disk (a per-user folder): a new process starts in seconds.
         >>> cache_folder = enable_compilation_cache()
         >>> finger = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=20)  # mm, rad
@@ -461,14 +461,14 @@ def score(
         True
         >>> for side in ("left", "right"):  # why it won: both fingers of the refined pose, each an Estimate
         ...     f = getattr(refined.score.grasp, side)
-        ...     print(side, CASE_NAMES[int(f.case)], "first contact on the object (mm):",
+        ...     print(side, f.case_name, "first contact on the object (mm):",
         ...           [round(float(v), 1) for v in f.contact.p_o1], "tip (mm):", [round(float(v), 1) for v in f.joints[-1]])
         left tip first contact on the object (mm): [-14.8, 40.2] tip (mm): [-19.2, 38.6]
         right tip first contact on the object (mm): [14.8, 40.2] tip (mm): [19.2, 38.6]
     """
     check_gripper(gripper)
     check_sdf(sdf)
-    estimator = as_estimator(estimator, method, mechanics)
+    estimator = as_estimator(estimator)
     poses = as_candidates(poses, 3, gripper.base_separation.dtype, "score: poses")
     return run_batch(_score_one_device, _score_sharded, (gripper, sdf), poses, (weights, config, uncertainty),
                      chunk_size, workers, estimator, progress)
@@ -489,6 +489,12 @@ class Refined(eqx.Module):
     status: Int[Array, ""]
     solver_result: Int[Array, ""]  #: optimistix.RESULTS code of the minimiser, as an integer
     steps: Int[Array, ""]
+
+    @property
+    def status_name(self) -> str | np.ndarray:
+        """``status`` by name: ``"improved"``, ``"no_improvement"`` or ``"invalid_start"`` (an array of
+        names for a batch; outside ``jit``)."""
+        return code_names(self.status, RefineStatus)
 
 
 def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, angle_scale, estimator):
@@ -550,8 +556,6 @@ def refine(
     max_steps: int = 40,
     angle_scale: float = 0.05,
     estimator: AbstractEstimator | None = None,
-    method: str | None = None,
-    mechanics: MechanicsConfig | None = None,
     uncertainty: Uncertainty | None = None,
     chunk_size: int = REFINE_CHUNK,
     workers: int | None = None,
@@ -562,8 +566,8 @@ def refine(
 
     The result never gets worse: when the minimiser ends at a pose that scores lower or is not
     valid, the start pose is returned with ``status = NO_IMPROVEMENT``. ``angle_scale`` (rad per
-    unit of the minimiser's variable) balances millimetres against radians. ``estimator`` (or the
-    older ``method`` / ``mechanics``) chooses the deformation estimate, as for :func:`score_pose`;
+    unit of the minimiser's variable) balances millimetres against radians. ``estimator``
+    chooses the deformation estimate, as for :func:`score_pose`;
     the mechanics estimate's gradient in the pose comes from implicit differentiation.
 
     One pose (3,) and a batch (B, 3) run two compiled programs of the same algorithm (a batch under
@@ -587,7 +591,7 @@ def refine(
     """
     check_gripper(gripper)
     check_sdf(sdf)
-    estimator = as_estimator(estimator, method, mechanics)
+    estimator = as_estimator(estimator)
     poses = as_candidates(pose, 3, gripper.base_separation.dtype, "refine: pose", single=True)
     scale = jnp.asarray(angle_scale, poses.dtype)
     if poses.ndim == 1:

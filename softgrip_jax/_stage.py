@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from softgrip_jax._contact import Bracket, Contact, ContactCase, ContactConfig, bracket_contact, free_contact, refine_contact
@@ -23,6 +24,7 @@ from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics
 from softgrip_jax._mechanics import Equilibrium, MechanicsConfig, closing_start, solve_equilibrium
 from softgrip_jax._model import FingerModel
+from softgrip_jax._names import code_names
 from softgrip_jax._sdf import AbstractSDF
 
 if TYPE_CHECKING:
@@ -114,6 +116,18 @@ class Estimate(eqx.Module):
     residual: Float[Array, ""]
     event: Bool[Array, ""]
     sensitivity: Float[Array, ""]
+
+    @property
+    def case_name(self) -> str | np.ndarray:
+        """``case`` by name: ``"none"``, ``"tip"``, ``"tip_and_other"`` or ``"other"`` (an array of
+        names for a batch; outside ``jit``)."""
+        return code_names(self.case, ContactCase)
+
+    @property
+    def status_name(self) -> str | np.ndarray:
+        """``status`` by name: ``"ok"``, ``"base_outside_sdf"``, ... (:class:`Status`, lower case; an
+        array of names for a batch; outside ``jit``)."""
+        return code_names(self.status, Status)
 
 
 class Stage(eqx.Module):

@@ -267,8 +267,8 @@ class Scene:
             text += "no object; "
         return text + f"plane {self.camera.depth_mm:.1f} mm deep"
 
-    def estimate(self, poses: Float[ArrayLike, "*b 3"] | None = None, *, estimator: AbstractEstimator | None = None,
-                 method: str | None = None) -> GraspEstimate:
+    def estimate(self, poses: Float[ArrayLike, "*b 3"] | None = None, *,
+                 estimator: AbstractEstimator | None = None) -> GraspEstimate:
         """Both fingers' estimates, as numpy (a :class:`softgrip_jax.GraspEstimate`).
 
         Args:
@@ -276,7 +276,6 @@ class Scene:
                 x mm, y mm, angle rad.
             estimator: the deformation estimate, ``softgrip_jax.Geometric()`` or
                 ``softgrip_jax.Mechanics(config)`` (None: ``Mechanics()``).
-            method: the older spelling of ``estimator``: ``"geometric"`` or ``"mechanics"``.
 
         Returns:
             For None or one pose, one ``GraspEstimate`` (joints (N+1, 2) mm per finger); for (B, 3),
@@ -284,7 +283,7 @@ class Scene:
         """
         import jax.numpy as jnp
 
-        estimator = as_estimator(estimator, method)
+        estimator = as_estimator(estimator)
         dtype = self.gripper.base_separation.dtype
         if poses is None or np.ndim(poses) == 1:
             pose = _poses(self.pose if poses is None else poses, "Scene.estimate")[0]
@@ -296,12 +295,12 @@ class Scene:
         return to_numpy(estimate_grasp_batch(self.gripper, self.sdf, batch.astype(dtype), estimator=estimator))
 
     def score(self, poses: Float[ArrayLike, "*b 3"], *, estimator: AbstractEstimator | None = None,
-              method: str | None = None, weights: ScoreWeights | None = None,
+              weights: ScoreWeights | None = None,
               uncertainty: Uncertainty | None = None,
               progress: Callable[[int, int], None] | None = None) -> Score:
         """Score poses (numpy or JAX, (3,) or (B, 3): x mm, y mm, angle rad) in one compiled call.
 
-        ``estimator`` (or the older ``method``) is as for :meth:`estimate`. Every batch size runs
+        ``estimator`` is as for :meth:`estimate`. Every batch size runs
         through one compiled program (:func:`softgrip_jax.score` evaluates pieces of one size);
         ``progress(done, total)`` is called after each piece. ``weights``: a
         :class:`softgrip_jax.ScoreWeights` (None: the defaults), e.g.
@@ -324,7 +323,7 @@ class Scene:
         # numpy poses: the core splits them into pieces on the host (jnp.asarray of a new batch
         # size would compile a small program for it).
         result = jax.block_until_ready(score(self.gripper, self.sdf, batch.astype(self.gripper.base_separation.dtype),
-                                             weights, estimator=as_estimator(estimator, method),
+                                             weights, estimator=as_estimator(estimator),
                                              uncertainty=uncertainty, progress=progress))
         return to_numpy(result)
 

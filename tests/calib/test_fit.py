@@ -33,6 +33,7 @@ from synthetic.render import Scene, d405_intrinsics, render
 from synthetic.rod import free_arc_points
 from synthetic.scenes import gripper_centrelines
 from synthetic.shapes import shape
+from softgrip_jax import Geometric, Mechanics
 
 N = 10
 LENGTH, HALF_THICKNESS, SEPARATION = 52.0, 4.0, 64.0
@@ -82,9 +83,9 @@ def thetas(profile: CalibrationProfile) -> np.ndarray:
     return np.array([profile.fingers[side].theta_entire for side in ("left", "right")])
 
 
-def quiet_fit(*args, method="geometric", **kwargs) -> CalibrationProfile:
-    """The paper's geometric fit unless ``method`` says otherwise, without a progress bar."""
-    return fit(*args, progress=False, method=method, **kwargs)
+def quiet_fit(*args, estimator=Geometric(), **kwargs) -> CalibrationProfile:
+    """The paper's geometric fit unless ``estimator`` says otherwise, without a progress bar."""
+    return fit(*args, progress=False, estimator=estimator, **kwargs)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -510,9 +511,9 @@ def sample_fits():
     assert not skipped
     calibration = free_closure_observation(load_frame(DATA / "calib_open"), load_frame(DATA / "calib_closed"), None,
                                            20, "calib_open + calib_closed")
-    with_pair = fit([*objects, calibration], start, method="mechanics", progress=False)
-    objects_only = fit(objects, start, method="mechanics", progress=False)
-    from_objects_only = fit([*objects, calibration], objects_only, method="mechanics", progress=False)
+    with_pair = fit([*objects, calibration], start, estimator=Mechanics(), progress=False)
+    objects_only = fit(objects, start, estimator=Mechanics(), progress=False)
+    from_objects_only = fit([*objects, calibration], objects_only, estimator=Mechanics(), progress=False)
     return start, with_pair, objects_only, from_objects_only
 
 

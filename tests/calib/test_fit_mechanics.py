@@ -15,6 +15,7 @@ from softgrip_calib.fit import COMPLIANCE_START, PARAMETERS, FitError, Observati
 from softgrip_calib.profile import CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import PolygonSDF
 from synthetic.rod import RodMechanics, close_rod, free_arc_points, observed_joints
+from softgrip_jax import Geometric, Mechanics
 
 N = 10
 LENGTH, HALF_THICKNESS, SEPARATION = 52.0, 4.0, 64.0
@@ -61,12 +62,14 @@ def test_stiffness_parameters_need_the_mechanics_estimate(parameters) -> None:
     free = np.stack([np.asarray(free_arc_points(b, TRUE_THETA[s], LENGTH, np.linspace(0.0, LENGTH, N + 1),
                                                 HANDEDNESS[s])) for s, b in zip(("left", "right"), BASES)])
     pairs = [Observation(PolygonSDF.regular((0.0, 300.0), 5.0, 64), BASES, free, f"pair {i}") for i in range(3)]
-    with pytest.raises(FitError, match=r"only affect\(s\) the mechanics estimate, so method='geometric' cannot fit "
-                                       r"them: fit with method='mechanics' \(softgrip calibrate --fit \.\.\. --method "
-                                       r"mechanics\)"):
-        fit(pairs, start_profile(), parameters, method="geometric", progress=False)
-    with pytest.raises(FitError, match="method must be one of 'geometric', 'mechanics'"):
-        fit(pairs, start_profile(), ["theta_entire"], method="spring", progress=False)
+    with pytest.raises(FitError, match=r"only affect\(s\) the mechanics estimate, so 'geometric' cannot fit "
+                                       r"them: fit with estimator=Mechanics\(\) \(softgrip calibrate --fit \.\.\. "
+                                       r"--method mechanics\)"):
+        fit(pairs, start_profile(), parameters, estimator=Geometric(), progress=False)
+    with pytest.raises(FitError, match="estimator must be a softgrip_jax estimator"):
+        fit(pairs, start_profile(), ["theta_entire"], estimator="spring", progress=False)
+    with pytest.raises(FitError, match=r"pass the estimator itself, Mechanics\(\)"):
+        fit(pairs, start_profile(), ["theta_entire"], estimator="mechanics", progress=False)
 
 
 @pytest.mark.slow
@@ -83,7 +86,7 @@ def test_a_stiffness_doubling_toward_the_base_is_recovered_from_rod_closures() -
     """
     observations = [rod_observation(disc, f"disc {i}", RodMechanics(stiffness_ratio=TRUE_RATIO))
                     for i, disc in enumerate(DISCS)]
-    fitted = fit(observations, start_profile(), ("theta_entire", "stiffness_ratio"), method="mechanics",
+    fitted = fit(observations, start_profile(), ("theta_entire", "stiffness_ratio"), estimator=Mechanics(),
                  progress=False)
     errors = fitted.fit.standard_errors
     for side in ("left", "right"):
@@ -105,4 +108,4 @@ def test_a_stiffness_doubling_toward_the_base_is_recovered_from_rod_closures() -
     far = [Observation(PolygonSDF.regular((0.0, 300.0), 5.0, 64), BASES, free, f"far {i}") for i in range(2)]
     with pytest.raises(FitError, match=r"do not constrain left\.stiffness_ratio, right\.stiffness_ratio.*touches an "
                                        r"object"):
-        fit(far, start_profile(), ("theta_entire", "stiffness_ratio"), method="mechanics", progress=False)
+        fit(far, start_profile(), ("theta_entire", "stiffness_ratio"), estimator=Mechanics(), progress=False)

@@ -10,9 +10,10 @@ import pytest
 from softgrip_jax import (CASE_NAMES, FingerModel, Gripper, PolygonSDF, SDFGrid, Status, estimate,
                           estimate_batch, estimate_grasp_batch)
 from softgrip_jax._batch import _estimate_batch
+from softgrip_jax import Geometric
 
 #: The paper's estimate: these tests check its batching (the mechanics one has its own tests).
-geometric = functools.partial(estimate, method="geometric")
+geometric = functools.partial(estimate, estimator=Geometric())
 
 FINGER = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=10)
 CIRCLE = PolygonSDF.regular((30.0, 40.0), 8.0, 128)
@@ -26,8 +27,8 @@ def bases(n, seed, x_max=40.0):
 
 def test_batch_compiles_once_per_shape():
     before = _estimate_batch._cache_size()
-    first = estimate_batch(FINGER, GRID, bases(64, 0), chunk_size=16, method="geometric")
-    second = estimate_batch(FINGER, GRID, bases(64, 1), chunk_size=16, method="geometric")
+    first = estimate_batch(FINGER, GRID, bases(64, 0), chunk_size=16, estimator=Geometric())
+    second = estimate_batch(FINGER, GRID, bases(64, 1), chunk_size=16, estimator=Geometric())
     assert _estimate_batch._cache_size() == before + 1
     assert not np.allclose(first.joints, second.joints)  # the second call really used new inputs
     assert set(np.unique(first.case)) > {0}  # the scene produces contacts, not just case (a)
@@ -38,8 +39,8 @@ def test_bad_candidates_are_flagged_and_isolated():
     batch = good.copy()
     batch[2] = [np.nan, 0.0]  # NaN
     batch[5] = [500.0, 0.0]  # far outside the SDF grid (outside the image)
-    out = estimate_batch(FINGER, GRID, batch, method="geometric")
-    clean = estimate_batch(FINGER, GRID, good, method="geometric")
+    out = estimate_batch(FINGER, GRID, batch, estimator=Geometric())
+    clean = estimate_batch(FINGER, GRID, good, estimator=Geometric())
     assert out.valid.tolist() == [True, True, False, True, True, False, True, True]
     assert int(out.status[2]) == Status.NON_FINITE_INPUT and int(out.status[5]) == Status.BASE_OUTSIDE_SDF
     assert np.all(np.isnan(out.joints[2])) and np.all(np.isnan(out.joints[5]))
@@ -65,7 +66,7 @@ def test_batch_refines_only_touching_fingers_with_the_same_results():
     f = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=4)
     many = bases(300, 5)
     one = jax.jit(jax.vmap(geometric, in_axes=(None, None, 0)))(f, GRID, many)
-    batch = estimate_batch(f, GRID, many, chunk_size=128, method="geometric", workers=1)
+    batch = estimate_batch(f, GRID, many, chunk_size=128, estimator=Geometric(), workers=1)
     np.testing.assert_array_equal(batch.case, one.case)
     np.testing.assert_array_equal(batch.status, one.status)
     assert len(set(np.asarray(one.case[one.valid]).tolist())) >= 3 and not bool(jnp.all(one.valid))
@@ -87,7 +88,7 @@ def test_vmap_over_100k_bases_matches_chunked_batch():
     np.testing.assert_array_equal(
         np.asarray(vmapped.status)[clear], np.where(gap[clear] > 0, Status.OK, Status.INITIAL_OVERLAP))
     assert np.all(np.isfinite(vmapped.joints))
-    chunked = estimate_batch(FINGER, GRID, many[:1000], chunk_size=256, method="geometric")
+    chunked = estimate_batch(FINGER, GRID, many[:1000], chunk_size=256, estimator=Geometric())
     np.testing.assert_allclose(vmapped.joints[:1000], chunked.joints, atol=1e-4)
     counts = np.bincount(np.asarray(vmapped.case), minlength=4)
     assert all(c > 0 for c in counts), dict(zip(CASE_NAMES, counts))  # every case occurs
@@ -98,7 +99,7 @@ def test_grasp_batch_is_mirror_symmetric():
     gripper = Gripper(left=f, right=f, base_separation=50.0)
     sdf = PolygonSDF.regular((0.0, 35.0), 9.0, 128)  # symmetric about x = 0
     poses = np.array([[0.0, 0.0, 0.0], [0.0, 5.0, 0.0]], np.float32)
-    est = estimate_grasp_batch(gripper, sdf, poses, method="geometric")
+    est = estimate_grasp_batch(gripper, sdf, poses, estimator=Geometric())
     mirrored = np.asarray(est.right.joints) * np.array([-1.0, 1.0])
     np.testing.assert_allclose(est.left.joints, mirrored, atol=1e-4)
     np.testing.assert_array_equal(est.left.case, est.right.case)
@@ -113,7 +114,7 @@ def test_rotated_gripper_is_the_rotated_scene():
     # whose axes are (cos a, -sin a) across and (sin a, cos a) down.
     rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
     verts = np.asarray(PolygonSDF.regular((5.0, 35.0), 9.0, 128).vertices)
-    upright = estimate_grasp_batch(gripper, PolygonSDF(jnp.asarray(verts)), np.zeros((1, 3), np.float32), method="geometric")
-    turned = estimate_grasp_batch(gripper, PolygonSDF(jnp.asarray(verts @ rot)), np.array([[0, 0, angle]], np.float32), method="geometric")
+    upright = estimate_grasp_batch(gripper, PolygonSDF(jnp.asarray(verts)), np.zeros((1, 3), np.float32), estimator=Geometric())
+    turned = estimate_grasp_batch(gripper, PolygonSDF(jnp.asarray(verts @ rot)), np.array([[0, 0, angle]], np.float32), estimator=Geometric())
     np.testing.assert_allclose(np.asarray(turned.left.joints[0]), np.asarray(upright.left.joints[0]) @ rot, atol=1e-3)
     np.testing.assert_array_equal(turned.right.case, upright.right.case)

@@ -9,6 +9,7 @@ import pytest
 
 from softgrip_jax import CASE_NAMES, ContactCase, FingerModel, PolygonSDF, Status
 from softgrip_jax import estimate as _estimate
+from softgrip_jax import Geometric
 
 estimate = eqx.filter_jit(_estimate)
 L, R_FINGER, N = 50.0, 3.0, 10
@@ -27,7 +28,7 @@ def chain(psi, turning):
 
 def run(theta, center, radius):
     finger = FingerModel(length=L, theta_entire=theta, half_thickness=R_FINGER, n_links=N)
-    est = estimate(finger, PolygonSDF.regular(center, radius, n_vertices=720), jnp.zeros(2), method="geometric")
+    est = estimate(finger, PolygonSDF.regular(center, radius, n_vertices=720), jnp.zeros(2), estimator=Geometric())
     assert int(est.status) == Status.OK and bool(est.valid)
     return est, est.contact
 
@@ -44,7 +45,7 @@ def test_case_b_tip_rotates_the_free_shape_back_by_theta_remain():
     theta, radius = 0.5, 5.0
     tip = (L / N) * math.sin(0.25) / math.sin(0.025) * np.array([math.sin(0.25), math.cos(0.25)])
     est, c = run(theta, (tip[0] + R_FINGER + radius, tip[1]), radius)
-    assert CASE_NAMES[int(est.case)] == "tip"
+    assert CASE_NAMES[int(est.case)] == est.case_name == "tip"
     assert float(c.s1) == pytest.approx(0.25, abs=2e-3)
     assert float(c.n_g1) == pytest.approx(N, abs=1e-3)
     np.testing.assert_allclose(c.p_g1, tip, atol=0.05)
@@ -71,7 +72,7 @@ BIG = ((45.0, 25.0), 40.0)
 def test_case_c_tip_and_other():
     theta = 0.6
     est, c = run(theta, *BIG)
-    assert CASE_NAMES[int(est.case)] == "tip_and_other"
+    assert CASE_NAMES[int(est.case)] == est.case_name == "tip_and_other"
     assert 0 < float(c.n_g1) < N - 0.5 and bool(c.has_second)
     # Both contacts lie on the object's surface; the centreline points r outside them are the
     # remaining length L - L_g1 apart (the circle of Fig. 8 on the object dilated by r).
@@ -99,7 +100,7 @@ def expected_case_d(theta, c):
 def test_case_d_when_the_tip_cannot_reach_the_second_point():
     theta = 0.35  # same scene as case (c), but Theta_remain < Theta_o1o2
     est, c = run(theta, *BIG)
-    assert CASE_NAMES[int(est.case)] == "other"
+    assert CASE_NAMES[int(est.case)] == est.case_name == "other"
     assert bool(c.has_second) and float(c.theta_remain) < float(c.theta_o1o2)
     np.testing.assert_allclose(est.joints, expected_case_d(theta, c), atol=1e-4)
 
@@ -107,7 +108,7 @@ def test_case_d_when_the_tip_cannot_reach_the_second_point():
 def test_case_d_small_object_inside_the_remaining_reach():
     theta = 0.5
     est, c = run(theta, (8.0, 20.0), 3.0)
-    assert CASE_NAMES[int(est.case)] == "other"
+    assert CASE_NAMES[int(est.case)] == est.case_name == "other"
     assert not bool(c.has_second)  # the 6 mm object lies wholly inside the circle of radius L - L_g1
     joints = np.asarray(est.joints)
     np.testing.assert_allclose(joints, expected_case_d(theta, c), atol=1e-4)

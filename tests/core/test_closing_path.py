@@ -32,12 +32,13 @@ from softgrip_jax import (CASE_NAMES, ContactCase, FingerModel, Gripper, Mechani
 from synthetic.rod import RodMechanics, close_rod, observed_joints
 from synthetic.shapes import shape
 from synthetic.smooth import DiscSDF
+from softgrip_jax import Mechanics
 
 LENGTH, THETA, HALF_THICKNESS, N = 52.0, 0.7, 4.0, 20
 FINGER = FingerModel(LENGTH, THETA, HALF_THICKNESS, N, stiffness_ratio=2.0)
 DISC = PolygonSDF.regular((20.0, 60.0), 10.0, 64)
 
-run_estimate = jax.jit(estimate, static_argnames="method")
+run_estimate = jax.jit(estimate)
 
 
 @functools.cache
@@ -52,7 +53,7 @@ def rod(base):
 def test_the_tip_slides_off_a_convex_object_and_the_finger_closes_past_it_as_the_rod_does():
     base = (0.0, -0.5)
     observed, rod_touches = rod(base)
-    est = run_estimate(FINGER, DISC, jnp.asarray(base, jnp.float32), method="mechanics")
+    est = run_estimate(FINGER, DISC, jnp.asarray(base, jnp.float32), estimator=Mechanics())
     assert bool(est.valid) and int(est.status) == Status.OK
     # The open finger's closure first meets the disc (the contact sweep), the tip slides off and the
     # finger ends free beside it: no contact at the end, for the rod as for the estimate.
@@ -67,7 +68,7 @@ def test_the_tip_slides_off_a_convex_object_and_the_finger_closes_past_it_as_the
 def test_a_tip_that_stays_on_the_object_is_no_event():
     base = (5.0, 0.0)
     observed, rod_touches = rod(base)
-    est = run_estimate(FINGER, DISC, jnp.asarray(base, jnp.float32), method="mechanics")
+    est = run_estimate(FINGER, DISC, jnp.asarray(base, jnp.float32), estimator=Mechanics())
     assert bool(est.valid) and rod_touches and int(est.case) == ContactCase.TIP
     assert not bool(est.event)
     error = np.linalg.norm(np.asarray(est.joints, np.float64) - observed, axis=-1)
@@ -142,7 +143,7 @@ def test_a_tip_held_on_a_flat_face_rests_where_the_exact_elastica_does(rotation,
     finger = FingerModel(LENGTH, THETA, HALF_THICKNESS, N, stiffness_ratio=stiffness_ratio,
                          base_compliance=base_compliance)
     est = run_estimate(finger, PolygonSDF(jnp.asarray(square, jnp.float32)), jnp.asarray(base, jnp.float32),
-                       method="mechanics")
+                       estimator=Mechanics())
     assert bool(est.valid) and int(est.case) == ContactCase.TIP, CASE_NAMES[int(est.case)]
     tip = np.asarray(est.joints[-1], np.float64)
     corners = square[::16]
@@ -166,7 +167,7 @@ PLAIN = FingerModel(LENGTH, THETA, HALF_THICKNESS, N)
 
 def test_the_sensitivity_is_the_tips_central_difference_and_one_for_a_free_finger():
     tight = MechanicsConfig(step_tol=1e-5, max_steps=200)  # converged far below the difference's step
-    run = jax.jit(lambda b: estimate(PLAIN, SMOOTH, b, method="mechanics", mechanics=tight))
+    run = jax.jit(lambda b: estimate(PLAIN, SMOOTH, b, estimator=Mechanics(tight)))
     base = np.array([2.0, 0.0], np.float32)
     est = run(jnp.asarray(base))
     assert bool(est.valid) and int(est.case) == ContactCase.TIP and not bool(est.event)
@@ -190,7 +191,7 @@ def fold_sweep():
     (about y = -0.07 here; below it the finger snaps past the disc): bases (201, 2) and estimates."""
     steps = np.arange(-0.2, 0.2 + 1e-9, 0.002)
     bases = np.column_stack([np.zeros_like(steps), steps]).astype(np.float32)
-    return bases, estimate_batch(PLAIN, SMOOTH, jnp.asarray(bases), method="mechanics")
+    return bases, estimate_batch(PLAIN, SMOOTH, jnp.asarray(bases), estimator=Mechanics())
 
 
 def test_a_sweep_through_the_fold_is_continuous_wherever_nothing_is_flagged():
@@ -226,7 +227,7 @@ def pool():
     rng = np.random.default_rng(20)
     bases = rng.uniform([-10.0, -10.0], [10.0, 10.0], (POOL_SIZE, 2)).astype(np.float32)
     bases = np.concatenate([bases, SPECIAL])
-    ref = estimate_batch(FINGER, DISC, jnp.asarray(bases), method="mechanics", chunk_size=32)
+    ref = estimate_batch(FINGER, DISC, jnp.asarray(bases), estimator=Mechanics(), chunk_size=32)
     return bases, jax.tree_util.tree_map(np.asarray, ref)
 
 
@@ -260,7 +261,7 @@ def test_every_element_is_independent_of_the_rest_of_its_batch_many_compositions
 def check_composition(picks):
     """Every element of a batch made of the pool's ``picks`` (repeats allowed) is the pool's own."""
     bases, ref = pool()
-    out = estimate_batch(FINGER, DISC, jnp.asarray(bases[picks]), method="mechanics", chunk_size=CHUNK)
+    out = estimate_batch(FINGER, DISC, jnp.asarray(bases[picks]), estimator=Mechanics(), chunk_size=CHUNK)
     out = jax.tree_util.tree_map(np.asarray, out)
     for j, i in enumerate(picks):
         assert_same(ref, out, i, j)
@@ -290,8 +291,8 @@ def test_scores_are_independent_of_the_rest_of_the_batch(seed):
     other = poses.copy()
     other[::2] = [np.nan, 0.0, 0.0]  # half the batch replaced, by NaN
     order = rng.permutation(12)
-    a = score(GRIPPER, DISC, jnp.asarray(poses), method="mechanics")
-    b = score(GRIPPER, DISC, jnp.asarray(other[order]), method="mechanics")
+    a = score(GRIPPER, DISC, jnp.asarray(poses), estimator=Mechanics())
+    b = score(GRIPPER, DISC, jnp.asarray(other[order]), estimator=Mechanics())
     kept = np.nonzero(~np.isnan(other[order, 0]))[0]
     for j in kept:
         i = order[j]
@@ -404,5 +405,5 @@ def test_sweeps_through_slide_offs_have_no_holes(kind):
     # Six sweeps of 201 poses (x and y around three bases where the held tip slides off).
     sdf = SMOOTH if kind == "exact" else vision_disc()
     bases = slide_off_bases(SLIDE_OFF_CENTRES)
-    est = estimate_batch(PLAIN, sdf, jnp.asarray(bases), method="mechanics")
+    est = estimate_batch(PLAIN, sdf, jnp.asarray(bases), estimator=Mechanics())
     check_sweep_through_slide_off(sdf, bases, est)

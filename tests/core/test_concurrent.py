@@ -10,6 +10,7 @@ import pytest
 
 from softgrip_jax import FingerModel, Gripper, PolygonSDF, SDFGrid, SoftgripError, estimate_batch, score
 from softgrip_jax._concurrent import CHUNK_ALIGN, MIN_PART, balanced_chunk, part_count, run_in_pieces
+from softgrip_jax import Geometric
 
 FINGER = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=4)
 GRID = SDFGrid.sample(PolygonSDF.regular((30.0, 40.0), 8.0, 64), origin=(-40.0, -30.0), spacing=(0.5, 0.5),
@@ -26,13 +27,13 @@ def bases():
 
 @pytest.fixture(scope="module")
 def whole(bases):
-    return estimate_batch(FINGER, GRID, bases, method="geometric", workers=1, chunk_size=CHUNK)
+    return estimate_batch(FINGER, GRID, bases, estimator=Geometric(), workers=1, chunk_size=CHUNK)
 
 
 def test_pieces_give_the_whole_batch_results_in_order(bases, whole):
     # 4 pieces of 128 rows, the last padded by 126, run 3 at a time: every row is computed by the
     # same program in every case, so the results are bitwise those of one worker.
-    split = estimate_batch(FINGER, GRID, bases, method="geometric", workers=3, chunk_size=CHUNK)
+    split = estimate_batch(FINGER, GRID, bases, estimator=Geometric(), workers=3, chunk_size=CHUNK)
     assert split.joints.shape == (len(bases), 5, 2)
     np.testing.assert_array_equal(split.joints, whole.joints)
     np.testing.assert_array_equal(split.case, whole.case)
@@ -41,7 +42,7 @@ def test_pieces_give_the_whole_batch_results_in_order(bases, whole):
 
 @pytest.mark.parametrize("size", [1, 7, CHUNK, CHUNK + 1, 300])
 def test_a_row_is_the_same_in_every_batch_size(bases, whole, size):
-    part = estimate_batch(FINGER, GRID, bases[:size], method="geometric", chunk_size=CHUNK)
+    part = estimate_batch(FINGER, GRID, bases[:size], estimator=Geometric(), chunk_size=CHUNK)
     assert part.joints.shape == (size, 5, 2)
     np.testing.assert_array_equal(part.joints, whole.joints[:size])
     np.testing.assert_array_equal(part.valid, whole.valid[:size])
@@ -52,7 +53,7 @@ def test_new_batch_sizes_compile_nothing_and_map_no_memory(bases, whole):
         with open("/proc/self/maps") as f:
             return sum(1 for _ in f)
 
-    estimate_batch(FINGER, GRID, bases[:5], method="geometric", chunk_size=CHUNK)  # warm: every helper compiled
+    estimate_batch(FINGER, GRID, bases[:5], estimator=Geometric(), chunk_size=CHUNK)  # warm: every helper compiled
     before, compiled = maps(), []
     with jax.log_compiles(True):
         import logging
@@ -65,7 +66,7 @@ def test_new_batch_sizes_compile_nothing_and_map_no_memory(bases, whole):
         logging.getLogger("jax").addHandler(handler)
         try:
             for size in np.random.default_rng(1).integers(1, len(bases), 40):
-                estimate_batch(FINGER, GRID, bases[:size], method="geometric", chunk_size=CHUNK)
+                estimate_batch(FINGER, GRID, bases[:size], estimator=Geometric(), chunk_size=CHUNK)
         finally:
             logging.getLogger("jax").removeHandler(handler)
     assert [m for m in compiled if "Compiling" in m or "compil" in m.lower()] == []
@@ -74,7 +75,7 @@ def test_new_batch_sizes_compile_nothing_and_map_no_memory(bases, whole):
 
 def test_progress_is_reported_after_each_piece_ending_with_the_whole_batch(bases, whole):
     calls = []
-    estimate_batch(FINGER, GRID, bases[:300], method="geometric", chunk_size=CHUNK, workers=2,
+    estimate_batch(FINGER, GRID, bases[:300], estimator=Geometric(), chunk_size=CHUNK, workers=2,
                    progress=lambda done, total: calls.append((done, total)))
     assert calls == [(128, 300), (256, 300), (300, 300)]
 
@@ -103,7 +104,7 @@ def test_chunks_are_equal_and_never_above_chunk_size():
     assert balanced_chunk(2049, 2048) == 1152  # 2 chunks of 1152, not 2 of 2048
     for bad in (0, -1, True):  # (the tests check type hints too: a float would not get this far)
         with pytest.raises(SoftgripError, match="chunk_size must be a positive integer"):
-            estimate_batch(FINGER, GRID, np.zeros((3, 2), np.float32), chunk_size=bad, method="geometric")
+            estimate_batch(FINGER, GRID, np.zeros((3, 2), np.float32), chunk_size=bad, estimator=Geometric())
 
 
 @pytest.mark.slow  # compiles a gradient through a batch: about 35 s
@@ -115,7 +116,7 @@ def test_traced_batches_run_as_one_part():
 
     def loss(theta):
         f = FingerModel(length=50.0, theta_entire=theta, half_thickness=3.0, n_links=4)
-        return jnp.sum(estimate_batch(f, GRID, bases, method="geometric", workers=2).joints[:, -1, 0])
+        return jnp.sum(estimate_batch(f, GRID, bases, estimator=Geometric(), workers=2).joints[:, -1, 0])
 
     assert np.isfinite(jax.grad(loss)(jnp.float32(0.5)))
 
@@ -142,8 +143,8 @@ def test_score_in_parts_matches_one_part():
     poses = np.column_stack([rng.uniform(0.0, 60.0, n), rng.uniform(-10.0, 10.0, n),
                              rng.uniform(-0.2, 0.2, n)]).astype(np.float32)
     gripper = Gripper(FINGER, FINGER, 50.0)
-    whole = score(gripper, GRID, poses, method="geometric", workers=1)
-    split = score(gripper, GRID, poses, method="geometric", workers=2)
+    whole = score(gripper, GRID, poses, estimator=Geometric(), workers=1)
+    split = score(gripper, GRID, poses, estimator=Geometric(), workers=2)
     np.testing.assert_array_equal(split.score, whole.score)  # the same piece program for every row
     np.testing.assert_array_equal(split.valid, whole.valid)
     assert np.isfinite(np.asarray(whole.score)).sum() > 10  # some poses are valid, so scores were compared

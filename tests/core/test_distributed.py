@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from softgrip_jax import FingerModel, Gripper, PolygonSDF, estimate_batch, score
+from softgrip_jax import Geometric
 
 FINGER = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=8)
 GRIPPER = Gripper(left=FINGER, right=FINGER, base_separation=50.0)
@@ -36,8 +37,8 @@ WORKER = textwrap.dedent("""
     from softgrip_jax import estimate_batch, score
     assert jax.process_count() == 2 and len(jax.devices()) == 2 and len(jax.local_devices()) == 1, jax.devices()
     steps = []
-    est = estimate_batch(FINGER, DISC, BASES, method="geometric", chunk_size=4, progress=lambda d, n: steps.append(d))
-    sc = score(GRIPPER, DISC, POSES, method="geometric", chunk_size=4)
+    est = estimate_batch(FINGER, DISC, BASES, estimator=Geometric(), chunk_size=4, progress=lambda d, n: steps.append(d))
+    sc = score(GRIPPER, DISC, POSES, estimator=Geometric(), chunk_size=4)
     n = len(BASES)
     assert steps == [min(8 * k, n) for k in range(1, -(-n // 8) + 1)], steps  # rounds of a 4-base piece per device
     np.savez(out, joints=np.asarray(est.joints), case=np.asarray(est.case), valid=np.asarray(est.valid),
@@ -67,8 +68,8 @@ def _check(got, est, sc=None):
 @pytest.fixture(scope="module")
 def one_process():
     """The batch's results in this (one-device) process; a mix of valid, invalid, touching and free."""
-    est = estimate_batch(FINGER, DISC, BASES, method="geometric", chunk_size=4)
-    sc = score(GRIPPER, DISC, POSES, method="geometric", chunk_size=4)
+    est = estimate_batch(FINGER, DISC, BASES, estimator=Geometric(), chunk_size=4)
+    sc = score(GRIPPER, DISC, POSES, estimator=Geometric(), chunk_size=4)
     valid, case = np.asarray(est.valid), np.asarray(est.case)
     assert valid.any() and not valid.all() and (case[valid] != 0).any() and (case[valid] == 0).any()
     assert np.asarray(sc.valid)[:2].all() and np.asarray(sc.score)[1] != np.asarray(sc.score)[0]
@@ -105,10 +106,10 @@ LOCAL = textwrap.dedent("""
     from tests.core.test_distributed import BASES, DISC, FINGER
     from softgrip_jax import estimate_batch
     steps = []
-    est = estimate_batch(FINGER, DISC, BASES, method="geometric", chunk_size=4, progress=lambda d, n: steps.append(d))
+    est = estimate_batch(FINGER, DISC, BASES, estimator=Geometric(), chunk_size=4, progress=lambda d, n: steps.append(d))
     n = len(BASES)
     assert steps == [min(8 * k, n) for k in range(1, -(-n // 8) + 1)], steps  # rounds of a 4-base piece per device
-    empty = estimate_batch(FINGER, DISC, np.zeros((0, 2), np.float32), method="geometric", chunk_size=4)
+    empty = estimate_batch(FINGER, DISC, np.zeros((0, 2), np.float32), estimator=Geometric(), chunk_size=4)
     assert empty.joints.shape == (0, FINGER.n_links + 1, 2) and empty.valid.shape == (0,), empty.joints.shape
     np.savez(sys.argv[1], joints=np.asarray(est.joints), case=np.asarray(est.case), valid=np.asarray(est.valid))
     print("OK")

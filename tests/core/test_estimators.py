@@ -1,4 +1,4 @@
-"""Estimators are objects: a new one is one class, and the older ``method=`` strings are an alias."""
+"""Estimators are objects: a new one is one class; ``as_estimator`` turns a name (the command line's) into one."""
 
 from typing import ClassVar
 
@@ -69,12 +69,12 @@ def test_a_new_estimator_runs_through_estimate_estimate_batch_and_score():
 
 def test_method_strings_and_estimator_objects_give_identical_results():
     bases = jnp.array([[0.0, 0.0], [-60.0, 0.0], [jnp.nan, 0.0]])
-    _assert_same(estimate(FINGER, DISC, bases[0], method="geometric"),
+    _assert_same(estimate(FINGER, DISC, bases[0], estimator=Geometric()),
                  estimate(FINGER, DISC, bases[0], estimator=Geometric()))
-    _assert_same(estimate_batch(FINGER, DISC, bases, method="geometric"),
+    _assert_same(estimate_batch(FINGER, DISC, bases, estimator=Geometric()),
                  estimate_batch(FINGER, DISC, bases, estimator=Geometric()))
     config = MechanicsConfig(max_steps=8)
-    _assert_same(estimate_batch(FINGER, DISC, bases, method="mechanics", mechanics=config),
+    _assert_same(estimate_batch(FINGER, DISC, bases, estimator=Mechanics(config)),
                  estimate_batch(FINGER, DISC, bases, estimator=Mechanics(config)))
 
 
@@ -98,12 +98,14 @@ def test_as_estimator_is_the_one_alias():
     assert as_estimator(mechanics=MechanicsConfig(max_steps=3)) == Mechanics(MechanicsConfig(max_steps=3))
     with pytest.raises(SoftgripError, match="not both"):
         as_estimator(Geometric(), method="geometric")
-    with pytest.raises(SoftgripError, match="not both"):
-        estimate(FINGER, DISC, jnp.zeros(2), estimator=Mechanics(), mechanics=MechanicsConfig())
+    with pytest.raises(SoftgripError, match=r"estimator='geometric': pass the estimator itself, Geometric\(\)"):
+        as_estimator("geometric")
+    with pytest.raises(TypeError, match="method"):  # one way to name the estimator: the object
+        estimate(FINGER, DISC, jnp.zeros(2), method="geometric")  # type: ignore[call-arg]
     with pytest.raises(SoftgripError, match="method must be one of 'geometric', 'mechanics'"):
         as_estimator(method="spring")
     with pytest.raises(SoftgripError, match="estimator must be"):
-        as_estimator("geometric")
+        as_estimator("spring")
     with pytest.raises((SoftgripError, TypeCheckError), match="MechanicsConfig"):  # (the tests' type checker first)
         Mechanics(config=3)
 

@@ -82,7 +82,7 @@ def test_exported_score_equals_the_jitted_one(export_cache) -> None:
     jitted = _score_one_device._jitted(*_score_args(), chunk_size=8, estimator=Geometric())
     _assert_identical(exported, jitted)
     # The public function goes the same way.
-    _assert_identical(softgrip_jax.score(GRIPPER, DISC, POSES, method="geometric", chunk_size=8), jitted)
+    _assert_identical(softgrip_jax.score(GRIPPER, DISC, POSES, estimator=Geometric(), chunk_size=8), jitted)
 
 
 def _ignored_with_one_warning(path, reference, match: str) -> None:
@@ -300,9 +300,9 @@ PLANNER = textwrap.dedent("""
     obj = PolygonSDF.regular(center=(0.0, 38.0), radius=15.0, n_vertices=16)
     x, y = jnp.meshgrid(jnp.linspace(-10.0, 10.0, 4), jnp.linspace(-10.0, 10.0, 4), indexing="ij")
     poses = jnp.stack([x.ravel(), y.ravel(), jnp.zeros(16)], axis=-1)
-    result = score(gripper, obj, poses, method="geometric")
+    result = score(gripper, obj, poses, estimator=Geometric())
     best = int(jnp.argmax(result.score))
-    refined = refine(gripper, obj, poses[best], method="geometric", max_steps=10)
+    refined = refine(gripper, obj, poses[best], estimator=Geometric(), max_steps=10)
     exportable = (_score._score_one_device, _score._refine_batch, _batch._estimate_batch,
                   _batch._estimate_grasp_batch)
     stats = dict(zip(("loaded", "exported", "fallback"), map(sum, zip(*(f.export_info() for f in exportable)))))

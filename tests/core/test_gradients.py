@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from softgrip_jax import CASE_NAMES, ContactConfig, FingerModel, Gripper, PolygonSDF, estimate, estimate_grasp
+from softgrip_jax import Geometric
 
 FINE = ContactConfig(root_atol=1e-12, root_max_steps=200)
 SCENES = {  # case: (Theta, circle centre, circle radius)
@@ -22,14 +23,14 @@ SCENES = {  # case: (Theta, circle centre, circle radius)
 
 def joints(theta, base, center, radius, config=FINE):
     finger = FingerModel(length=50.0, theta_entire=theta, half_thickness=3.0, n_links=10)
-    return estimate(finger, PolygonSDF.regular(center, radius, 360), base, config, method="geometric").joints
+    return estimate(finger, PolygonSDF.regular(center, radius, 360), base, config, estimator=Geometric()).joints
 
 
 joints_jit = jax.jit(joints, static_argnames="config")
 case_jit = jax.jit(
     lambda t, b, c, r: estimate(
         FingerModel(length=50.0, theta_entire=t, half_thickness=3.0, n_links=10),
-        PolygonSDF.regular(c, r, 360), b, FINE, method="geometric").case
+        PolygonSDF.regular(c, r, 360), b, FINE, estimator=Geometric()).case
 )
 jacobians = jax.jit(jax.jacfwd(joints, argnums=(0, 1, 2)), static_argnames="config")
 
@@ -80,7 +81,7 @@ def test_grasp_gradient_with_respect_to_pose_matches_finite_differences(x64):
 
     @jax.jit
     def tips(pose):
-        est = estimate_grasp(gripper, sdf, pose, FINE, method="geometric")
+        est = estimate_grasp(gripper, sdf, pose, FINE, estimator=Geometric())
         return jnp.concatenate([est.left.joints[-1], est.right.joints[-1]])
 
     pose = np.array([1.0, 2.0, 0.05])

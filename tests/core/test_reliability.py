@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from softgrip_jax import FingerModel, Gripper, PolygonSDF, SDFGrid, SoftgripError, Status, estimate, score
+from softgrip_jax import Geometric, Mechanics
 
 N = 4
 DISC = PolygonSDF.regular((0.0, 38.0), 15.0, 16)
@@ -18,9 +19,9 @@ FINGER = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links
 GRIPPER = Gripper(left=FINGER, right=FINGER, base_separation=56.0)
 POSES = jnp.array([[0.0, 0.0, 0.0], [3.0, 2.0, 0.1], [1e30, 0.0, 0.0], [0.0, -1e30, 0.0]])
 
-_score = jax.jit(lambda sdf, poses: score(GRIPPER, sdf, poses, method="geometric"))
+_score = jax.jit(lambda sdf, poses: score(GRIPPER, sdf, poses, estimator=Geometric()))
 _estimate_thetas = jax.jit(jax.vmap(lambda t: estimate(FingerModel(52.0, t, 4.0, N), DISC, jnp.array([-20.0, 0.0]),
-                                                      method="geometric")))
+                                                      estimator=Geometric())))
 
 
 def _assert_nothing_valid_is_non_finite(result) -> None:
@@ -72,7 +73,7 @@ def test_one_nan_theta_does_not_fail_the_batch_gradient() -> None:
     disc = PolygonSDF.regular((22.0, 38.0), 15.0, 16)
 
     def tip(t):
-        e = estimate(FingerModel(52.0, t, 4.0, N), disc, jnp.zeros(2), method="mechanics")
+        e = estimate(FingerModel(52.0, t, 4.0, N), disc, jnp.zeros(2), estimator=Mechanics())
         return jnp.where(e.valid, e.joints[-1, 0], 0.0)
 
     thetas = jnp.array([0.5, jnp.nan, 0.6, 0.4])

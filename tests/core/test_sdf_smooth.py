@@ -14,6 +14,7 @@ import pytest
 
 from softgrip_jax import SDFGrid
 from softgrip_jax._sdf import unit_gradient
+from softgrip_jax import Mechanics
 
 # Catmull-Rom's slope at a sample k is the samples' central difference (v[k+1] - v[k-1]) / 2 per
 # cell, the same from the cells on either side of it: the lookup is C1. The bilinear lookup's slope
@@ -189,7 +190,7 @@ def test_the_mechanics_estimate_on_the_vision_sdf_moves_continuously_and_its_gra
     h = 0.01
     shifted = np.concatenate([regular[:, None] + s * h * np.eye(2)[None] for s in (1, -1)], axis=1).reshape(-1, 2)
     bases = jnp.asarray(np.concatenate([sweep, regular, shifted]), jnp.float32)
-    est = jax.tree_util.tree_map(np.asarray, estimate_batch(FINGER, grid, bases, method="mechanics", mechanics=tight))
+    est = jax.tree_util.tree_map(np.asarray, estimate_batch(FINGER, grid, bases, estimator=Mechanics(tight)))
     assert est.valid.all() and (est.case == ContactCase.TIP).all() and not est.event.any()
     assert (est.sensitivity < tight.fold_sensitivity).all()  # regular poses, no fold nearby
     # Base steps of 0.002 mm move the tip by about sensitivity (2 to 3 here) x 0.002 mm; no joint
@@ -200,7 +201,7 @@ def test_the_mechanics_estimate_on_the_vision_sdf_moves_continuously_and_its_gra
     assert step.max() <= 0.01, step.max()
     # d tip / d base from implicit differentiation (the lookup's gradient and Hessian) against
     # central differences of the same estimates.
-    tip = lambda b: estimate(FINGER, grid, b, method="mechanics", mechanics=tight).joints[-1]  # noqa: E731
+    tip = lambda b: estimate(FINGER, grid, b, estimator=Mechanics(tight)).joints[-1]  # noqa: E731
     jacobians = np.asarray(jax.jit(jax.vmap(jax.jacrev(tip)))(jnp.asarray(regular, jnp.float32)), np.float64)
     tips = est.joints[93:, -1].astype(np.float64).reshape(2, 4, 2)
     central = ((tips[:, :2] - tips[:, 2:]) / (2 * h)).transpose(0, 2, 1)  # (pose, tip axis, base axis)

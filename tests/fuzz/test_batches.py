@@ -17,6 +17,7 @@ from hypothesis.extra import numpy as hnp
 
 from softgrip_jax import FingerModel, Gripper, PolygonSDF, SDFGrid, SoftgripError, Status, estimate_batch, score
 from softgrip_jax._batch import as_candidates
+from softgrip_jax import Geometric
 
 FINGER = FingerModel(length=50.0, theta_entire=0.5, half_thickness=3.0, n_links=4)
 GRIPPER = Gripper(left=FINGER, right=FINGER, base_separation=40.0)
@@ -69,13 +70,13 @@ def assert_same_candidate(batch_out, i: int, alone_out) -> None:
 @given(batches([(MM, POISON_MM)] * 2))
 def test_estimate_batch_flags_poisoned_bases_and_isolates_the_others(drawn):
     bases, poisoned = drawn
-    out = estimate_batch(FINGER, GRID, bases, method="geometric")
+    out = estimate_batch(FINGER, GRID, bases, estimator=Geometric())
     valid, status = np.asarray(out.valid), np.asarray(out.status)
     assert not valid[poisoned].any()
     assert set(status[poisoned]) <= {Status.NON_FINITE_INPUT, Status.BASE_OUTSIDE_SDF, Status.COORDINATE_OUT_OF_RANGE}
     assert np.isnan(np.asarray(out.joints)[poisoned]).all()
     for i in touching_first(~poisoned, out.case)[:3]:  # three per example keep it quick
-        alone = estimate_batch(FINGER, GRID, np.repeat(bases[i:i + 1], B, axis=0), method="geometric")
+        alone = estimate_batch(FINGER, GRID, np.repeat(bases[i:i + 1], B, axis=0), estimator=Geometric())
         assert_same_candidate(out, i, alone)
 
 
@@ -97,7 +98,7 @@ def test_score_flags_poisoned_poses_and_isolates_the_others(drawn):
 
 @pytest.mark.slow  # compiles every entry point for empty batches: about 35 s
 def test_empty_batches_return_empty_results():
-    est = estimate_batch(FINGER, GRID, np.zeros((0, 2), np.float32), method="geometric")
+    est = estimate_batch(FINGER, GRID, np.zeros((0, 2), np.float32), estimator=Geometric())
     assert est.joints.shape == (0, FINGER.n_links + 1, 2) and est.valid.shape == (0,)
     scored = score(GRIPPER, GRID, np.zeros((0, 3), np.float32))
     assert scored.score.shape == (0,) and scored.valid.shape == (0,)
@@ -106,8 +107,8 @@ def test_empty_batches_return_empty_results():
 
 def test_one_candidate_is_the_candidate_of_a_batch():
     base = np.array([[10.0, 5.0]], np.float32)  # up and left of the disc: the finger wraps it
-    one = estimate_batch(FINGER, GRID, base, method="geometric")
-    many = estimate_batch(FINGER, GRID, np.repeat(base, B, axis=0), method="geometric")
+    one = estimate_batch(FINGER, GRID, base, estimator=Geometric())
+    many = estimate_batch(FINGER, GRID, np.repeat(base, B, axis=0), estimator=Geometric())
     assert one.valid.shape == (1,) and bool(one.valid[0]) and int(one.case[0]) != 0
     for a, b in zip(leaves(one), leaves(many)):
         np.testing.assert_allclose(a[0], b[0], atol=1e-5)
@@ -120,13 +121,13 @@ def test_50k_bases_with_poisoned_ones_in_one_call():
     bad = rng.choice(len(bases), 500, replace=False)
     bases[bad[:250], 0] = np.nan
     bases[bad[250:]] = 1e6
-    out = estimate_batch(FINGER, GRID, bases, method="geometric")
+    out = estimate_batch(FINGER, GRID, bases, estimator=Geometric())
     valid = np.asarray(out.valid)
     assert valid.shape == (50_000,) and not valid[bad].any() and valid.sum() > 25_000
     assert np.isfinite(np.asarray(out.joints)[valid]).all()
     # A sample of the good candidates equals each alone (compared to the B-copies batch compiled above).
     for i in np.setdiff1d(np.arange(len(bases)), bad)[::5000]:
-        alone = estimate_batch(FINGER, GRID, np.repeat(bases[i:i + 1], B, axis=0), method="geometric")
+        alone = estimate_batch(FINGER, GRID, np.repeat(bases[i:i + 1], B, axis=0), estimator=Geometric())
         for a, b in zip(leaves(out), leaves(alone)):
             np.testing.assert_allclose(a[i], b[0], atol=1e-5)
 

@@ -26,6 +26,7 @@ from softgrip_vision.segmentation import segment
 from synthetic.render import Scene, d405_intrinsics, render
 from synthetic.scenes import gripper_centrelines
 from synthetic.shapes import shape
+from softgrip_jax import as_estimator
 
 # 320 x 240 (about 0.62 mm per pixel at the 120 mm gripper plane, 200 x 150 mm in view): a quarter of
 # the pixels of the D405's 640 x 480, so that rendering and segmenting a scene stays well under a second.
@@ -86,7 +87,8 @@ def estimator(method: str):
 
     @eqx.filter_jit
     def run(finger, sdf, bases):
-        return jax.vmap(lambda b: estimate(finger, sdf, b, CONFIG, method=method, mechanics=MECHANICS))(bases)
+        chosen = as_estimator(method=method, mechanics=MECHANICS)
+        return jax.vmap(lambda b: estimate(finger, sdf, b, CONFIG, estimator=chosen))(bases)
 
     return run
 

@@ -2,8 +2,8 @@
 
 Each example renders a random object (shape, size, angle, position) with a random seed, turns the
 frame into the core's SDF grid through the vision pipeline, draws a finger (Theta, L, r, N) and
-BATCH bases around the object, and estimates every base with ``method="geometric"`` and
-``method="mechanics"``. What must hold (tolerances are stated where they are used):
+BATCH bases around the object, and estimates every base with ``Geometric()`` and
+``Mechanics()``. What must hold (tolerances are stated where they are used):
 
 * valid estimates are finite; bases inside the image are never NON_FINITE or BASE_OUTSIDE_SDF;
 * every link is L/N long and the chain starts at its base;
