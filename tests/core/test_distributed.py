@@ -34,7 +34,7 @@ WORKER = textwrap.dedent("""
     jax.distributed.initialize(coordinator_address=f"127.0.0.1:{port}", num_processes=2, process_id=rank)
     import numpy as np
     from tests.core.test_distributed import BASES, DISC, FINGER, GRIPPER, POSES
-    from softgrip_jax import estimate_batch, score
+    from softgrip_jax import Geometric, estimate_batch, score
     assert jax.process_count() == 2 and len(jax.devices()) == 2 and len(jax.local_devices()) == 1, jax.devices()
     steps = []
     est = estimate_batch(FINGER, DISC, BASES, estimator=Geometric(), chunk_size=4, progress=lambda d, n: steps.append(d))
@@ -104,7 +104,7 @@ LOCAL = textwrap.dedent("""
     import numpy as np
     assert len(jax.devices()) == 2, jax.devices()
     from tests.core.test_distributed import BASES, DISC, FINGER
-    from softgrip_jax import estimate_batch
+    from softgrip_jax import Geometric, estimate_batch
     steps = []
     est = estimate_batch(FINGER, DISC, BASES, estimator=Geometric(), chunk_size=4, progress=lambda d, n: steps.append(d))
     n = len(BASES)

@@ -280,7 +280,7 @@ PLANNER = textwrap.dedent("""
     import softgrip_jax
     softgrip_jax.enable_compilation_cache(sys.argv[1])
     import jax.numpy as jnp
-    from softgrip_jax import FingerModel, Gripper, PolygonSDF, refine, score
+    from softgrip_jax import FingerModel, Geometric, Gripper, PolygonSDF, refine, score
     from softgrip_jax import _batch, _score
 
     events = {}

@@ -84,7 +84,7 @@ SHARDED = textwrap.dedent("""
     import os, sys
     import jax, jax.numpy as jnp, numpy as np
     assert len(jax.devices()) == 2, jax.devices()
-    from softgrip_jax import FingerModel, Gripper, PolygonSDF, score, score_pose
+    from softgrip_jax import FingerModel, Geometric, Gripper, PolygonSDF, score, score_pose
     f = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=10)
     g = Gripper(left=f, right=f, base_separation=56.0)
     disc = PolygonSDF.regular((0.0, 38.0), 15.0, 128)
