@@ -40,6 +40,7 @@ from softgrip_jax._kinematics import chain_points, chain_stations, forward_kinem
 from softgrip_jax._mechanics import DEFAULT_METHOD, METHODS, MechanicsConfig, link_stiffness
 from softgrip_jax._metrics import joint_errors
 from softgrip_jax._model import FingerModel, Gripper
+from softgrip_jax._names import code_names
 from softgrip_jax._quality import DEFAULT_MU, FingerContacts, edge_wrenches, epsilon_l1
 from softgrip_jax._robust import Uncertainty
 from softgrip_jax._score import (RefineStatus, Refined, Score, ScoreComponents, ScoreWeights, refine, score,
@@ -50,7 +51,7 @@ from softgrip_jax._stage import Estimate, Status
 __all__ = [
     "AbstractEstimator", "AbstractSDF", "CASE_NAMES", "DEFAULT_ESTIMATOR", "Geometric", "Mechanics", "as_estimator", "FAR_MM", "Contact", "ContactCase", "ContactConfig", "Estimate", "FingerFrame",
     "FingerModel", "GraspEstimate", "Gripper", "PolygonSDF", "SDFGrid", "SoftgripError",
-    "Status", "case_shapes", "chain_points", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
+    "Status", "case_shapes", "code_names", "chain_points", "chain_stations", "estimate", "estimate_batch", "estimate_grasp",
     "enable_compilation_cache", "estimate_grasp_batch", "estimate_in_frame", "finger_frames", "forward_kinematics",
     "joint_errors", "link_angles", "link_stiffness", "DEFAULT_METHOD", "METHODS", "MechanicsConfig", "RefineStatus", "Refined", "Score", "ScoreComponents", "ScoreWeights",
     "refine", "score", "CacheWarning", "UntrustedCacheWarning", "DEFAULT_MU", "FingerContacts", "edge_wrenches",

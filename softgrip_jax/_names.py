@@ -22,7 +22,7 @@ def code_names(codes: ArrayLike | Sequence[int], kind: type[enum.IntEnum]) -> st
     ``"unknown(<code>)"``.
 
     Example:
-        >>> from softgrip_jax import ContactCase, Status
+        >>> from softgrip_jax import ContactCase, Status, code_names
         >>> code_names(2, ContactCase), code_names([0, 2], Status).tolist()
         ('tip_and_other', ['ok', 'base_outside_sdf'])
     """
