@@ -102,7 +102,7 @@ def per_finger(fn, gripper: Gripper, *pairs):
     it. Fingers of different N take two copies.
     """
     lefts, rights = (tuple(p[i] for p in pairs) for i in (0, 1))
-    if jax.tree_util.tree_structure((gripper.left, lefts)) != jax.tree_util.tree_structure((gripper.right, rights)):
+    if gripper.left.n_links != gripper.right.n_links:  # (the only static field of a finger)
         return fn(gripper.left, *lefts), fn(gripper.right, *rights)
     stacked = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), (gripper.left, lefts), (gripper.right, rights))
     both = jax.vmap(lambda finger, args: fn(finger, *args))(*stacked)

@@ -37,7 +37,7 @@ from softgrip_jax import SoftgripError
 from softgrip_vision.coverage import edge_coverage
 from softgrip_vision.frames import Frame, Intrinsics, load_frame, undistort_frame
 from softgrip_vision.geometry import TILT_WARN_DEG, PlaneCamera, face_offset_mm
-from softgrip_vision.keypoints import FingerKeypoints
+from softgrip_vision.keypoints import FingerKeypoints, Side
 from softgrip_vision.object_sdf import object_sdf
 from softgrip_vision.scene import MEMORY_PATH, FrameSceneError, ProfileLike, Scene, _default_warn
 from softgrip_vision.segmentation import segment_object
@@ -119,15 +119,14 @@ def open_fingers(camera: PlaneCamera, profile: ProfileLike, pose: np.ndarray) ->
     """The profile's two fingers, open (straight, eq. 1 at zero closure), at ``pose`` (x mm, y mm,
     angle rad), as :class:`~softgrip_vision.keypoints.FingerKeypoints` through ``camera``: what
     the frame would show of them."""
-    from softgrip_vision.scene import SIDES
-
+    sides: tuple[Side, Side] = ("left", "right")
     gripper = profile.gripper()
     x, y, angle = (float(v) for v in pose)
     down = np.array([math.sin(angle), math.cos(angle)])
     across = np.array([math.cos(angle), -math.sin(angle)])
     separation = float(gripper.base_separation)
-    out = []
-    for side, sign, finger in zip(SIDES, (-1.0, 1.0), (gripper.left, gripper.right)):
+    out: list[FingerKeypoints] = []
+    for side, sign, finger in zip(sides, (-1.0, 1.0), (gripper.left, gripper.right)):
         base = np.array([x, y]) + sign * 0.5 * separation * across
         length = float(finger.length)
         steps = max(2, int(math.ceil(length / camera.mm_per_px)) + 1)  # about 1 px apart
