@@ -22,7 +22,6 @@ PACKAGES = ("softgrip_base", "softgrip_jax", "softgrip_vision", "softgrip_calib"
 
 #: Modules with known mypy errors (default settings), with the count when this list was made.
 NOT_YET_CLEAN = {
-    "softgrip_calib/profile.py": 10,
     "softgrip_calib/fit.py": 9,
     "softgrip_calib/one_frame.py": 7,
     "softgrip_calib/select.py": 2,
