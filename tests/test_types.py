@@ -31,7 +31,6 @@ NOT_YET_CLEAN = {
     "softgrip_vision/measure.py": 4,
     "softgrip_vision/realsense.py": 2,
     "softgrip_vision/geometry.py": 2,
-    "softgrip_vision/frames.py": 2,
     "softgrip_cli/cmd_score.py": 7,
     "softgrip_cli/cmd_estimate.py": 1,
     "softgrip_cli/cmd_capture.py": 1,
