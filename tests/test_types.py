@@ -26,7 +26,6 @@ NOT_YET_CLEAN = {
     "softgrip_calib/one_frame.py": 7,
     "softgrip_calib/select.py": 2,
     "softgrip_vision/keypoints.py": 12,
-    "softgrip_vision/intrinsics_schema.py": 10,
     "softgrip_vision/segmentation.py": 5,
     "softgrip_vision/measure.py": 4,
     "softgrip_vision/realsense.py": 2,
