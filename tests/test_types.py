@@ -24,7 +24,6 @@ PACKAGES = ("softgrip_base", "softgrip_jax", "softgrip_vision", "softgrip_calib"
 NOT_YET_CLEAN = {
     "softgrip_calib/fit.py": 9,
     "softgrip_calib/one_frame.py": 7,
-    "softgrip_calib/select.py": 2,
     "softgrip_vision/keypoints.py": 12,
     "softgrip_vision/segmentation.py": 5,
     "softgrip_vision/measure.py": 4,
