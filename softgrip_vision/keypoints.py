@@ -55,6 +55,7 @@ from softgrip_vision.geometry import PlaneCamera
 from softgrip_vision.segmentation import Segmentation
 
 Side = Literal["left", "right"]
+SIDES: tuple[Side, Side] = ("left", "right")
 BaseEnd = Literal["rounded", "flat"]
 TipEnd = Literal["rounded", "flat", "unknown"]
 
@@ -401,7 +402,7 @@ def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera, rounded_b
     masks = (segmentation.left_finger, segmentation.right_finger)
     coverages = [None, None] if color is None else [edge_coverage(color, mask) for mask in masks]
     return tuple(finger_keypoints(mask, camera, side, rounded_base, cut_column=cut, coverage=coverage)
-                 for mask, side, coverage in zip(masks, ("left", "right"), coverages))
+                 for mask, side, coverage in zip(masks, SIDES, coverages))
 
 
 def _cut_column(segmentation: Segmentation) -> float | None:

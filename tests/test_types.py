@@ -24,7 +24,7 @@ PACKAGES = ("softgrip_base", "softgrip_jax", "softgrip_vision", "softgrip_calib"
 NOT_YET_CLEAN = {
     "softgrip_calib/fit.py": 9,
     "softgrip_calib/one_frame.py": 7,
-    "softgrip_vision/keypoints.py": 12,
+    "softgrip_vision/keypoints.py": 11,
     "softgrip_vision/segmentation.py": 5,
     "softgrip_vision/measure.py": 4,
     "softgrip_vision/realsense.py": 2,
