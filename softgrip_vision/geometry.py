@@ -298,7 +298,7 @@ class PlaneFit:
 def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thickness_px: Sequence[float],
                       relief_mm: float | None = None, *,
                       centrelines_px: Sequence[np.ndarray] | None = None,
-                      width_edges_px: Sequence[np.ndarray] | None = None) -> PlaneFit:
+                      width_edges_px: Sequence[np.ndarray | None] | None = None) -> PlaneFit:
     """Fit the plane through the fingers' outlines, and its tilt, to their depth readings.
 
     Every reading of a finger region (away from its edge) is a point P = Z ray(u, v) of its front
@@ -513,7 +513,7 @@ def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarra
 
 def _bulge_in_plane(points: np.ndarray, label: np.ndarray, plane: PlaneCamera,
                     centrelines_px: Sequence[np.ndarray],
-                    width_edges_px: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+                    width_edges_px: Sequence[np.ndarray | None]) -> tuple[np.ndarray, np.ndarray]:
     """(P,) the elliptic bulge sqrt(1 - (rho / r)^2) of each reading (P, 3) in camera mm and (P,)
     r there (mm; NaN for a finger without side points), with rho
     the distance in ``plane`` from the reading's foot on it to its finger's axis (the centreline's
