@@ -39,6 +39,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -557,7 +558,8 @@ def _across(points: np.ndarray, polyline: np.ndarray, edges: np.ndarray | None, 
     fine = np.linspace(0.0, arc[-1], max(2, int(arc[-1] / step) + 1))
     dense = np.column_stack([np.interp(fine, arc, polyline[:, j]) for j in range(polyline.shape[1])])
     tree = cKDTree(dense)
-    distance, nearest = tree.query(points)
+    # (cast: scipy-stubs also allow one point's (float, int); points (P, D) give arrays)
+    distance, nearest = cast(tuple[np.ndarray, np.ndarray], tree.query(points))
     if edges is None or len(edges) < 2:
         return distance, np.full(len(points), r)
     _, station = tree.query(0.5 * (edges[:, 0] + edges[:, 1]))
