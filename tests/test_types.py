@@ -24,7 +24,6 @@ PACKAGES = ("softgrip_base", "softgrip_jax", "softgrip_vision", "softgrip_calib"
 NOT_YET_CLEAN = {
     "softgrip_cli/cmd_score.py": 7,
     "softgrip_cli/cmd_estimate.py": 1,
-    "softgrip_cli/cmd_capture.py": 1,
     "softgrip_cli/cmd_calibrate.py": 1,
     "softgrip_cli/_main.py": 1,
 }
