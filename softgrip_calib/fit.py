@@ -65,7 +65,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import equinox as eqx
 import jax
@@ -598,7 +598,7 @@ def _check_settings(parameters: Sequence[str], loss: str, scale: float, max_step
         estimator = as_estimator(estimator)
     except SoftgripError as err:  # not an estimator
         raise FitError(str(err)) from None
-    unused = [n for n in names if PARAMETERS[n].methods is not None and estimator.name not in PARAMETERS[n].methods]
+    unused = [n for n in names if (methods := PARAMETERS[n].methods) is not None and estimator.name not in methods]
     if unused:
         raise FitError(f"{', '.join(unused)} only affect(s) the mechanics estimate, so {estimator.name!r} cannot fit "
                        f"them: fit with estimator=Mechanics() (softgrip calibrate --fit ... --method mechanics), or "
@@ -843,9 +843,10 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
 
     # The progress hook is a host callback, and a program with one never enters the persistent
     # compilation cache: it is compiled in only when a progress bar is shown.
-    solver = optx.LevenbergMarquardt(rtol=FIT_RTOL, atol=FIT_ATOL, norm=_residual_change_norm,
-                                     verbose=_report_step if progress else False)
-    solution = optx.least_squares(objective, solver, y0, has_aux=True, max_steps=max_steps, throw=False)
+    solver: optx.LevenbergMarquardt[Any, Any, Any] = optx.LevenbergMarquardt(
+        rtol=FIT_RTOL, atol=FIT_ATOL, norm=_residual_change_norm, verbose=_report_step if progress else False)
+    solution: optx.Solution[Any, Any] = optx.least_squares(objective, solver, y0, has_aux=True, max_steps=max_steps,
+                                                           throw=False)
     # The solver's state holds the residuals and the linearisation at the last accepted step: the solution.
     robust = ravel_pytree(solution.state.f_info.residual)[0]
     return (ravel_pytree(solution.value)[0], solution.result._value, start_status, start_residuals,
@@ -856,7 +857,8 @@ def _solve(y0, free, fixed, groups: list[_Frames], scale, *, n_links: int, confi
 # The report
 
 
-_SUCCESSFUL = int(optx.RESULTS.successful._value)
+# (cast: equinox turns the class's message strings into items at runtime; its types still say str)
+_SUCCESSFUL = int(cast(optx.RESULTS, optx.RESULTS.successful)._value)
 
 
 def _describe(status: np.ndarray) -> str:
@@ -955,7 +957,7 @@ def _report(start: CalibrationProfile, names: Sequence[str], flat: np.ndarray, r
 
     fingers = {}
     for side in SIDES:
-        update = {}
+        update: dict[str, Any] = {}
         for name in names:
             v = values[(side, name)]
             update[name] = v[0] if PARAMETERS[name].shape == () else tuple(v)

@@ -20,16 +20,16 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
-from typing import Protocol
+from typing import Literal, Protocol, TypedDict
 
 import jax.numpy as jnp
 import numpy as np
 
-from softgrip_calib.profile import SIDES, CalibrationProfile, FingerEntry, FitEntry
+from softgrip_calib.profile import CalibrationProfile, FingerEntry, FitEntry
 from softgrip_jax import FingerFrame, SoftgripError, pcc_joints
 from softgrip_vision.frames import Frame, undistort_frame
 from softgrip_vision.geometry import PlaneCamera
-from softgrip_vision.keypoints import FingerKeypoints, finger_length, gripper_angle, theta_from_closed
+from softgrip_vision.keypoints import SIDES, FingerKeypoints, finger_length, gripper_angle, theta_from_closed
 from softgrip_vision.measure import (PLANE_AGREEMENT_MM, GripperMeasurement, MeasureSettings, MeasurementWarning,
                             PlaneDisagreementWarning, measure_gripper)
 from softgrip_vision.segmentation import Segmentation, SegmentationSettings, segment
@@ -110,7 +110,8 @@ def one_frame_profile(
         >>> [round(profile.fingers[side].theta_entire, 2) for side in ("left", "right")], profile.fit.method
         ([0.55, 0.55], 'one-frame')
     """
-    fingers, squared = {}, []
+    fingers: dict[str, FingerEntry] = {}
+    squared = []
     angle = gripper_angle(closed[0].base_mm, closed[1].base_mm)  # the gripper's axis, as in the estimate
     for side, shut, straight in zip(SIDES, closed, open_):
         bend = straight.arc_length_mm / max(straight.length_mm, 1e-9)
@@ -203,7 +204,15 @@ def frame_keypoints(
     return m.segmentation, m.camera, m.keypoints
 
 
-def plane_depths(opened: GripperMeasurement, closed: GripperMeasurement) -> dict[str, float | str]:
+class PlaneDepths(TypedDict):
+    """What :func:`plane_depths` returns: the plane's depth (mm) in each frame and which one is used."""
+
+    open: float
+    closed: float
+    used: Literal["open"]
+
+
+def plane_depths(opened: GripperMeasurement, closed: GripperMeasurement) -> PlaneDepths:
     """The gripper plane's depth (mm) in the open and in the closed frame of one gripper pose, both
     at the pixel halfway between the open frame's finger bases (where a tilted plane's depths are
     compared without the lever of the optical axis), and which one calibration uses:

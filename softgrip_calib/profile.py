@@ -378,7 +378,7 @@ def _parse(data: Any, source: str) -> CalibrationProfile:
     if not isinstance(data, dict):
         raise ProfileError(f"{source}: expected a JSON object, got {show_value(data)}")
     document, problem = profile_schema.validate(data)
-    if problem is not None:
+    if document is None:
         raise ProfileError(f"{source}: {problem}")
     if document.version != PROFILE_VERSION:
         newer = " (the file was written by a newer softgrip-jax)" if document.version > PROFILE_VERSION else ""

@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import (BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, ValidatorFunctionWrapHandler,
                       WrapValidator)
-from pydantic_core import PydanticCustomError
+from pydantic.fields import FieldInfo
+from pydantic_core import ErrorDetails, PydanticCustomError
 
 #: Largest magnitude of a number in a profile: the core computes in float32 (max 3.4e38).
 MAX_MAGNITUDE = 1e30
@@ -46,25 +47,31 @@ def _expecting(expected: str, magnitude: bool = False) -> WrapValidator:
     return WrapValidator(wrap)
 
 
-def number(expected: str, **bounds: float) -> Any:
-    """A finite JSON number (not a boolean) within ``bounds`` (pydantic's gt, ge, lt, le)."""
-    return Annotated[float, Field(strict=True, allow_inf_nan=False, description=expected, **bounds),
-                     _expecting(expected, magnitude=True)]
+def number(expected: str, *, gt: float | None = None, ge: float | None = None, lt: float | None = None,
+           le: float | None = None) -> tuple[FieldInfo, WrapValidator]:
+    """A finite JSON number (not a boolean) within the bounds (pydantic's gt, ge, lt, le): the
+    metadata of ``Annotated[float, *number(...)]``."""
+    return (Field(strict=True, allow_inf_nan=False, description=expected, gt=gt, ge=ge, lt=lt, le=le),
+            _expecting(expected, magnitude=True))
 
 
-def text(choices: tuple[str, ...] | None = None) -> Any:
-    """A non-empty string, or one of ``choices``."""
+def text(choices: Any = None) -> tuple[FieldInfo, WrapValidator]:
+    """A non-empty string (``Annotated[str, *text()]``), or one of the values of the ``Literal``
+    type ``choices`` (``Annotated[choices, *text(choices)]``)."""
     if choices is None:
-        return Annotated[str, Field(strict=True, min_length=1, description="a non-empty string"),
-                         _expecting("a non-empty string")]
-    expected = "one of " + ", ".join(f'"{c}"' for c in choices)
-    return Annotated[Literal[choices], Field(description=expected), _expecting(expected)]  # type: ignore[valid-type]
+        return Field(strict=True, min_length=1, description="a non-empty string"), _expecting("a non-empty string")
+    expected = "one of " + ", ".join(f'"{c}"' for c in get_args(choices))
+    return Field(description=expected), _expecting(expected)
 
 
-_NON_NEGATIVE = number("a number >= 0", ge=0)
+_Text = Annotated[str, *text()]
+_FitMethod = Literal["one-frame", "least-squares"]
+_EstimateMethod = Literal["geometric", "mechanics"]
+_PlaneDepthUsed = Literal["open"]
+_NonNegative = Annotated[float, *number("a number >= 0", ge=0)]
 #: A standard error: one number, or one per component of a vector parameter (base_offset).
 _StandardError = Annotated[
-    Annotated[_NON_NEGATIVE, Tag("number")] | Annotated[list[_NON_NEGATIVE], Tag("list")],
+    Annotated[_NonNegative, Tag("number")] | Annotated[list[_NonNegative], Tag("list")],
     Discriminator(lambda v: "list" if isinstance(v, list) else "number"),
 ]
 _UNION_TAGS = ("number", "list")
@@ -75,20 +82,20 @@ class _Object(BaseModel):
 
 
 class Gripper(_Object):
-    base_separation: number(f"a distance in mm > 0 and <= {MAX_SIZE_MM:g}", gt=0, le=MAX_SIZE_MM)
+    base_separation: Annotated[float, *number(f"a distance in mm > 0 and <= {MAX_SIZE_MM:g}", gt=0, le=MAX_SIZE_MM)]
 
 
 class Finger(_Object):
-    length: number(f"a length in mm > 0 and <= {MAX_SIZE_MM:g}", gt=0, le=MAX_SIZE_MM)
-    theta_entire: number("a number in [0, pi/2)", ge=0, lt=math.pi / 2)
-    half_thickness: number(f"a half-thickness in mm >= 0 and <= {MAX_HALF_THICKNESS_MM:g}", ge=0,
-                           le=MAX_HALF_THICKNESS_MM)
+    length: Annotated[float, *number(f"a length in mm > 0 and <= {MAX_SIZE_MM:g}", gt=0, le=MAX_SIZE_MM)]
+    theta_entire: Annotated[float, *number("a number in [0, pi/2)", ge=0, lt=math.pi / 2)]
+    half_thickness: Annotated[float, *number(f"a half-thickness in mm >= 0 and <= {MAX_HALF_THICKNESS_MM:g}",
+                                             ge=0, le=MAX_HALF_THICKNESS_MM)]
     n_links: Annotated[int, Field(strict=True, ge=1, le=MAX_N_LINKS),
                        _expecting(f"an integer >= 1 and <= {MAX_N_LINKS}")]
-    base_offset: Annotated[list[number("a finite number of mm")],
+    base_offset: Annotated[list[Annotated[float, *number("a finite number of mm")]],
                            Field(min_length=2, max_length=2, description="[dx, dy] in mm (two numbers)")] = [0.0, 0.0]
-    stiffness_ratio: number("a base-to-tip stiffness ratio > 0 (1: uniform)", gt=0) = 1.0
-    base_compliance: number("a base compliance >= 0 (0: clamped base)", ge=0) = 0.0
+    stiffness_ratio: Annotated[float, *number("a base-to-tip stiffness ratio > 0 (1: uniform)", gt=0)] = 1.0
+    base_compliance: Annotated[float, *number("a base compliance >= 0 (0: clamped base)", ge=0)] = 0.0
 
 
 class Fingers(_Object):
@@ -97,54 +104,54 @@ class Fingers(_Object):
 
 
 class Camera(_Object):
-    name: text()
+    name: _Text
     # Checked field by field by softgrip_vision.frames.Intrinsics.from_dict.
     intrinsics: dict[str, Any] | None = Field(description="the camera's intrinsics (a JSON object) or null")
 
 
 class Skipped(_Object):
-    frame: text()
-    reason: text()
+    frame: _Text
+    reason: _Text
 
 
 class Candidate(_Object):
     """One stiffness model a fit tried (softgrip_calib.select)."""
 
-    model: text()
-    parameters: list[text()]
-    residual_rms_mm: _NON_NEGATIVE | None = None
-    held_out_rms_mm: _NON_NEGATIVE | None = None
-    failure: text() | None = None
+    model: _Text
+    parameters: list[_Text]
+    residual_rms_mm: _NonNegative | None = None
+    held_out_rms_mm: _NonNegative | None = None
+    failure: _Text | None = None
 
 
 class ModelSelection(_Object):
-    chosen: text()
-    reason: text()
+    chosen: _Text
+    reason: _Text
     candidates: list[Candidate]
 
 
 class Fit(_Object):
-    method: text(("one-frame", "least-squares"))
-    estimate_method: text(("geometric", "mechanics")) | None = None
-    frames: list[text()]
-    residual_rms_mm: _NON_NEGATIVE | None = None
-    frame_residual_rms_mm: list[_NON_NEGATIVE] = []
-    frame_start_residual_rms_mm: list[_NON_NEGATIVE] = []
-    frame_mid_error_mm: list[_NON_NEGATIVE] = []
-    frame_tip_error_mm: list[_NON_NEGATIVE] = []
+    method: Annotated[_FitMethod, *text(_FitMethod)]
+    estimate_method: Annotated[_EstimateMethod, *text(_EstimateMethod)] | None = None
+    frames: list[_Text]
+    residual_rms_mm: _NonNegative | None = None
+    frame_residual_rms_mm: list[_NonNegative] = []
+    frame_start_residual_rms_mm: list[_NonNegative] = []
+    frame_mid_error_mm: list[_NonNegative] = []
+    frame_tip_error_mm: list[_NonNegative] = []
     standard_errors: dict[str, _StandardError] = Field(
-        {}, description="a JSON object (parameter name -> standard error)")
+        default={}, description="a JSON object (parameter name -> standard error)")
     skipped: list[Skipped] = []
-    free_closure: text() | None = None
+    free_closure: _Text | None = None
     model_selection: ModelSelection | None = None
 
 
 class PlaneDepths(_Object):
     """The gripper plane's depth measured in each frame of a one-frame calibration (a record)."""
 
-    open: number("the plane's depth in mm in the open frame (> 0)", gt=0)
-    closed: number("the plane's depth in mm in the closed frame (> 0)", gt=0)
-    used: text(("open",))
+    open: Annotated[float, *number("the plane's depth in mm in the open frame (> 0)", gt=0)]
+    closed: Annotated[float, *number("the plane's depth in mm in the closed frame (> 0)", gt=0)]
+    used: Annotated[_PlaneDepthUsed, *text(_PlaneDepthUsed)]
 
 
 class Vision(BaseModel):
@@ -152,7 +159,7 @@ class Vision(BaseModel):
     calibration detected."""
 
     model_config = ConfigDict(extra="allow", strict=True, frozen=True)
-    detected: dict[str, Any] = Field({}, description="a JSON object (what calibration detected)")
+    detected: dict[str, Any] = Field(default={}, description="a JSON object (what calibration detected)")
     plane_depth_mm: PlaneDepths | None = None
 
 
@@ -184,7 +191,7 @@ def json_schema() -> dict[str, Any]:
             "title": "softgrip-jax calibration profile"}
 
 
-def _describe(error: dict[str, Any]) -> str:
+def _describe(error: ErrorDetails) -> str:
     """One pydantic error as ``path: problem``."""
     loc = list(error["loc"])
     if loc[:2] == ["fit", "standard_errors"] and len(loc) > 3 and loc[3] in _UNION_TAGS:

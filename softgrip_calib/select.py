@@ -35,6 +35,7 @@ import dataclasses
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -116,8 +117,8 @@ def fit_stiffness_model(
     previous = start
     for k, model in enumerate(STIFFNESS_MODELS):
         names = [*base, *model.parameters]
-        record = {"model": model.name, "parameters": list(model.parameters), "residual_rms_mm": None,
-                  "held_out_rms_mm": None, "failure": None}
+        record: dict[str, Any] = {"model": model.name, "parameters": list(model.parameters),
+                                  "residual_rms_mm": None, "held_out_rms_mm": None, "failure": None}
         records.append(record)
         if k > 0 and len(held_out) < MIN_OBJECT_PAIRS:
             record["failure"] = (f"not tried: {len(held_out)} pair(s) with an object, and judging a model on a "

@@ -77,7 +77,8 @@ def safe_streams() -> None:
         if getattr(stream, "errors", None) not in ("strict", "surrogateescape"):
             continue
         try:
-            stream.reconfigure(errors="backslashreplace")
+            if hasattr(stream, "reconfigure"):  # a text file (io.TextIOWrapper)
+                stream.reconfigure(errors="backslashreplace")
         except (AttributeError, OSError, ValueError):
             pass
 

@@ -275,7 +275,7 @@ def _fit(args: argparse.Namespace):
     observations, skipped = load_observations(pairs, settings, n_links, progress=True, measure=measure)
     if free is not None:
         observations.append(free)
-    elif empty is not None:
+    elif empty is not None and reason is not None:  # (a reason whenever the pair gave no observation)
         skipped.append({"frame": f"{empty[0]} + {empty[1]}", "reason": reason})
     elif args.profile is None:  # (a --profile's pair was looked for above, and its absence reported)
         print("softgrip calibrate: note: no pair of the gripper closed without an object in the fit, so nothing "

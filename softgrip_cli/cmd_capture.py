@@ -7,6 +7,7 @@ import json
 import sys
 import warnings
 from pathlib import Path
+from typing import Any
 
 from softgrip_vision.realsense import CameraError, RecordingDamagedError, capture_from_camera, capture_from_recording
 from softgrip_cli._args import positive_int
@@ -107,7 +108,7 @@ def _ignore_warning(message, category, filename, lineno, file=None, line=None) -
 
 def _print_paths(paths, as_json: bool, lost=None) -> None:
     if as_json:
-        record = {"frames": [str(path) for path in paths]}
+        record: dict[str, Any] = {"frames": [str(path) for path in paths]}
         if lost is not None:
             record.update(complete=False, lost_frame_numbers=list(lost))
         print(json.dumps(record))

@@ -46,7 +46,7 @@ others are estimated, and the command exits with 2 at the end naming the frames 
 Overlays (--overlay-dir): DIR/<frame-name>.png, estimated joints blue, contacts red.
 """
 
-_STATUS_TEXT = {
+_STATUS_TEXT: dict[int, str] = {  # looked up by the status code
     Status.NON_FINITE_INPUT: "a non-finite base or calibration value",
     Status.BASE_OUTSIDE_SDF: "its base lies outside the image",
     Status.INITIAL_OVERLAP: "the object already overlaps the open finger (is the object touching it?)",

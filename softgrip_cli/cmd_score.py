@@ -12,6 +12,7 @@ import re
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -78,7 +79,7 @@ MAX_POSES = 1_000_000
 MU_RANGE = (0.0, 10.0)
 #: Defaults of the robust options: the arm's pose error (mm, rad), mu's relative spread, the outline's
 #: error (mm; about half a pixel at the paper's working distance).
-ROBUST_DEFAULTS = {"pose": "0.5,0.01", "mu_spread": 0.2, "contour": 0.2}
+ROBUST_DEFAULTS: dict[str, Any] = {"pose": "0.5,0.01", "mu_spread": 0.2, "contour": 0.2}
 _GRID_FORMAT = "X0:X1:NX,Y0:Y1:NY,A0:A1:NA (mm, mm, rad; e.g. -20:20:21,-80:-40:21,-0.2:0.2:3)"
 
 
@@ -168,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
     check_distinct_outputs({**({"-o": output} if output else {}), **figures})
     scene = pipe.frame_scene(args.frame, profile, length_from_frame=args.length_from_frame)
     if args.poses or args.grid:  # the user's numbers: in the units the command reads?
-        check_pose_units(poses if args.poses else grid_poses(*grid), scene,
+        check_pose_units(poses if grid is None else grid_poses(*grid), scene,
                          args.poses if args.poses else f"--grid {args.grid}")
     if not args.poses:
         grid = grid or default_grid(scene)
@@ -267,7 +268,7 @@ def check_pose_units(poses: np.ndarray, scene: pipe.FrameScene, source: str) -> 
         along, side = d @ down, d @ across
         return bool(np.any((np.abs(side) <= half_width) & (along >= -thickness) & (along <= length + thickness)))
 
-    for i in near:
+    for i in near.tolist():
         xy, angle = poses[i, :2], float(poses[i, 2])
         if not reaches(xy, angle) and reaches(1000.0 * xy, angle):
             x, y = (float(v) for v in xy)
@@ -567,7 +568,10 @@ def _element_lines(text: str, key: str | None, count: int) -> list[int] | None:
     i = start + 1
     try:
         while True:
-            i = gap.match(text, i).end()
+            found = gap.match(text, i)  # (it always matches: the pattern matches the empty string too)
+            if found is None:
+                return None
+            i = found.end()
             if i >= len(text) or text[i] == "]":
                 break
             lines.append(text.count("\n", 0, i) + 1)
@@ -609,7 +613,8 @@ def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
         return PoseInputError(f"{file}, {where}: not a pose file (most rows are not x_mm{sep}y_mm[{sep}angle_rad] "
                               f"numbers): is it the right file?")
 
-    poses, columns = [], None
+    poses: list[tuple[float, float, float]] = []
+    columns = None
     for line_no, row in _csv_rows(text, file, delimiter):
         cells = [c.strip() for c in row]
         if not any(cells) or cells[0].startswith("#"):
@@ -637,7 +642,7 @@ def _csv_poses(text: str, file: Path) -> list[tuple[float, float, float]]:
         pose = [0.0, 0.0, 0.0]
         for index, value in zip(columns or range(len(values)), values):
             pose[index] = value
-        poses.append(tuple(pose))
+        poses.append((pose[0], pose[1], pose[2]))
     return poses
 
 
@@ -831,12 +836,12 @@ def heatmap_image(scene: pipe.FrameScene, poses: np.ndarray, result, grid, best:
         x, y, angle = poses[best]
         bases = [np.asarray(frame.origin, np.float64) for frame in finger_frames(scene.gripper, poses[best])]
         ends = scene.camera.mm_to_px(np.array(bases))
-        centre = scene.camera.mm_to_px([x, y])
+        best_centre = scene.camera.mm_to_px([x, y])
         for colour, width in (((255, 255, 255), 4), ((0, 0, 0), 1)):
             cv2.line(image, tuple(np.rint(ends[0]).astype(int)), tuple(np.rint(ends[1]).astype(int)), colour, width,
                      cv2.LINE_AA)
-        cv2.drawMarker(image, tuple(np.rint(centre).astype(int)), (255, 255, 255), cv2.MARKER_CROSS, 14, 3)
-        cv2.drawMarker(image, tuple(np.rint(centre).astype(int)), (0, 0, 0), cv2.MARKER_CROSS, 12, 1)
+        cv2.drawMarker(image, tuple(np.rint(best_centre).astype(int)), (255, 255, 255), cv2.MARKER_CROSS, 14, 3)
+        cv2.drawMarker(image, tuple(np.rint(best_centre).astype(int)), (0, 0, 0), cv2.MARKER_CROSS, 12, 1)
     _colour_bar(image, lo, hi, colours, finite.size > 0)
     if valid:
         x, y, angle = poses[best]

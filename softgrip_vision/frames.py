@@ -188,7 +188,8 @@ class Intrinsics:
             raise FrameError(f"CameraInfo: got a {type(info).__name__}; pass a sensor_msgs/CameraInfo message "
                              f"(fields K or k, D or d, distortion_model, width, height) or a dict with those keys")
         k, d, name = get("K", "k"), get("D", "d"), get("distortion_model") or "plumb_bob"
-        if k is None or get("width") is None or get("height") is None:
+        width, height = get("width"), get("height")
+        if k is None or width is None or height is None:
             raise FrameError("CameraInfo needs K (or k), width and height")
         k = np.asarray(k, dtype=np.float64)
         if k.size != 9:
@@ -198,7 +199,7 @@ class Intrinsics:
             raise FrameError(f"CameraInfo distortion_model {name!r} is not supported; use one of "
                              f"{', '.join(sorted(_ROS_MODELS))}")
         coeffs = [] if d is None else list(np.ravel(d))
-        return cls.from_matrix(k.reshape(3, 3), int(get("width")), int(get("height")), depth_scale,
+        return cls.from_matrix(k.reshape(3, 3), int(width), int(height), depth_scale,
                                dist=coeffs, model=model if any(coeffs) else "none")
 
     @classmethod
@@ -276,7 +277,7 @@ class Intrinsics:
         from softgrip_vision.intrinsics_schema import validate  # pydantic: imported only where intrinsics are read
 
         document, problem = validate(d)
-        if problem is not None:
+        if document is None:
             raise FrameError(f"{source}: {problem}")
         d = document.model_dump()
         try:

@@ -39,6 +39,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -298,7 +299,7 @@ class PlaneFit:
 def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thickness_px: Sequence[float],
                       relief_mm: float | None = None, *,
                       centrelines_px: Sequence[np.ndarray] | None = None,
-                      width_edges_px: Sequence[np.ndarray] | None = None) -> PlaneFit:
+                      width_edges_px: Sequence[np.ndarray | None] | None = None) -> PlaneFit:
     """Fit the plane through the fingers' outlines, and its tilt, to their depth readings.
 
     Every reading of a finger region (away from its edge) is a point P = Z ray(u, v) of its front
@@ -513,7 +514,7 @@ def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarra
 
 def _bulge_in_plane(points: np.ndarray, label: np.ndarray, plane: PlaneCamera,
                     centrelines_px: Sequence[np.ndarray],
-                    width_edges_px: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+                    width_edges_px: Sequence[np.ndarray | None]) -> tuple[np.ndarray, np.ndarray]:
     """(P,) the elliptic bulge sqrt(1 - (rho / r)^2) of each reading (P, 3) in camera mm and (P,)
     r there (mm; NaN for a finger without side points), with rho
     the distance in ``plane`` from the reading's foot on it to its finger's axis (the centreline's
@@ -557,7 +558,8 @@ def _across(points: np.ndarray, polyline: np.ndarray, edges: np.ndarray | None, 
     fine = np.linspace(0.0, arc[-1], max(2, int(arc[-1] / step) + 1))
     dense = np.column_stack([np.interp(fine, arc, polyline[:, j]) for j in range(polyline.shape[1])])
     tree = cKDTree(dense)
-    distance, nearest = tree.query(points)
+    # (cast: scipy-stubs also allow one point's (float, int); points (P, D) give arrays)
+    distance, nearest = cast(tuple[np.ndarray, np.ndarray], tree.query(points))
     if edges is None or len(edges) < 2:
         return distance, np.full(len(points), r)
     _, station = tree.query(0.5 * (edges[:, 0] + edges[:, 1]))

@@ -15,6 +15,8 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic.fields import FieldInfo
+from pydantic_core import ErrorDetails
 
 #: pyrealsense2's names for the seven required fields, in this order in messages.
 REQUIRED = ("width", "height", "fx", "fy", "ppx", "ppy", "depth_scale")
@@ -23,12 +25,12 @@ MODELS = ("none", "brown_conrady", "inverse_brown_conrady", "rational_polynomial
           "modified_brown_conrady")
 
 
-def _pixels(what: str) -> Any:
-    return Annotated[int, Field(strict=True, gt=0, description=f"the image's {what} in pixels (an integer > 0)")]
+def _pixels(what: str) -> FieldInfo:
+    return Field(strict=True, gt=0, description=f"the image's {what} in pixels (an integer > 0)")
 
 
-def _number(description: str, **bounds: float) -> Any:
-    return Annotated[float, Field(strict=True, allow_inf_nan=False, description=description, **bounds)]
+def _number(description: str, *, gt: float | None = None) -> FieldInfo:
+    return Field(strict=True, allow_inf_nan=False, description=description, gt=gt)
 
 
 class IntrinsicsDocument(BaseModel):
@@ -36,17 +38,19 @@ class IntrinsicsDocument(BaseModel):
 
     model_config = ConfigDict(extra="allow", strict=True, frozen=True,
                               title="softgrip-jax camera intrinsics (intrinsics.json)")
-    width: _pixels("width")
-    height: _pixels("height")
-    fx: _number("focal length along x in pixels (a finite number > 0)", gt=0)
-    fy: _number("focal length along y in pixels (a finite number > 0)", gt=0)
-    ppx: _number("principal point x in pixels, from the centre of the top-left pixel (a finite number)")
-    ppy: _number("principal point y in pixels, from the centre of the top-left pixel (a finite number)")
-    depth_scale: _number("metres per unit of the 16-bit depth image (a finite number > 0; RealSense D4xx: 0.001)",
-                         gt=0)
-    model: Literal[MODELS] = Field("none", description="the lens distortion model")  # type: ignore[valid-type]
-    coeffs: list[_number("a distortion coefficient (a finite number)")] = Field(
-        [], description="the distortion model's coefficients (4, 5 or 8 numbers; none without a model)")
+    width: Annotated[int, _pixels("width")]
+    height: Annotated[int, _pixels("height")]
+    fx: Annotated[float, _number("focal length along x in pixels (a finite number > 0)", gt=0)]
+    fy: Annotated[float, _number("focal length along y in pixels (a finite number > 0)", gt=0)]
+    ppx: Annotated[float, _number("principal point x in pixels, from the centre of the top-left pixel "
+                                  "(a finite number)")]
+    ppy: Annotated[float, _number("principal point y in pixels, from the centre of the top-left pixel "
+                                  "(a finite number)")]
+    depth_scale: Annotated[float, _number("metres per unit of the 16-bit depth image (a finite number > 0; "
+                                          "RealSense D4xx: 0.001)", gt=0)]
+    model: Literal[MODELS] = Field(default="none", description="the lens distortion model")  # type: ignore[valid-type]
+    coeffs: list[Annotated[float, _number("a distortion coefficient (a finite number)")]] = Field(
+        default=[], description="the distortion model's coefficients (4, 5 or 8 numbers; none without a model)")
 
 
 def validate(data: Any) -> tuple[IntrinsicsDocument | None, str | None]:
@@ -71,7 +75,7 @@ def json_schema() -> dict[str, Any]:
     return {"$schema": "https://json-schema.org/draft/2020-12/schema", **IntrinsicsDocument.model_json_schema()}
 
 
-def _describe(error: dict[str, Any], data: dict[str, Any]) -> str:
+def _describe(error: ErrorDetails, data: dict[str, Any]) -> str:
     name = str(error["loc"][0])
     value, kind = data.get(name), error["type"]
     if name == "model":

@@ -41,7 +41,7 @@ line sampling.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, NamedTuple
+from typing import Any, Literal, NamedTuple, cast
 
 import cv2
 import numpy as np
@@ -55,6 +55,7 @@ from softgrip_vision.geometry import PlaneCamera
 from softgrip_vision.segmentation import Segmentation
 
 Side = Literal["left", "right"]
+SIDES: tuple[Side, Side] = ("left", "right")
 BaseEnd = Literal["rounded", "flat"]
 TipEnd = Literal["rounded", "flat", "unknown"]
 
@@ -400,8 +401,9 @@ def gripper_keypoints(segmentation: Segmentation, camera: PlaneCamera, rounded_b
     cut = _cut_column(segmentation)
     masks = (segmentation.left_finger, segmentation.right_finger)
     coverages = [None, None] if color is None else [edge_coverage(color, mask) for mask in masks]
-    return tuple(finger_keypoints(mask, camera, side, rounded_base, cut_column=cut, coverage=coverage)
-                 for mask, side, coverage in zip(masks, ("left", "right"), coverages))
+    left, right = (finger_keypoints(mask, camera, side, rounded_base, cut_column=cut, coverage=coverage)
+                   for mask, side, coverage in zip(masks, SIDES, coverages))
+    return left, right
 
 
 def _cut_column(segmentation: Segmentation) -> float | None:
@@ -436,27 +438,28 @@ def _ridge(finger: np.ndarray, depth: np.ndarray) -> np.ndarray:
     index = np.full(finger.shape, -1, np.int64)
     index[r, c] = np.arange(r.size)
     height, width = finger.shape
-    heads, tails, lengths, clearances = [], [], [], []
+    head_parts, tail_parts, length_parts, clearance_parts = [], [], [], []
     for dr, dc in _STEPS:
         rr, cc = r + dr, c + dc
         ok = (rr < height) & (cc >= 0) & (cc < width)
         neighbour = np.full(r.size, -1, np.int64)
         neighbour[ok] = index[rr[ok], cc[ok]]
         linked = neighbour >= 0
-        heads.append(np.flatnonzero(linked))
-        tails.append(neighbour[linked])
-        lengths.append(np.full(linked.sum(), np.hypot(dr, dc)))
-        clearances.append(np.minimum(depth[r[linked], c[linked]], depth[rr[linked], cc[linked]]))
-    heads, tails, lengths, clearances = map(np.concatenate, (heads, tails, lengths, clearances))
+        head_parts.append(np.flatnonzero(linked))
+        tail_parts.append(neighbour[linked])
+        length_parts.append(np.full(linked.sum(), np.hypot(dr, dc)))
+        clearance_parts.append(np.minimum(depth[r[linked], c[linked]], depth[rr[linked], cc[linked]]))
+    heads, tails, lengths, clearances = map(np.concatenate, (head_parts, tail_parts, length_parts, clearance_parts))
 
     def graph(weights: np.ndarray) -> csr_matrix:
         return csr_matrix((weights, (heads, tails)), shape=(r.size, r.size))
 
     top_row = np.flatnonzero(r == r.min())
     start = int(top_row[np.argmin(np.abs(c[top_row] - c[top_row].mean()))])
-    end = int(np.argmax(dijkstra(graph(lengths), directed=False, indices=start)))
+    # (cast: dijkstra takes one int index, as scipy documents, but scipy-stubs lists only arrays)
+    end = int(np.argmax(dijkstra(graph(lengths), directed=False, indices=cast(Any, start))))
     cost = lengths * (depth.max() / clearances) ** _RIDGE_POWER
-    _, predecessor = dijkstra(graph(cost), directed=False, indices=end, return_predecessors=True)
+    _, predecessor = dijkstra(graph(cost), directed=False, indices=cast(Any, end), return_predecessors=True)
     path = [start]
     while path[-1] != end:
         path.append(int(predecessor[path[-1]]))
@@ -673,8 +676,8 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
                 raise
             looks_rounded = False
         if rounded or looks_rounded:
-            centre, cap = _cap_centre(line, radius, contour, sampler, what)
-            return _End(centre, "rounded", False, cap=cap)
+            cap_centre, cap = _cap_centre(line, radius, contour, sampler, what)
+            return _End(cap_centre, "rounded", False, cap=cap)
     # Stations from 2.5 r on: nearer the cut the distance transform's ridge forks toward its corners
     # (more so when a round finger's cut bulges in perspective), and its direction there would
     # tilt the lines across the finger.

@@ -39,7 +39,7 @@ from softgrip_jax import SDFGrid, SoftgripError
 from softgrip_vision.coverage import edge_coverage
 from softgrip_vision.frames import Frame, FrameError, undistort_frame
 from softgrip_vision.geometry import TILT_WARN_DEG, PlaneCamera, PlaneFit, face_offset_mm, fit_gripper_plane
-from softgrip_vision.keypoints import FingerKeypoints, gripper_keypoints
+from softgrip_vision.keypoints import FingerKeypoints, KeypointError, gripper_keypoints
 from softgrip_vision.object_sdf import object_sdf
 from softgrip_vision.segmentation import Segmentation
 
@@ -227,16 +227,20 @@ def measure_gripper(frame: Frame, segmentation: Segmentation,
     plausibility.check_gripper_depth(provisional.depth_mm, frame.intrinsics)
     keypoints = gripper_keypoints(segmentation, provisional, settings.rounded_base, color=frame.color)
     plausibility.check_orientation(keypoints)  # bases at the gripper's body, tips free
-    plane = fit_gripper_plane(frame, [k.region for k in keypoints], [k.half_thickness_px for k in keypoints],
+    regions = [k.region for k in keypoints if k.region is not None]
+    if len(regions) != len(keypoints):  # gripper_keypoints gives every finger its region
+        raise KeypointError("a finger's keypoints have no region (the finger alone) to fit the gripper plane to")
+    plane = fit_gripper_plane(frame, regions, [k.half_thickness_px for k in keypoints],
                               settings.finger_relief_mm, centrelines_px=[k.centreline_px for k in keypoints],
                               width_edges_px=[k.width_edges_px for k in keypoints])
     offset = face_offset_mm(frame, segmentation.object, plane.camera) if segmentation.object.any() else None
     body_front = None
     if any(k.body_in_view for k in keypoints):  # the body's edge gives the bases: at its face's depth
-        body = segmentation.fingers & ~np.logical_or.reduce([k.region for k in keypoints])
+        body = segmentation.fingers & ~np.logical_or.reduce(regions)
         body_offset = face_offset_mm(frame, body, plane.camera)
         body_front = None if body_offset is None else -body_offset
-    measured = tuple(k.with_camera(plane.camera, relief, body_front) for k, relief in zip(keypoints, plane.relief_mm))
+    left, right = (k.with_camera(plane.camera, relief, body_front) for k, relief in zip(keypoints, plane.relief_mm))
+    measured = (left, right)
     plausibility.check_gripper_size([k.length_mm for k in measured],
                                     float(np.hypot(*(measured[1].base_mm - measured[0].base_mm))), frame.intrinsics)
     return GripperMeasurement(segmentation=segmentation, plane=plane, keypoints=measured, object_offset_mm=offset)

@@ -15,6 +15,7 @@ and to crash when restarted many times; a single pass with callbacks delivered e
 from __future__ import annotations
 
 import ctypes
+import importlib
 import os
 import re
 import sqlite3
@@ -122,8 +123,8 @@ def import_realsense() -> ModuleType:
             ctypes.CDLL(str(library), mode=ctypes.RTLD_GLOBAL)
     except (ImportError, OSError):
         pass  # the system's libusb may still be there; the import below tells
-    try:
-        import pyrealsense2
+    try:  # (by name: pyrealsense2 ships no type information, and is used as a ModuleType anyway)
+        pyrealsense2 = importlib.import_module("pyrealsense2")
     except ImportError as err:
         raise CameraError(
             f"cannot import pyrealsense2 ({err}): install the RealSense extra with "
@@ -432,7 +433,7 @@ def _pair(rs: ModuleType, collector: _Collector, path: Path, depth_scale: float,
                           f"frame within half a frame period", stacklevel=4)
             continue
         color = collector.color[int(gaps.argmin())]
-        if compose is not None:
+        if compose is not None and align is not None:
             frameset = align.process(compose(depth, color))
             depth, color = frameset.get_depth_frame(), frameset.get_color_frame()
         try:

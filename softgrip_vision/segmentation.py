@@ -49,6 +49,7 @@ from typing import Any, Literal, NoReturn
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 from softgrip_jax import SoftgripError
 from softgrip_vision.frames import COLOR_FILE, Frame, greyscale_problem
@@ -407,7 +408,7 @@ def _classify_kornia(frames: list[Frame], settings: SegmentationSettings, cutoff
         raise SegmentationError(f"backend='kornia' segments one batch, so all frames must have one size; "
                                 f"got sizes (height, width) {sorted(sizes)}: segment them in groups")
 
-    def tensor(arrays: list[np.ndarray]) -> Any:
+    def tensor(arrays: Sequence[ArrayLike]) -> Any:
         return torch.from_numpy(np.stack(arrays)).to(device)
 
     color = tensor([frame.color for frame in frames]).permute(0, 3, 1, 2).float() / 255.0
@@ -494,12 +495,12 @@ def _components(frame: Frame, settings: SegmentationSettings, cutoff_mm: float, 
         right = _largest_component(gripper & ~left_side, settings.min_finger_px)
         if left is None and right is None:
             _raise_no_gripper(frame, settings, cutoff_mm, roi)
-        for finger, side in ((left, "left"), (right, "right")):
-            if finger is None:
-                raise SegmentationError(
-                    f"only one finger found: no gripper region of at least min_finger_px="
-                    f"{settings.min_finger_px} px {side} of center_column={center:g}; expected one finger "
-                    f"on each side: check that both fingers are in view, or move center_column between them")
+        if left is None or right is None:
+            side = "left" if left is None else "right"
+            raise SegmentationError(
+                f"only one finger found: no gripper region of at least min_finger_px="
+                f"{settings.min_finger_px} px {side} of center_column={center:g}; expected one finger "
+                f"on each side: check that both fingers are in view, or move center_column between them")
         split = "center_column"
     else:
         _, labels, stats, centroids = cv2.connectedComponentsWithStats(gripper.view(np.uint8), connectivity=8)
@@ -636,7 +637,7 @@ def _cut_region(region: np.ndarray, center: float, min_px: int, where: str,
     left = _largest_component(region & left_side, 1)
     right = _largest_component(region & ~left_side, 1)
     areas = [0 if m is None else int(m.sum()) for m in (left, right)]
-    if min(areas) < min_px or min(areas) < CUT_MIN_BALANCE * max(areas):
+    if left is None or right is None or min(areas) < min_px or min(areas) < CUT_MIN_BALANCE * max(areas):
         raise SegmentationError(
             f"only one finger found: the one gripper region ({where}) cut at {source} leaves "
             f"{areas[0]} px on the left and {areas[1]} px on the right; expected a finger of at least "

@@ -21,25 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("softgrip_base", "softgrip_jax", "softgrip_vision", "softgrip_calib", "softgrip_cli")
 
 #: Modules with known mypy errors (default settings), with the count when this list was made.
-NOT_YET_CLEAN = {
-    "softgrip_calib/profile_schema.py": 33,
-    "softgrip_calib/profile.py": 10,
-    "softgrip_calib/fit.py": 9,
-    "softgrip_calib/one_frame.py": 7,
-    "softgrip_calib/select.py": 2,
-    "softgrip_vision/keypoints.py": 12,
-    "softgrip_vision/intrinsics_schema.py": 10,
-    "softgrip_vision/segmentation.py": 5,
-    "softgrip_vision/measure.py": 4,
-    "softgrip_vision/realsense.py": 2,
-    "softgrip_vision/geometry.py": 2,
-    "softgrip_vision/frames.py": 2,
-    "softgrip_cli/cmd_score.py": 7,
-    "softgrip_cli/cmd_estimate.py": 1,
-    "softgrip_cli/cmd_capture.py": 1,
-    "softgrip_cli/cmd_calibrate.py": 1,
-    "softgrip_cli/_main.py": 1,
-}
+NOT_YET_CLEAN: dict[str, int] = {}
 
 
 @pytest.mark.slow
