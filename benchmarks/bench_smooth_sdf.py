@@ -41,7 +41,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from _machine import describe  # noqa: E402
-from softgrip_jax import FingerModel, MechanicsConfig, SDFGrid, estimate, estimate_batch  # noqa: E402
+from softgrip_jax import FingerModel, Mechanics, MechanicsConfig, SDFGrid, estimate, estimate_batch  # noqa: E402
 from synthetic.render import d405_intrinsics  # noqa: E402
 from synthetic.smooth import DiscSDF  # noqa: E402
 from softgrip_vision.geometry import PlaneCamera  # noqa: E402

@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from softgrip_jax import SDFGrid
+from softgrip_jax import Geometric, SDFGrid
 from softgrip_vision.coverage import edge_coverage
 from softgrip_vision.frames import Frame
 from softgrip_vision.geometry import PlaneCamera
@@ -583,7 +583,6 @@ def lens_errors(scene: AccuracyScene, lens: tuple[str, tuple[float, ...]] | None
     import warnings
 
     from softgrip_calib.one_frame import one_frame_from_frames
-    from softgrip_jax import Geometric
     from softgrip_vision.scene import frame_scene
 
     opened, closed = variant_scenes(scene, "default")
