@@ -116,21 +116,28 @@ def gripper_plane(intrinsics: Intrinsics, gripper_pose: Float[ArrayLike, "4 4"],
 
 
 def open_fingers(camera: PlaneCamera, profile: ProfileLike, pose: np.ndarray) -> tuple[FingerKeypoints, FingerKeypoints]:
-    """The profile's two fingers, open (straight, eq. 1 at zero closure), at ``pose`` (x mm, y mm,
-    angle rad), as :class:`~softgrip_vision.keypoints.FingerKeypoints` through ``camera``: what
-    the frame would show of them."""
+    """The profile's two fingers, open (straight, eq. 1 at zero closure), at ``pose`` (3,) = (x mm,
+    y mm, angle rad), as :class:`~softgrip_vision.keypoints.FingerKeypoints` through ``camera``:
+    what the frame would show of them.
+
+    The bases and the direction the fingers hang are the core's (:func:`softgrip_jax.finger_frames`):
+    each finger's centreline is the segment from its frame's origin along the frame's +y axis, its
+    length long, sampled about 1 px apart (K points, K >= 2); pixel coordinates are float64.
+    """
+    import jax.numpy as jnp
+
+    from softgrip_jax import finger_frames
+
     sides: tuple[Side, Side] = ("left", "right")
     gripper = profile.gripper()
-    x, y, angle = (float(v) for v in pose)
-    down = np.array([math.sin(angle), math.cos(angle)])
-    across = np.array([math.cos(angle), -math.sin(angle)])
-    separation = float(gripper.base_separation)
+    frames = finger_frames(gripper, np.asarray(pose, np.float64))
     out: list[FingerKeypoints] = []
-    for side, sign, finger in zip(sides, (-1.0, 1.0), (gripper.left, gripper.right)):
-        base = np.array([x, y]) + sign * 0.5 * separation * across
+    for side, frame, finger in zip(sides, frames, (gripper.left, gripper.right)):
         length = float(finger.length)
         steps = max(2, int(math.ceil(length / camera.mm_per_px)) + 1)  # about 1 px apart
-        centreline = base + np.linspace(0.0, length, steps)[:, None] * down
+        along = jnp.linspace(0.0, length, steps, dtype=frame.origin.dtype)
+        local = jnp.stack([jnp.zeros_like(along), along], axis=-1)  # on the finger's axis, base to tip
+        centreline = np.asarray(frame.to_world(local), np.float64)
         centreline_px = camera.mm_to_px(centreline)
         out.append(FingerKeypoints(side=side, base_px=centreline_px[0], tip_px=centreline_px[-1],
                                    centreline_px=centreline_px,
