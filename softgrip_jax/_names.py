@@ -16,19 +16,25 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 
-def code_names(codes: ArrayLike | Sequence[int], kind: type[enum.IntEnum]) -> str | np.ndarray:
-    """The lower-case member names of ``kind`` for integer ``codes``: a ``str`` for one code, a
-    numpy array of ``str`` of the same shape for an array; a code ``kind`` does not have reads
-    ``"unknown(<code>)"``.
+def code_names(codes: ArrayLike | Sequence[int], kind: type[enum.IntEnum], *,
+               unknown: str = "unknown({})") -> str | np.ndarray:
+    """The lower-case member names of ``kind`` for integer ``codes``: a ``str`` for one code (a
+    scalar), a numpy array of ``str`` of the same shape for an array.
+
+    ``unknown`` is how a code ``kind`` does not have reads: a :meth:`str.format` template given the
+    code, ``"unknown(<code>)"`` by default (the ``softgrip`` JSON documents write ``"status_<code>"``,
+    :func:`softgrip_vision.documents.status_name`).
 
     Example:
         >>> from softgrip_jax import ContactCase, Status, code_names
         >>> code_names(2, ContactCase), code_names([0, 2], Status).tolist()
         ('tip_and_other', ['ok', 'base_outside_sdf'])
+        >>> code_names(7, ContactCase), code_names(7, ContactCase, unknown="case_{}")
+        ('unknown(7)', 'case_7')
     """
     values = np.asarray(codes)
     table = {int(member): member.name.lower() for member in kind}
-    flat = [table.get(int(v), f"unknown({int(v)})") for v in values.reshape(-1)]
+    flat = [table.get(int(v), unknown.format(int(v))) for v in values.reshape(-1)]
     if values.ndim == 0:
         return flat[0]
     return np.array(flat, dtype=str).reshape(values.shape)

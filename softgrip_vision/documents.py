@@ -40,7 +40,7 @@ from typing import Any, TypedDict
 
 import numpy as np
 
-from softgrip_jax import CASE_NAMES, ContactCase, Status
+from softgrip_jax import CASE_NAMES, ContactCase, Status, code_names
 
 SIDES: tuple[str, str] = ("left", "right")
 #: Version of each kind of document's layout (``"format"`` field); additions keep it, changes bump
@@ -74,15 +74,13 @@ def number_json(value, decimals: int = 6):
 
 
 def status_name(status: int, penetrating: bool = False) -> str:
-    """A candidate's status as JSON text: ``softgrip_jax.Status`` names in lower case, or
-    ``"penetrating"`` for an estimate that is usable but flagged by the score."""
+    """A candidate's status (one integer code) as JSON text: ``softgrip_jax.Status`` names in lower
+    case (:func:`softgrip_jax.code_names`), ``"status_<code>"`` for a code ``Status`` does not have,
+    or ``"penetrating"`` for an estimate that is usable (code 0) but flagged by the score."""
     status = int(status)
     if status == 0 and penetrating:
         return "penetrating"
-    try:
-        return Status(status).name.lower()
-    except ValueError:
-        return f"status_{status}"
+    return str(code_names(status, Status, unknown="status_{}"))
 
 
 def finger_contacts_mm(estimate) -> np.ndarray:
