@@ -19,7 +19,9 @@ show, are the profile's, open, at that pose (:attr:`Scene.keypoints`).
 
 The object's signed-distance grid is widened past the image where the gripper reaches (the fingers
 hang from bases often above the view): the camera sees no object there, so none is assumed. An
-object that runs off the image is warned about, since what lies beyond is unknown.
+object that runs off the image is warned about, since what lies beyond is unknown, and so is one that
+a gripper already in view borders (segmented as light, unsaturated foreground), since it may hide
+part of the object.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import os
 from collections.abc import Callable
 from typing import Any
 
+import cv2
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
@@ -51,6 +54,9 @@ MIN_DISTANCE_MM = 20.0
 DEFAULT_MARGIN_MM = 30.0
 #: The grid is widened by at most this many times the image's size on each side.
 MAX_PAD_FACTOR = 2.0
+#: Object pixels within this many pixels of light, unsaturated foreground (a gripper in view) may
+#: have part of the object hidden behind that foreground: warned about.
+_HIDDEN_PX = 2
 
 
 def gripper_plane(intrinsics: Intrinsics, gripper_pose: Float[ArrayLike, "4 4"],
@@ -215,6 +221,10 @@ def object_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike,
         border = np.concatenate([seg.object[0], seg.object[-1], seg.object[:, 0], seg.object[:, -1]])
         if border.any():
             warn(f"{label}: the object runs off the image; beyond it no object is assumed: frame the whole object")
+        near_gripper = cv2.dilate(np.asarray(seg.gripper, np.uint8), np.ones((2 * _HIDDEN_PX + 1,) * 2, np.uint8))
+        if (near_gripper.view(bool) & seg.object).any():
+            warn(f"{label}: part of the gripper is in view next to the object and may hide some of it: the "
+                 f"outline there follows the gripper's edge; take the frame before the gripper covers the object")
     keypoints = open_fingers(camera, profile, pose)
     seg = dataclasses.replace(seg, center_column=float(camera.mm_to_px(pose[:2])[0]))
     bases = np.stack([k.camera.px_to_mm(k.base_px) for k in keypoints])
