@@ -38,6 +38,7 @@ from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._sharding import device_mesh, run_sharded
 from softgrip_jax._stage import Estimate, refine_search, search_contact, search_further, stage_of
+from softgrip_jax._trace import trace_once
 
 #: Candidates per compiled call (a piece): every batch runs as pieces of this size through one
 #: compiled program, so a new batch size compiles nothing; peak memory scales with it, not the batch.
@@ -111,12 +112,13 @@ def map_chunks(fn, xs, chunk_size):
         return jax.tree_util.tree_map(lambda x: x[:b], fn(pad_rows(xs, chunk_size)))
     n_chunks = -(-b // chunk_size)
     starts = jnp.minimum(jnp.arange(n_chunks) * chunk_size, b - chunk_size)
-    shapes = jax.eval_shape(fn, jax.ShapeDtypeStruct((chunk_size,) + xs.shape[1:], xs.dtype))
+    chunk = lambda start: jax.lax.dynamic_slice_in_dim(xs, start, chunk_size)  # noqa: E731
+    shapes, fn = trace_once(fn, chunk(0))
     out = jax.tree_util.tree_map(lambda s: jnp.zeros((b,) + s.shape[1:], s.dtype), shapes)
 
     def write(i, out):
         start = starts[i]
-        values = fn(jax.lax.dynamic_slice_in_dim(xs, start, chunk_size))
+        values = fn(chunk(start))
         return jax.tree_util.tree_map(lambda o, v: jax.lax.dynamic_update_slice_in_dim(o, v, start, 0), out, values)
 
     return jax.lax.fori_loop(0, n_chunks, write, out)

@@ -13,6 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool
 
+from softgrip_jax._trace import trace_once
+
 #: A chunk's needed candidates are mapped in groups of ceil(chunk / _SOLVE_GROUPS) by default.
 _SOLVE_GROUPS = 8
 
@@ -50,7 +52,7 @@ def where_needed(fn, need: Bool[Array, " b"] | Bool[np.ndarray, " b"], inputs, g
     padded = jnp.concatenate([order, jnp.zeros(groups * size - b, order.dtype)])
     wanted = jnp.arange(groups * size) < count
     take = lambda idx: jax.tree_util.tree_map(lambda x: x[idx], inputs)  # noqa: E731
-    out_shape = jax.eval_shape(jax.vmap(fn), take(padded[:size]))
+    out_shape, mapped = trace_once(jax.vmap(fn), take(padded[:size]))
 
     def group(g):
         idx = jax.lax.dynamic_slice_in_dim(padded, g * size, size)
@@ -61,7 +63,7 @@ def where_needed(fn, need: Bool[Array, " b"] | Bool[np.ndarray, " b"], inputs, g
         idx = jnp.where(work, idx, idx[0])
         return jax.lax.cond(
             jnp.any(work),
-            lambda: jax.vmap(fn)(take(idx)),
+            lambda: mapped(take(idx)),
             lambda: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), out_shape),
         )
 

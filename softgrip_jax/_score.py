@@ -50,6 +50,7 @@ from softgrip_jax._errors import SoftgripError, check_number_fields
 from softgrip_jax._export import exportable
 from softgrip_jax._gather import where_needed
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp, per_finger
+from softgrip_jax._keep_start import KeepStart
 from softgrip_jax._kinematics import chain_stations
 from softgrip_jax._estimators import AbstractEstimator, Mechanics, as_estimator
 from softgrip_jax._mechanics import contact_forces
@@ -499,22 +500,19 @@ class Refined(eqx.Module):
 
 def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, angle_scale, estimator):
     scale = jnp.array([1.0, 1.0, angle_scale], pose.dtype)
-    score_at = lambda p: score_pose(gripper, sdf, p, weights, config, estimator=estimator,  # noqa: E731
-                                    uncertainty=uncertainty)
 
     def objective(z, _):
-        s = score_at(z * scale)
+        s = score_pose(gripper, sdf, z * scale, weights, config, estimator=estimator, uncertainty=uncertainty)
         raw = jnp.where(s.valid, s.score, 0.0)
         # Leaving the valid set costs more than any score can gain.
-        return -raw + 10.0 * (1.0 - s.valid.astype(pose.dtype))
+        return -raw + 10.0 * (1.0 - s.valid.astype(pose.dtype)), s
 
-    solution = optx.minimise(objective, optx.BFGS(rtol=1e-4, atol=1e-4), pose / scale, throw=False,
-                             max_steps=max_steps)
+    # The start's and the end's scores are the minimiser's own evaluations (its auxiliary output):
+    # no other traced copy of the score, which is most of the program and of its compile time.
+    solution = optx.minimise(objective, KeepStart(optx.BFGS(rtol=1e-4, atol=1e-4)), pose / scale, throw=False,
+                             max_steps=max_steps, has_aux=True)
     candidate = solution.value * scale
-    # The start and the end scored by one traced copy of the score (lax.map), not two: the score
-    # is most of the program, and of its compile time.
-    both = jax.lax.map(score_at, jnp.stack([pose, candidate]))
-    start, refined = (jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
+    start, refined = solution.state.start_aux, solution.state.inner.aux
     better = refined.valid & (refined.score > start.score)
     keep = lambda new, old: jnp.where(better, new, old)
     return Refined(
@@ -538,7 +536,8 @@ def _refine_poses(gripper, sdf, poses, weights, config, uncertainty, max_steps, 
                                           estimator))(poses)
 
 
-_refine_batch = exportable(tuned_jit(_refine_poses, static_argnames=("max_steps", "estimator")),
+# A few poses per call, and a large program (the score's gradient): compiled for compile time.
+_refine_batch = exportable(tuned_jit(_refine_poses, quick_compile=True, static_argnames=("max_steps", "estimator")),
                            ("max_steps", "estimator"))
 
 
@@ -591,6 +590,8 @@ def refine(
     """
     check_gripper(gripper)
     check_sdf(sdf)
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise SoftgripError(f"refine: max_steps must be a whole number of BFGS iterations >= 1, got {max_steps!r}")
     estimator = as_estimator(estimator)
     poses = as_candidates(pose, 3, gripper.base_separation.dtype, "refine: pose", single=True)
     scale = jnp.asarray(angle_scale, poses.dtype)
