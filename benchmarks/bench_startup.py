@@ -2,7 +2,9 @@
 
 Each case runs in a fresh Python process (nothing compiled in memory), first with an empty
 compilation cache folder, then again with the folder that run filled (warm). Times are wall-clock
-seconds of the whole process, imports included.
+seconds of the whole process, imports included, from bytecode-compiled modules as an install
+leaves them (``make setup`` writes the installed packages' bytecode; the measured tree's own
+packages are compiled first).
 
     python benchmarks/bench_startup.py               # all cases
     python benchmarks/bench_startup.py planner refine
@@ -83,6 +85,15 @@ def _cold_then_warm(argv: list[str], extra_env: dict[str, str], cwd: Path) -> di
             "output_tail": tail}
 
 
+def _byte_compile(root: Path) -> None:
+    """Bytecode for the measured tree's own packages, as an install writes it (``make setup`` does
+    so for the installed ones): no run then compiles them from source, also where
+    PYTHONDONTWRITEBYTECODE is set, and two trees are compared on the same footing."""
+    packages = [str(init.parent) for init in sorted(root.glob("*/__init__.py"))
+                if init.parent.name not in ("tests", "benchmarks")]
+    subprocess.run([sys.executable, "-m", "compileall", "-q", *packages], check=True, capture_output=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("cases", nargs="*", default=["planner", "refine", "demo"])
@@ -96,6 +107,7 @@ def main() -> None:
     root = args.root.resolve()
     pythonpath = {"PYTHONPATH": str(root)}
     results: dict[str, object] = {"machine": describe(), "root": str(root)}
+    _byte_compile(root)
     for case in args.cases:
         if case == "planner":
             results["planner"] = _cold_then_warm([python, "-c", PLANNER], pythonpath, root)

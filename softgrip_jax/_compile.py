@@ -9,13 +9,6 @@ issue 2), with results equal to within float rounding (joints within 3e-4 mm, th
   many short reductions (over 5, 12 or 21 stations per candidate) to YNNPACK, which is slower on
   them than XLA's own loops.
 
-A program whose compile time outweighs its run time (``refine``: a few poses per call, a large
-program: its gradient) adds :data:`QUICK_COMPILE_OPTIONS`:
-
-* ``xla_cpu_use_fusion_emitters=False``: XLA:CPU's older loop emitter instead of its fusion
-  emitters: ``refine``'s program compiles in about two thirds of the time. The batch programs keep
-  the fusion emitters, whose code scores a large batch faster (benchmarks/RESULTS.md, issue 33).
-
 They are applied only on a CPU backend, and only if this jaxlib accepts them (the second is
 experimental and may be renamed): otherwise the functions compile with XLA's defaults.
 """
@@ -31,29 +24,22 @@ from softgrip_jax._concurrent import is_traced
 
 #: Compile options for XLA:CPU (see the module docstring).
 CPU_OPTIONS: dict[str, object] = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_experimental_ynn_fusion_type": ""}
-#: Added for a program compiled with ``quick_compile=True`` (see the module docstring).
-QUICK_COMPILE_OPTIONS: dict[str, object] = {"xla_cpu_use_fusion_emitters": False}
 
 
 @functools.cache
-def compiler_options(quick_compile: bool = False) -> dict[str, object]:
-    """:data:`CPU_OPTIONS` (and :data:`QUICK_COMPILE_OPTIONS` with ``quick_compile``) on a CPU
-    backend whose XLA accepts them; the ones it accepts of those two sets, else ``{}``."""
+def compiler_options() -> dict[str, object]:
+    """:data:`CPU_OPTIONS` on a CPU backend whose XLA accepts them; ``{}`` otherwise."""
     if jax.default_backend() != "cpu":
         return {}
-    candidates = [{**CPU_OPTIONS, **QUICK_COMPILE_OPTIONS}] if quick_compile else []
-    for options in candidates + [dict(CPU_OPTIONS)]:
-        try:
-            jax.jit(lambda x: x + 1, compiler_options=options).lower(jnp.zeros(())).compile()
-        except jax.errors.JaxRuntimeError:  # an option this XLA does not know
-            continue
-        return options
-    return {}
+    try:
+        jax.jit(lambda x: x + 1, compiler_options=CPU_OPTIONS).lower(jnp.zeros(())).compile()
+    except jax.errors.JaxRuntimeError:  # an option this XLA does not know
+        return {}
+    return dict(CPU_OPTIONS)
 
 
 class tuned_jit:  # noqa: N801 - used as a decorator, like jax.jit
-    """``jax.jit(fn, **jit_kwargs)`` compiled with :func:`compiler_options` (``quick_compile``: see
-    the module docstring).
+    """``jax.jit(fn, **jit_kwargs)`` compiled with :func:`compiler_options`.
 
     The backend is looked up at the first call, not at import. Attributes of the jitted function
     (``lower``, ``_cache_size``, ...) are those of ``jax.jit``'s. Inside another traced function
@@ -61,18 +47,14 @@ class tuned_jit:  # noqa: N801 - used as a decorator, like jax.jit
     ``jax.jit``, inlined into the outer one whose compile options apply.
     """
 
-    def __init__(self, fn, *, quick_compile: bool = False, **jit_kwargs):
+    def __init__(self, fn, **jit_kwargs):
         functools.update_wrapper(self, fn)
-        self._fn, self._jit_kwargs, self._quick_compile = fn, jit_kwargs, quick_compile
+        self._fn, self._jit_kwargs = fn, jit_kwargs
         self._tuned = self._plain = None
-
-    def compiler_options(self) -> dict[str, object]:
-        """The options this function compiles with (:func:`compiler_options`)."""
-        return compiler_options(self._quick_compile)
 
     def _get(self):
         if self._tuned is None:
-            self._tuned = jax.jit(self._fn, compiler_options=self.compiler_options() or None, **self._jit_kwargs)
+            self._tuned = jax.jit(self._fn, compiler_options=compiler_options() or None, **self._jit_kwargs)
         return self._tuned
 
     def __call__(self, *args, **kwargs):

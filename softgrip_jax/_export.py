@@ -58,6 +58,7 @@ import equinox as eqx
 import jax
 
 from softgrip_jax._cache import UntrustedCacheWarning, untrusted_reason
+from softgrip_jax._compile import compiler_options
 from softgrip_jax._concurrent import is_traced
 
 #: Subfolder of the compilation cache folder that holds the exported programs.
@@ -131,9 +132,10 @@ def static_ident(value) -> str | None:
     return f"{kind.__module__}.{kind.__qualname__}" + (f"[{name}]" if isinstance(name, str) else "") + f":{value!r}"
 
 
-def _backend_settings(options: dict[str, object]) -> str:
+def _backend_settings() -> str:
     x64 = jax.config.jax_enable_x64  # type: ignore[attr-defined]  # set at run time
-    return f"backend={jax.default_backend()};x64={x64};options={sorted(options.items())}"
+    return (f"backend={jax.default_backend()};x64={x64};"
+            f"options={sorted(compiler_options().items())}")
 
 
 class exportable:  # noqa: N801 - used like jax.jit
@@ -218,9 +220,9 @@ class exportable:  # noqa: N801 - used like jax.jit
         statics = [(k, static_ident(v)) for k, v in static]
         if any(ident is None for _, ident in statics):  # e.g. an estimator defined outside this package
             return None
-        ident = "\n".join([self._fn.__module__ + "." + self._fn.__qualname__, _environment(),
-                           _backend_settings(self._jitted.compiler_options()), repr(names), str(treedef),
-                           repr([(a.shape, str(a.dtype), a.weak_type) for a in avals]), repr(statics)])
+        ident = "\n".join([self._fn.__module__ + "." + self._fn.__qualname__, _environment(), _backend_settings(),
+                           repr(names), str(treedef), repr([(a.shape, str(a.dtype), a.weak_type) for a in avals]),
+                           repr(statics)])
         for place in (folder.parent, folder):
             reason = untrusted_reason(place) if place.exists() else None
             if reason is not None:
@@ -251,7 +253,8 @@ class exportable:  # noqa: N801 - used like jax.jit
                 self._exported += 1
             except (OSError, ValueError):  # not kept on disk; this process still uses the export
                 _log.debug("softgrip_jax: cannot write %s", path, exc_info=True)
-        call = jax.jit(lambda *leaves: exported.call(*leaves), compiler_options=self._jitted.compiler_options() or None)
+        options = compiler_options() or None
+        call = jax.jit(lambda *leaves: exported.call(*leaves), compiler_options=options)
         return call, out_treedef
 
 

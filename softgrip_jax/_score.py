@@ -536,8 +536,7 @@ def _refine_poses(gripper, sdf, poses, weights, config, uncertainty, max_steps, 
                                           estimator))(poses)
 
 
-# A few poses per call, and a large program (the score's gradient): compiled for compile time.
-_refine_batch = exportable(tuned_jit(_refine_poses, quick_compile=True, static_argnames=("max_steps", "estimator")),
+_refine_batch = exportable(tuned_jit(_refine_poses, static_argnames=("max_steps", "estimator")),
                            ("max_steps", "estimator"))
 
 
