@@ -37,18 +37,13 @@ class KeepStart(optx.AbstractMinimiser):
     """
 
     inner: optx.AbstractQuasiNewton
+    rtol: float
+    atol: float
+    norm: Callable[[PyTree], Array] = eqx.field(static=True)
 
-    @property
-    def rtol(self) -> float:
-        return self.inner.rtol
-
-    @property
-    def atol(self) -> float:
-        return self.inner.atol
-
-    @property
-    def norm(self) -> Callable[[PyTree], Array]:
-        return self.inner.norm
+    def __init__(self, inner: optx.AbstractQuasiNewton):
+        self.inner = inner
+        self.rtol, self.atol, self.norm = inner.rtol, inner.atol, inner.norm  # its tolerances and norm
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags) -> KeepStartState:
         zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), aux_struct)
