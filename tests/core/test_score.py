@@ -108,3 +108,13 @@ def test_sharded_equals_unsharded():
     out = subprocess.run([sys.executable, "-c", SHARDED], env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.startswith("OK")
+
+
+@pytest.mark.parametrize("steps", [0, -3, True])
+def test_refine_refuses_a_max_steps_that_is_not_a_whole_number_of_iterations(steps):
+    # No iteration would leave no evaluation of the start (refine reads the start's score from the
+    # minimiser's first step): refused before anything is compiled, naming the argument.
+    from softgrip_jax import SoftgripError
+
+    with pytest.raises(SoftgripError, match=r"refine: max_steps must be a whole number of BFGS iterations >= 1"):
+        refine(GRIPPER, DISC, jnp.array([0.0, 0.0, 0.0]), max_steps=steps, estimator=Geometric())
