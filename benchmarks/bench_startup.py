@@ -10,6 +10,7 @@ packages are compiled first).
     python benchmarks/bench_startup.py planner refine
     python benchmarks/bench_startup.py --json
     python benchmarks/bench_startup.py planner --root /tmp/old-checkout   # another source tree's figures
+    python benchmarks/bench_startup.py planner --log-compiles             # and where the cold time goes
 
 Cases:
 * ``planner``: the README's "A planner" example (score 605 poses geometrically, refine the best);
@@ -23,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -85,6 +87,18 @@ def _cold_then_warm(argv: list[str], extra_env: dict[str, str], cwd: Path) -> di
             "output_tail": tail}
 
 
+def _compile_log(argv: list[str], extra_env: dict[str, str], cwd: Path) -> list[str]:
+    """One more empty-cache run with ``JAX_LOG_COMPILES=1`` (apart from the timed ones, which log
+    nothing): JAX's "Finished <tracing, lowering or XLA compilation of a program> in <s> sec" lines
+    of 0.1 s or more, in order, as "<seconds> s <what>"."""
+    with tempfile.TemporaryDirectory(prefix="softgrip-cache-") as cache:
+        env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": cache, "JAX_LOG_COMPILES": "1", **extra_env}
+        env.pop("SOFTGRIP_JAX_CACHE", None)
+        out = subprocess.run(argv, env=env, cwd=cwd, capture_output=True, text=True, timeout=1800, check=True)
+    found = re.findall(r"Finished (.+?) in ([0-9.]+) sec", out.stderr)
+    return [f"{float(seconds):.2f} s {what}" for what, seconds in found if float(seconds) >= 0.1]
+
+
 def _byte_compile(root: Path) -> None:
     """Bytecode for the measured tree's own packages, as an install writes it (``make setup`` does
     so for the installed ones): no run then compiles them from source, also where
@@ -98,6 +112,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("cases", nargs="*", default=["planner", "refine", "demo"])
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--log-compiles", action="store_true",
+                        help="planner: also list what an empty-cache run traces, lowers and compiles, and for how long")
     parser.add_argument("--root", type=Path, default=ROOT,
                         help="the source tree to run (default: this one), e.g. a `git worktree` of an older commit")
     args = parser.parse_args()
@@ -111,6 +127,8 @@ def main() -> None:
     for case in args.cases:
         if case == "planner":
             results["planner"] = _cold_then_warm([python, "-c", PLANNER], pythonpath, root)
+            if args.log_compiles:
+                results["planner_compile_log"] = _compile_log([python, "-c", PLANNER], pythonpath, root)
         elif case == "refine":
             results["refine_mechanics_eqx_nan"] = _cold_then_warm([python, "-c", REFINE],
                                                                  {**pythonpath, "EQX_ON_ERROR": "nan"}, root)
