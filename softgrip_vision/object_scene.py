@@ -21,7 +21,10 @@ The object's signed-distance grid is widened past the image where the gripper re
 hang from bases often above the view): the camera sees no object there, so none is assumed. An
 object that runs off the image is warned about, since what lies beyond is unknown, and so is one that
 a gripper already in view borders (segmented as light, unsaturated foreground), since it may hide
-part of the object.
+part of the object. A frame without an object is a scene without one (no contact); when the frame
+seems to show one the thresholds missed (something in front of the background of neither the
+object's nor the gripper's colour, or an object-coloured region without depth readings), that is
+warned about (:func:`~softgrip_vision.segmentation.missing_object`).
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ from softgrip_vision.geometry import TILT_WARN_DEG, PlaneCamera, face_offset_mm
 from softgrip_vision.keypoints import FingerKeypoints, Side
 from softgrip_vision.object_sdf import object_sdf
 from softgrip_vision.scene import MEMORY_PATH, FrameSceneError, ProfileLike, Scene, _default_warn
-from softgrip_vision.segmentation import segment_object
+from softgrip_vision.segmentation import missing_object, segment_object
 
 #: Tolerance of the rotation part of a gripper pose: |R^T R - I| and the last row's deviation.
 ROTATION_TOLERANCE = 1e-3
@@ -225,6 +228,10 @@ def object_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike,
         if (near_gripper.view(bool) & seg.object).any():
             warn(f"{label}: part of the gripper is in view next to the object and may hide some of it: the "
                  f"outline there follows the gripper's edge; take the frame before the gripper covers the object")
+    else:
+        missed = missing_object(loaded, settings, seg)
+        if missed is not None:
+            warn(f"{label}: {missed}")
     keypoints = open_fingers(camera, profile, pose)
     seg = dataclasses.replace(seg, center_column=float(camera.mm_to_px(pose[:2])[0]))
     bases = np.stack([k.camera.px_to_mm(k.base_px) for k in keypoints])

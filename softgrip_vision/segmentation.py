@@ -23,8 +23,10 @@ Every pixel is classified in two stages:
    finger bases), that region is cut at a column: the caller's ``center_hint`` (where another frame
    of the same set-up put the centre line), else the region's **neck** (see :func:`neck_column`);
    a region without a clear neck (e.g. one finger in view) is an error, never a guessed split.
-   Object components smaller than ``min_object_px`` are dropped. An empty object mask is not an
-   error: the scene has no object (contact case (a)).
+   Depth holes the object's mask encloses, beyond ``hole_fill_px``'s reach, are object where they
+   have its colour (:func:`fill_enclosed_holes`). Object components smaller than ``min_object_px``
+   are dropped. An empty object mask is not an error: the scene has no object (contact case (a));
+   :func:`missing_object` says when the frame seems to show one the thresholds missed.
 
 Saturation and value are fractions in [0, 1] for both backends: the OpenCV backend converts the
 colour in float32 (``cv2.cvtColor``, hue in degrees, unused) and the kornia backend with
@@ -274,7 +276,8 @@ def segment_object(frame: Frame, settings: SegmentationSettings | None = None) -
     gripper, obj = _classify_opencv(frame, settings, cutoff, roi)
     none = np.zeros_like(gripper)
     return Segmentation(gripper=gripper, left_finger=none, right_finger=none.copy(),
-                        object=_drop_small(obj, settings.min_object_px), background_cutoff_mm=cutoff,
+                        object=_drop_small(fill_enclosed_holes(obj, frame, settings), settings.min_object_px),
+                        background_cutoff_mm=cutoff,
                         center_column=float("nan"), split="none")
 
 
@@ -546,7 +549,7 @@ def _components(frame: Frame, settings: SegmentationSettings, cutoff_mm: float, 
         gripper=gripper,
         left_finger=left,
         right_finger=right,
-        object=_drop_small(obj, settings.min_object_px),
+        object=_drop_small(fill_enclosed_holes(obj, frame, settings), settings.min_object_px),
         background_cutoff_mm=cutoff_mm,
         center_column=center,
         split=split,
@@ -645,6 +648,75 @@ def _cut_region(region: np.ndarray, center: float, min_px: int, where: str,
             f"that both fingers are in view; if they touch each other or the gripper's body joins them, "
             f"set center_column to a column between them or roi to leave the body out")
     return left, right
+
+
+def fill_enclosed_holes(obj: np.ndarray, frame: Frame, settings: SegmentationSettings) -> np.ndarray:
+    """bool (H, W): ``obj`` with the depth holes it encloses filled where they have the object's colour.
+
+    Stage 1 fills a hole (no depth reading) only within about ``hole_fill_px / 2`` of a reading, so
+    a larger hole inside the object (a shiny patch, a stereo dropout on a plain face) would punch a
+    free-space pocket into it. Pixels the object mask encloses (not reachable from the image's
+    border without crossing the mask) that have no reading and the object's colour (saturation and
+    value at least ``object_min_saturation``, ``object_min_value``) are object. Enclosed pixels that
+    have a reading (background seen through a ring) or another colour stay out.
+
+    Example (a ring of object pixels around a hole without depth, of the object's red):
+        >>> from softgrip_vision.frames import Frame, Intrinsics
+        >>> obj = np.zeros((9, 9), bool); obj[2:7, 2:7] = True; obj[3:6, 3:6] = False
+        >>> color = np.zeros((9, 9, 3), np.uint8); color[..., 0] = 200          # red everywhere
+        >>> depth = np.full((9, 9), 500, np.uint16); depth[3:6, 3:6] = 0          # no reading inside
+        >>> frame = Frame(color=color, depth=depth, intrinsics=Intrinsics(9, 9, 10.0, 10.0, 4.0, 4.0, 0.001))
+        >>> int(fill_enclosed_holes(obj, frame, SegmentationSettings()).sum()), int(obj.sum())
+        (25, 16)
+    """
+    walls = np.zeros((obj.shape[0] + 2, obj.shape[1] + 2), np.uint8)  # a free border all round
+    walls[1:-1, 1:-1] = obj
+    cv2.floodFill(walls, None, (0, 0), 2)  # the 4-connected free space reachable from outside
+    holes = (walls[1:-1, 1:-1] == 0) & (frame.depth == 0)
+    if not holes.any():
+        return obj
+    saturation, value = _saturation_value(frame)
+    coloured = (saturation >= np.float32(settings.object_min_saturation)) \
+        & (value >= np.float32(settings.object_min_value))
+    return obj | (holes & coloured)
+
+
+def missing_object(frame: Frame, settings: SegmentationSettings, seg: Segmentation) -> str | None:
+    """Why ``frame`` seems to show an object although ``seg.object`` is empty, or None.
+
+    Two things a camera shows that the thresholds miss: a region of at least ``min_object_px`` in
+    front of the background (a finite ``seg.background_cutoff_mm``) that is neither object- nor
+    gripper-coloured (too dark, or washed out by flat light), and an object-coloured region of that
+    size without depth readings (a surface the camera cannot measure). The text names the region,
+    its colour and the settings to change.
+    """
+    roi = _roi_mask(frame.depth.shape, settings.roi)
+    saturation, value = _saturation_value(frame)
+    coloured = roi & (saturation >= np.float32(settings.object_min_saturation)) \
+        & (value >= np.float32(settings.object_min_value))
+
+    def where(region: np.ndarray) -> str:
+        v, u = np.nonzero(region)
+        return f"{int(region.sum())} px around pixel ({u.mean():.0f}, {v.mean():.0f})"
+
+    thresholds = (f"object_min_saturation={settings.object_min_saturation}, object_min_value="
+                  f"{settings.object_min_value}")
+    if math.isfinite(seg.background_cutoff_mm):
+        depth_mm = frame.depth.astype(np.float32) * np.float32(frame.intrinsics.depth_scale * 1000.0)
+        near = roi & (frame.depth > 0) & (depth_mm <= np.float32(seg.background_cutoff_mm))
+        unclassified = _largest_component(near & ~coloured & ~seg.gripper, settings.min_object_px)
+        if unclassified is not None:
+            return (f"no object found, but a region of {where(unclassified)} stands in front of the background "
+                    f"(cut-off {seg.background_cutoff_mm:.0f} mm) and is neither object- nor gripper-coloured "
+                    f"(median saturation {float(np.median(saturation[unclassified])):.2f}, value "
+                    f"{float(np.median(value[unclassified])):.2f}; an object needs {thresholds}): if it is the "
+                    f"object, light it more evenly or lower those thresholds in the profile's segmentation settings")
+    unmeasured = _largest_component(coloured & (frame.depth == 0), settings.min_object_px)
+    if unmeasured is not None:
+        return (f"no object found, but an object-coloured region of {where(unmeasured)} has no depth readings, so "
+                f"it is not taken for the object: if it is the object, the camera cannot measure it (check its "
+                f"depth range and that the surface is not too shiny or dark, and that depth is aligned to colour)")
+    return None
 
 
 def _largest_component(mask: np.ndarray, min_px: int) -> np.ndarray | None:

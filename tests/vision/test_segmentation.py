@@ -12,7 +12,8 @@ import pytest
 from benchmarks.vision_accuracy import accuracy_scenes, measure
 from softgrip_jax import SoftgripError
 from softgrip_vision.frames import Frame
-from softgrip_vision.segmentation import SegmentationError, SegmentationSettings, segment, segment_batch
+from softgrip_vision.segmentation import (SegmentationError, SegmentationSettings, segment, segment_batch,
+                                          segment_object)
 from synthetic.render import (
     LABEL_FIRST_FINGER,
     LABEL_OBJECT,
@@ -263,3 +264,32 @@ def test_a_batch_names_the_frame_that_failed() -> None:
     bad = render(Scene(open_fingers()[:1]), INTR)
     with pytest.raises(SegmentationError, match="^frame 1: only one finger"):
         segment_batch([good, bad])
+
+
+def _ring_frame(hole_depth: int, hole_rgb: tuple[int, int, int]) -> tuple[Frame, np.ndarray]:
+    """A 60 x 60 frame: a red square (object colour, 120 mm deep) with a 20 px hole of ``hole_depth``
+    (0: no reading) and ``hole_rgb``, on a grey background 400 mm deep; and the square's mask."""
+    from softgrip_vision.frames import Intrinsics
+
+    color = np.full((60, 60, 3), 90, np.uint8)
+    depth = np.full((60, 60), 400, np.uint16)
+    square = np.zeros((60, 60), bool)
+    square[10:50, 10:50] = True
+    color[square], depth[square] = (200, 30, 30), 120
+    hole = np.zeros_like(square)
+    hole[20:40, 20:40] = True
+    color[hole], depth[hole] = hole_rgb, hole_depth
+    return Frame(color=color, depth=depth, intrinsics=Intrinsics(60, 60, 60.0, 60.0, 30.0, 30.0, 0.001)), square
+
+
+@pytest.mark.parametrize("hole_depth, hole_rgb, filled", [
+    (0, (200, 30, 30), True),     # no reading, the object's colour: a dropout on the object
+    (400, (200, 30, 30), False),  # a reading of the background behind: a real hole (a ring)
+    (0, (90, 90, 90), False),     # no reading, the background's grey: not the object's colour
+], ids=["dropout", "ring with background behind", "grey hole without reading"])
+def test_a_hole_the_object_encloses_is_filled_only_without_reading_and_in_its_colour(hole_depth, hole_rgb, filled):
+    # The 20 px hole's middle is 10 px from a reading, beyond hole_fill_px=15's reach (7 px).
+    frame, square = _ring_frame(hole_depth, hole_rgb)
+    obj = segment_object(frame, SegmentationSettings(background_depth_mm=300.0)).object
+    assert obj.sum() == (1600 if filled else 1200), obj.sum()
+    assert not (obj & ~square).any()
