@@ -451,6 +451,12 @@ def frame_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike, *, 
         raise FrameSceneError(message if label in message else f"{label}: {message}") from None
     for note in measured.warnings():
         warn(f"{label}: {note}")
+    if not seg.object.any():
+        from softgrip_vision.segmentation import missing_object
+
+        missed = missing_object(loaded, settings, seg)
+        if missed is not None:
+            warn(f"{label}: {missed}")
     bases = profile.corrected_bases(np.stack([k.base_mm for k in keypoints]))
     pose = pose_from_bases(bases[0], bases[1])
     lengths: tuple[float, float] | None = ((keypoints[0].length_mm, keypoints[1].length_mm) if length_from_frame

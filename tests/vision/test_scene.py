@@ -66,3 +66,17 @@ def test_bad_frames_and_poses_are_errors_naming_them(scene, tmp_path):
         scene.score(np.zeros((2, 2)))
     with pytest.raises(SoftgripError, match=r"weights must be a softgrip_jax.ScoreWeights.*got dict"):
         scene.score(scene.pose, weights={"mu": 0.8})
+
+
+def test_an_object_too_dark_for_the_thresholds_is_warned_about_and_a_frame_without_one_is_not(scene):
+    # The sample's object darkened to a tenth of its brightness: HSV value below object_min_value.
+    loaded = load_frame(DATA / "circle_open")
+    color = np.array(loaded.color)
+    color[scene.segmentation.object] = (color[scene.segmentation.object] * 0.1).astype(np.uint8)
+    notes: list[str] = []
+    dark = frame_scene(Frame(color, np.array(loaded.depth), loaded.intrinsics), PROFILE, warn=notes.append)
+    assert not dark.has_object
+    assert [n for n in notes if "neither object- nor gripper-coloured" in n and "object_min_value" in n], notes
+    notes = []
+    empty = frame_scene(DATA / "calib_open", PROFILE, warn=notes.append)  # the calibration frame: no object
+    assert not empty.has_object and not [n for n in notes if "no object found" in n], notes
