@@ -140,27 +140,44 @@ def split_pieces(xs: jax.Array | np.ndarray, size: int) -> list:
     return pieces
 
 
+#: Bytes of joined leaves sent to the device per ``jax.device_put`` call (:func:`join_pieces`).
+_PUT_BYTES = 64 << 20
+
+
 def join_pieces(outputs: list, b: int):
     """The pieces' outputs (pytrees of arrays with a leading axis ``size``) joined along it and cut to
-    ``b`` rows. On a CPU backend the joining is numpy's, over zero-copy views, and the result goes
-    back to the device once per leaf (``jax.device_put``; ``jnp.asarray`` would compile a
-    small program per shape): no program is compiled for a new B (XLA's ``concatenate`` and
-    ``slice`` of new shapes would each compile one). Elsewhere it runs on the device. Each leaf's
-    pieces are released once joined (the peak is the result plus its largest leaf)."""
+    ``b`` rows. On a CPU backend the joining is numpy's, over zero-copy views, and the joined leaves
+    go back to the device a group at a time (one ``jax.device_put`` per :data:`_PUT_BYTES` of them:
+    one call per leaf would cost more than the joining for a batch of a few pieces; ``jnp.asarray``
+    would compile a small program per shape): no program is compiled for a new B (XLA's
+    ``concatenate`` and ``slice`` of new shapes would each compile one). Elsewhere it runs on the
+    device. Each leaf's pieces are released once joined (the peak is the result plus a group)."""
     leaves = [jax.tree_util.tree_flatten(out)[0] for out in outputs]
     treedef = jax.tree_util.tree_structure(outputs[0])
     outputs.clear()
     on_cpu = all(d.platform == "cpu" for leaf in leaves[0] for d in leaf.devices())
     joined: list[Any] = [None] * len(leaves[0])
+    group: list[int] = []
+
+    def put(group: list[int]) -> None:
+        for k, array in zip(group, jax.device_put([joined[k] for k in group], may_alias=True)):
+            joined[k] = array
+        group.clear()
+
     for k in sorted(range(len(joined)), key=lambda k: -leaves[0][k].nbytes):
         parts = [part[k] for part in leaves]
         for part in leaves:
             part[k] = None
         if on_cpu:
-            joined[k] = jax.device_put(np.concatenate([np.asarray(x) for x in parts])[:b])
+            joined[k] = np.concatenate([np.asarray(x) for x in parts])[:b]
+            group.append(k)
+            if sum(joined[i].nbytes for i in group) >= _PUT_BYTES:
+                put(group)
         else:
             joined[k] = jnp.concatenate(parts)[:b]
         del parts
+    if group:
+        put(group)
     return jax.tree_util.tree_unflatten(treedef, joined)
 
 

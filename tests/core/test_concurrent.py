@@ -148,3 +148,20 @@ def test_score_in_parts_matches_one_part():
     np.testing.assert_array_equal(split.score, whole.score)  # the same piece program for every row
     np.testing.assert_array_equal(split.valid, whole.valid)
     assert np.isfinite(np.asarray(whole.score)).sum() > 10  # some poses are valid, so scores were compared
+
+
+@pytest.mark.parametrize("put_bytes", [1, 64 << 20], ids=["a device_put per leaf", "one device_put"])
+def test_join_pieces_joins_each_leaf_in_order_and_cuts_the_padding(monkeypatch, put_bytes):
+    import softgrip_jax._concurrent as concurrent
+
+    monkeypatch.setattr(concurrent, "_PUT_BYTES", put_bytes)
+    rows = np.arange(7 * 3 * 2, dtype=np.float32).reshape(7, 3, 2)
+    flags = np.arange(7) % 3 == 0
+    pieces = [{"rows": jnp.asarray(rows[i:i + 3]), "flags": jnp.asarray(flags[i:i + 3]),
+               "codes": jnp.arange(i, i + 3, dtype=jnp.int32)} for i in (0, 3, 6)]
+    pieces[-1] = jax.tree_util.tree_map(lambda x: jnp.concatenate([x[:1]] * 3), pieces[-1])  # 1 row + padding
+    joined = concurrent.join_pieces(pieces, 7)
+    assert all(isinstance(leaf, jax.Array) for leaf in jax.tree_util.tree_leaves(joined))
+    np.testing.assert_array_equal(np.asarray(joined["rows"]), rows)
+    np.testing.assert_array_equal(np.asarray(joined["flags"]), flags)
+    assert joined["codes"].dtype == jnp.int32 and np.asarray(joined["codes"]).tolist() == [0, 1, 2, 3, 4, 5, 6]
