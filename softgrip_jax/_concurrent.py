@@ -36,6 +36,9 @@ _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 _pool_lock = threading.Lock()
 _compiled: set = set()  # signatures already compiled: their first call runs alone (one compile)
+_warm_lock = threading.Lock()
+#: How long (s) :func:`_warm_threads` waits for all the pool's threads to be free before giving up.
+_WARM_WAIT_S = 5.0
 
 
 def available_cores() -> int:
@@ -181,6 +184,28 @@ def join_pieces(outputs: list, b: int):
     return jax.tree_util.tree_unflatten(treedef, joined)
 
 
+def _warm_threads(pool: ThreadPoolExecutor, threads: int, task: Callable[[], object]) -> None:
+    """Run ``task`` once on each of ``threads`` distinct threads of ``pool``: they wait for each other
+    (at most :data:`_WARM_WAIT_S`) before running it, so no thread takes two; while other callers'
+    pieces keep threads busy that long, none runs it. A program's first run on a thread costs tens
+    of ms more than later ones (benchmarks/RESULTS.md): paid here, at the call that compiles, rather
+    than by the first batch of several pieces."""
+    if threads < 2:
+        return
+    barrier = threading.Barrier(threads, timeout=_WARM_WAIT_S)
+
+    def on_a_thread_of_its_own() -> None:
+        try:
+            barrier.wait()
+        except threading.BrokenBarrierError:  # threads busy with other callers' pieces: no warming
+            return
+        task()
+
+    with _warm_lock:  # two callers' warm-ups interleaved on the same threads would wait for each other
+        for future in [pool.submit(on_a_thread_of_its_own) for _ in range(threads)]:
+            future.result()
+
+
 def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, workers: int | None, chunk_size: int,
                   progress: Callable[[int, int], None] | None = None, **static):
     """``fn(*before, piece, *after, chunk_size=..., **static)`` for a jitted ``fn`` whose outputs all
@@ -208,7 +233,7 @@ def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, w
     def run(piece):
         return jax.block_until_ready(fn(*before, jax.device_put(piece), *after, **static))
 
-    pool = _executor(parts)
+    pool = _executor(worker_count(workers))
     outputs: list = []
 
     def collect(output) -> None:
@@ -218,6 +243,7 @@ def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, w
 
     if signature not in _compiled:  # the first call compiles; the other pieces then reuse it
         collect(pool.submit(run, pieces[0]).result())
+        _warm_threads(pool, worker_count(workers), lambda: run(pieces[0]))
         _compiled.add(signature)
     for future in [pool.submit(run, p) for p in pieces[len(outputs):]]:
         collect(future.result())

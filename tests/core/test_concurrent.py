@@ -165,3 +165,53 @@ def test_join_pieces_joins_each_leaf_in_order_and_cuts_the_padding(monkeypatch, 
     np.testing.assert_array_equal(np.asarray(joined["rows"]), rows)
     np.testing.assert_array_equal(np.asarray(joined["flags"]), flags)
     assert joined["codes"].dtype == jnp.int32 and np.asarray(joined["codes"]).tolist() == [0, 1, 2, 3, 4, 5, 6]
+
+
+def test_warm_threads_runs_the_task_once_on_each_thread_even_with_two_callers_at_once():
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from softgrip_jax._concurrent import _warm_threads
+
+    pool = ThreadPoolExecutor(max_workers=3)
+    seen: list[int] = []
+    lock = threading.Lock()
+
+    def task():
+        with lock:
+            seen.append(threading.get_ident())
+
+    _warm_threads(pool, 3, task)
+    assert len(seen) == 3 and len(set(seen)) == 3  # three distinct threads, once each
+    seen.clear()
+    callers = [threading.Thread(target=_warm_threads, args=(pool, 3, task)) for _ in range(2)]
+    for caller in callers:
+        caller.start()
+    for caller in callers:
+        caller.join(timeout=30)
+    assert not any(c.is_alive() for c in callers)  # no deadlock between the two warm-ups
+    assert len(seen) == 6 and len(set(seen)) == 3
+    pool.shutdown()
+
+
+def test_warm_threads_gives_up_when_a_thread_stays_busy(monkeypatch):
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    import softgrip_jax._concurrent as concurrent
+
+    monkeypatch.setattr(concurrent, "_WARM_WAIT_S", 0.2)
+    pool = ThreadPoolExecutor(max_workers=2)
+    release = threading.Event()
+    busy = pool.submit(release.wait, 30)  # another caller's long piece holds one thread
+    ran: list[int] = []
+    warming = threading.Thread(target=concurrent._warm_threads, args=(pool, 2, lambda: ran.append(1)))
+    warming.start()
+    warming.join(timeout=10)
+    # The warm-up gave up after the barrier's timeout, while the other caller's piece still runs:
+    # no task ran (a lone thread is not warmed twice), and nobody waited for the busy thread.
+    assert not warming.is_alive() and not busy.done()
+    assert ran == []
+    release.set()
+    busy.result()
+    pool.shutdown()
