@@ -199,7 +199,10 @@ def _warm_threads(pool: ThreadPoolExecutor, threads: int, task: Callable[[], obj
             barrier.wait()
         except threading.BrokenBarrierError:  # threads busy with other callers' pieces: no warming
             return
-        task()
+        try:
+            task()
+        except Exception:  # noqa: BLE001 - only a head start: a piece that fails fails again when it runs
+            pass
 
     with _warm_lock:  # two callers' warm-ups interleaved on the same threads would wait for each other
         for future in [pool.submit(on_a_thread_of_its_own) for _ in range(threads)]:

@@ -215,3 +215,14 @@ def test_warm_threads_gives_up_when_a_thread_stays_busy(monkeypatch):
     release.set()
     busy.result()
     pool.shutdown()
+
+
+def test_a_warm_up_that_fails_does_not_fail_the_call():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from softgrip_jax._concurrent import _warm_threads
+
+    pool = ThreadPoolExecutor(max_workers=2)
+    _warm_threads(pool, 2, lambda: 1 / 0)  # e.g. memory for two pieces at once: the batch's own run decides
+    assert pool.submit(lambda: 7).result() == 7  # the pool still serves
+    pool.shutdown()
