@@ -681,14 +681,19 @@ def fill_enclosed_holes(obj: np.ndarray, frame: Frame, settings: SegmentationSet
     return obj | (holes & coloured)
 
 
+#: Widest band (px) of mixed edge pixels along an outline that :func:`missing_object` ignores.
+_EDGE_BAND_PX = 7
+
+
 def missing_object(frame: Frame, settings: SegmentationSettings, seg: Segmentation) -> str | None:
     """Why ``frame`` seems to show an object although ``seg.object`` is empty, or None.
 
     Two things a camera shows that the thresholds miss: a region of at least ``min_object_px`` in
     front of the background (a finite ``seg.background_cutoff_mm``) that is neither object- nor
-    gripper-coloured (too dark, or washed out by flat light), and an object-coloured region of that
-    size without depth readings (a surface the camera cannot measure). The text names the region,
-    its colour and the settings to change.
+    gripper-coloured (too dark, or washed out by flat light; bands narrower than
+    :data:`_EDGE_BAND_PX` along outlines, mixed edge pixels, do not count), and an object-coloured
+    region of that size without depth readings (a surface the camera cannot measure). The text names
+    the region, its colour and the settings to change.
     """
     roi = _roi_mask(frame.depth.shape, settings.roi)
     saturation, value = _saturation_value(frame)
@@ -704,7 +709,15 @@ def missing_object(frame: Frame, settings: SegmentationSettings, seg: Segmentati
     if math.isfinite(seg.background_cutoff_mm):
         depth_mm = frame.depth.astype(np.float32) * np.float32(frame.intrinsics.depth_scale * 1000.0)
         near = roi & (frame.depth > 0) & (depth_mm <= np.float32(seg.background_cutoff_mm))
-        unclassified = _largest_component(near & ~coloured & ~seg.gripper, settings.min_object_px)
+        # Without the bands along every outline: edge pixels of mixed colour and depth ("flying
+        # pixels" of a stereo camera) around a gripper in view are neither colour, and not an object.
+        other = near & ~coloured & ~seg.gripper
+        core = _largest_component(cv2.morphologyEx(other.view(np.uint8), cv2.MORPH_OPEN,
+                                                   _kernel(_EDGE_BAND_PX)).view(bool), settings.min_object_px)
+        unclassified = None
+        if core is not None:  # the whole region around that core, its specks and rim included
+            _, labels = cv2.connectedComponents(other.view(np.uint8), connectivity=8)
+            unclassified = np.isin(labels, np.unique(labels[core]))
         if unclassified is not None:
             return (f"no object found, but a region of {where(unclassified)} stands in front of the background "
                     f"(cut-off {seg.background_cutoff_mm:.0f} mm) and is neither object- nor gripper-coloured "

@@ -80,3 +80,21 @@ def test_an_object_too_dark_for_the_thresholds_is_warned_about_and_a_frame_witho
     notes = []
     empty = frame_scene(DATA / "calib_open", PROFILE, warn=notes.append)  # the calibration frame: no object
     assert not empty.has_object and not [n for n in notes if "no object found" in n], notes
+
+
+@pytest.mark.parametrize("band_px", [1, 2, 3])
+def test_mixed_edge_pixels_around_the_gripper_are_not_taken_for_a_missed_object(band_px):
+    # A stereo camera's "flying pixels": a band along the gripper's outline, in front of the background
+    # (the gripper's depth) and of a colour between the gripper's and the background's, neither the
+    # gripper's nor the object's. The calibration frame has no object: no warning about one.
+    import cv2
+
+    loaded = load_frame(DATA / "calib_open")
+    gripper = frame_scene(loaded, PROFILE).segmentation.gripper
+    band = cv2.dilate(gripper.astype(np.uint8), np.ones((2 * band_px + 1,) * 2, np.uint8)).astype(bool) & ~gripper
+    color, depth = np.array(loaded.color), np.array(loaded.depth)
+    color[band] = (0.5 * color[band] + 40.0).astype(np.uint8)  # halfway to a dark grey: value < 0.55
+    depth[band] = np.median(loaded.depth[gripper])
+    notes: list[str] = []
+    scene = frame_scene(Frame(color, depth, loaded.intrinsics), PROFILE, warn=notes.append)
+    assert not scene.has_object and not [n for n in notes if "no object found" in n], notes
