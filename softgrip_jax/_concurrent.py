@@ -227,7 +227,7 @@ def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, w
     if is_traced((before, xs, after)):
         return fn(*before, xs, *after, chunk_size=balanced_chunk(b, size), **static)
     pieces = split_pieces(xs, size)
-    parts = min(worker_count(workers), len(pieces))
+    threads = worker_count(workers)
     static = dict(static, chunk_size=size)
     leaves, treedef = jax.tree_util.tree_flatten((before, after))
     signature = (fn, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves),
@@ -236,7 +236,7 @@ def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, w
     def run(piece):
         return jax.block_until_ready(fn(*before, jax.device_put(piece), *after, **static))
 
-    pool = _executor(worker_count(workers))
+    pool = _executor(threads)  # the same pool every call: threads that have run the program before
     outputs: list = []
 
     def collect(output) -> None:
@@ -246,7 +246,7 @@ def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, w
 
     if signature not in _compiled:  # the first call compiles; the other pieces then reuse it
         collect(pool.submit(run, pieces[0]).result())
-        _warm_threads(pool, worker_count(workers), lambda: run(pieces[0]))
+        _warm_threads(pool, threads, lambda: run(pieces[0]))
         _compiled.add(signature)
     for future in [pool.submit(run, p) for p in pieces[len(outputs):]]:
         collect(future.result())
