@@ -184,12 +184,14 @@ def join_pieces(outputs: list, b: int):
     return jax.tree_util.tree_unflatten(treedef, joined)
 
 
-def _warm_threads(pool: ThreadPoolExecutor, threads: int, task: Callable[[], object]) -> None:
-    """Run ``task`` once on each of ``threads`` distinct threads of ``pool``: they wait for each other
-    (at most :data:`_WARM_WAIT_S`) before running it, so no thread takes two; while other callers'
-    pieces keep threads busy that long, none runs it. A program's first run on a thread costs tens
-    of ms more than later ones (benchmarks/RESULTS.md): paid here, at the call that compiles, rather
-    than by the first batch of several pieces."""
+def _warm_threads(pool: ThreadPoolExecutor, threads: int, task: Callable[[], object],
+                  warm: frozenset[int] = frozenset()) -> None:
+    """Run ``task`` once on each of ``threads`` distinct threads of ``pool`` but those already
+    ``warm`` (thread idents): they wait for each other (at most :data:`_WARM_WAIT_S`) before running
+    it, so no thread takes two; while other callers' pieces keep threads busy that long, none runs
+    it. A program's first run on a thread costs tens of ms more than later ones
+    (benchmarks/RESULTS.md): paid here, at the call that compiles, rather than by the first batch of
+    several pieces."""
     if threads < 2:
         return
     barrier = threading.Barrier(threads, timeout=_WARM_WAIT_S)
@@ -198,6 +200,8 @@ def _warm_threads(pool: ThreadPoolExecutor, threads: int, task: Callable[[], obj
         try:
             barrier.wait()
         except threading.BrokenBarrierError:  # threads busy with other callers' pieces: no warming
+            return
+        if threading.get_ident() in warm:
             return
         try:
             task()
@@ -233,7 +237,10 @@ def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, w
     signature = (fn, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves),
                  pieces[0].shape, pieces[0].dtype, tuple(sorted(static.items())))
 
+    ran_on: set[int] = set()  # the threads that ran this call's pieces
+
     def run(piece):
+        ran_on.add(threading.get_ident())
         return jax.block_until_ready(fn(*before, jax.device_put(piece), *after, **static))
 
     pool = _executor(threads)  # the same pool every call: threads that have run the program before
@@ -246,7 +253,8 @@ def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, w
 
     if signature not in _compiled:  # the first call compiles; the other pieces then reuse it
         collect(pool.submit(run, pieces[0]).result())
-        _warm_threads(pool, threads, lambda: run(pieces[0]))
+        if len(pieces) < threads:  # (with as many pieces as threads, each thread runs one now anyway)
+            _warm_threads(pool, threads, lambda: run(pieces[0]), frozenset(ran_on))
         _compiled.add(signature)
     for future in [pool.submit(run, p) for p in pieces[len(outputs):]]:
         collect(future.result())

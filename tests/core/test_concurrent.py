@@ -183,6 +183,10 @@ def test_warm_threads_runs_the_task_once_on_each_thread_even_with_two_callers_at
 
     _warm_threads(pool, 3, task)
     assert len(seen) == 3 and len(set(seen)) == 3  # three distinct threads, once each
+    first = seen[0]
+    seen.clear()
+    _warm_threads(pool, 3, task, frozenset({first}))  # a thread already warm is left out
+    assert len(seen) == 2 and first not in seen
     seen.clear()
     callers = [threading.Thread(target=_warm_threads, args=(pool, 3, task)) for _ in range(2)]
     for caller in callers:
