@@ -388,8 +388,7 @@ def _classify_opencv(frame: Frame, settings: SegmentationSettings, cutoff_mm: fl
     foreground = near & roi
     gripper = foreground & (saturation <= np.float32(settings.gripper_max_saturation)) \
         & (value >= np.float32(settings.gripper_min_value))
-    obj = foreground & (saturation >= np.float32(settings.object_min_saturation)) \
-        & (value >= np.float32(settings.object_min_value))
+    obj = foreground & _object_coloured(saturation, value, settings)
     if settings.gripper_open_px:
         gripper = cv2.morphologyEx(gripper.view(np.uint8), cv2.MORPH_OPEN, _kernel(settings.gripper_open_px))
     if settings.object_open_px:
@@ -435,6 +434,11 @@ def _classify_kornia(frames: list[Frame], settings: SegmentationSettings, cutoff
         obj = kornia.morphology.opening(obj.float(), _kernel_tensor(settings.object_open_px, device)) > 0.5
     gripper, obj = gripper[:, 0].cpu().numpy(), obj[:, 0].cpu().numpy()
     return list(zip(gripper, obj))
+
+
+def _object_coloured(saturation: np.ndarray, value: np.ndarray, settings: SegmentationSettings) -> np.ndarray:
+    """bool (H, W): pixels of an object's colour (saturation and value at least the object's thresholds)."""
+    return (saturation >= np.float32(settings.object_min_saturation)) & (value >= np.float32(settings.object_min_value))
 
 
 def _saturation_value(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
@@ -675,10 +679,7 @@ def fill_enclosed_holes(obj: np.ndarray, frame: Frame, settings: SegmentationSet
     holes = (walls[1:-1, 1:-1] == 0) & (frame.depth == 0)
     if not holes.any():
         return obj
-    saturation, value = _saturation_value(frame)
-    coloured = (saturation >= np.float32(settings.object_min_saturation)) \
-        & (value >= np.float32(settings.object_min_value))
-    return obj | (holes & coloured)
+    return obj | (holes & _object_coloured(*_saturation_value(frame), settings))
 
 
 #: Widest band (px) of mixed edge pixels along an outline that :func:`missing_object` ignores.
@@ -697,8 +698,7 @@ def missing_object(frame: Frame, settings: SegmentationSettings, seg: Segmentati
     """
     roi = _roi_mask(frame.depth.shape, settings.roi)
     saturation, value = _saturation_value(frame)
-    coloured = roi & (saturation >= np.float32(settings.object_min_saturation)) \
-        & (value >= np.float32(settings.object_min_value))
+    coloured = roi & _object_coloured(saturation, value, settings)
 
     def where(region: np.ndarray) -> str:
         v, u = np.nonzero(region)
@@ -714,11 +714,9 @@ def missing_object(frame: Frame, settings: SegmentationSettings, seg: Segmentati
         other = near & ~coloured & ~seg.gripper
         core = _largest_component(cv2.morphologyEx(other.view(np.uint8), cv2.MORPH_OPEN,
                                                    _kernel(_EDGE_BAND_PX)).view(bool), settings.min_object_px)
-        unclassified = None
-        if core is not None:  # the whole region around that core, its specks and rim included
+        if core is not None:  # reported: the whole region around that core, its specks and rim included
             _, labels = cv2.connectedComponents(other.view(np.uint8), connectivity=8)
             unclassified = np.isin(labels, np.unique(labels[core]))
-        if unclassified is not None:
             return (f"no object found, but a region of {where(unclassified)} stands in front of the background "
                     f"(cut-off {seg.background_cutoff_mm:.0f} mm) and is neither object- nor gripper-coloured "
                     f"(median saturation {float(np.median(saturation[unclassified])):.2f}, value "
