@@ -1,16 +1,22 @@
 """How the batch functions are compiled: ``jax.jit`` with XLA:CPU options where they apply.
 
-Two XLA:CPU compile options make the estimate faster (the figures are in benchmarks/RESULTS.md,
-issue 2), with results equal to within float rounding (joints within 3e-4 mm, the same cases):
+Three XLA:CPU compile options (the figures are in benchmarks/RESULTS.md), with results equal to
+within float rounding:
 
 * ``xla_cpu_prefer_vector_width=512``: LLVM may use 512-bit vectors where the CPU has them (a
   preference: on a CPU without AVX-512 the code is the same as without it);
 * ``xla_cpu_experimental_ynn_fusion_type=""``: no YNNPACK fusions. XLA:CPU hands the estimate's
   many short reductions (over 5, 12 or 21 stations per candidate) to YNNPACK, which is slower on
-  them than XLA's own loops.
+  them than XLA's own loops;
+* ``xla_cpu_use_fusion_emitters=False``: XLA:CPU's loop emitter instead of its MLIR fusion
+  emitters. The estimate is hundreds of small kernels, and the fusion emitters pay a fixed cost
+  per kernel at compile time: with the loop emitter a new process compiles ``score`` and ``refine``
+  in about two thirds of the time, and ``score`` runs as fast or faster; ``refine``'s small
+  single-pose kernels run slower (tens of percent, a few ms to tens of ms per call), a trade for
+  a start-up shorter by many seconds (``benchmarks/bench_emitters.py`` measures both).
 
-They are applied only on a CPU backend, and only if this jaxlib accepts them (the second is
-experimental and may be renamed): otherwise the functions compile with XLA's defaults.
+They are applied only on a CPU backend, and each only if this jaxlib accepts it (the second is
+experimental and may be renamed): the others still apply.
 """
 
 from __future__ import annotations
@@ -23,19 +29,26 @@ import jax.numpy as jnp
 from softgrip_jax._concurrent import is_traced
 
 #: Compile options for XLA:CPU (see the module docstring).
-CPU_OPTIONS: dict[str, object] = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_experimental_ynn_fusion_type": ""}
+CPU_OPTIONS: dict[str, object] = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_experimental_ynn_fusion_type": "",
+                                  "xla_cpu_use_fusion_emitters": False}
 
 
 @functools.cache
 def compiler_options() -> dict[str, object]:
-    """:data:`CPU_OPTIONS` on a CPU backend whose XLA accepts them; ``{}`` otherwise."""
+    """:data:`CPU_OPTIONS` on a CPU backend, those its XLA accepts; ``{}`` on any other backend."""
     if jax.default_backend() != "cpu":
         return {}
+    if _accepted(CPU_OPTIONS):
+        return dict(CPU_OPTIONS)
+    return {name: value for name, value in CPU_OPTIONS.items() if _accepted({name: value})}
+
+
+def _accepted(options: dict[str, object]) -> bool:
     try:
-        jax.jit(lambda x: x + 1, compiler_options=CPU_OPTIONS).lower(jnp.zeros(())).compile()
+        jax.jit(lambda x: x + 1, compiler_options=options).lower(jnp.zeros(())).compile()
     except jax.errors.JaxRuntimeError:  # an option this XLA does not know
-        return {}
-    return dict(CPU_OPTIONS)
+        return False
+    return True
 
 
 class tuned_jit:  # noqa: N801 - used as a decorator, like jax.jit

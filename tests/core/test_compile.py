@@ -23,9 +23,13 @@ def test_this_xla_accepts_the_cpu_options(fresh_options):
     assert compiler_options() == CPU_OPTIONS
 
 
-def test_an_option_xla_does_not_know_falls_back_to_the_defaults(fresh_options, monkeypatch):
+def test_an_option_xla_does_not_know_is_left_out_and_the_others_kept(fresh_options, monkeypatch):
     monkeypatch.setattr(_compile, "CPU_OPTIONS", {"xla_cpu_no_such_option_anywhere": 1})
     assert compiler_options() == {}
+    compiler_options.cache_clear()
+    known = {"xla_cpu_use_fusion_emitters": False}
+    monkeypatch.setattr(_compile, "CPU_OPTIONS", {"xla_cpu_no_such_option_anywhere": 1, **known})
+    assert compiler_options() == known
 
 
 def test_tuned_jit_computes_what_jit_does_and_compiles_once_per_shape():
