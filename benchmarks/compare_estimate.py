@@ -37,9 +37,13 @@ sys.path.insert(1, str(Path(__file__).resolve().parent))
 from _scene import disc_grid, finger, mixed_bases, touching_bases  # noqa: E402
 
 
-def geometric(pkg) -> dict:
-    """The keyword that selects the geometric estimate, in versions that have a ``method`` argument."""
-    return {"method": "geometric"} if "method" in inspect.signature(pkg.estimate_batch).parameters else {}
+def chosen(pkg, method: str) -> dict:
+    """The keyword that selects the estimate ``method`` ("geometric" or "mechanics") in ``pkg``'s version:
+    ``estimator=`` (today), ``method=`` (older), or none (before the mechanics estimate)."""
+    parameters = inspect.signature(pkg.estimate_batch).parameters
+    if "estimator" in parameters:
+        return {"estimator": pkg.Geometric() if method == "geometric" else pkg.Mechanics()}
+    return {"method": method} if "method" in parameters else {}
 
 
 def scene(pkg, n_links, batch, touching):
@@ -69,7 +73,7 @@ def main():
         versions["base"] = importlib.import_module("softgrip_jax_base")
 
     def options(k, p):
-        method = geometric(p) if args.method == "geometric" else {"method": args.method}
+        method = chosen(p, args.method)
         return {**method, **({"workers": 1} if args.one_part and k == "base" else {})}
     setups = {k: scene(p, args.n, args.batch, args.touching) for k, p in versions.items()}
     outs, best, cpu = {}, {k: np.inf for k in versions}, {k: np.inf for k in versions}

@@ -11,9 +11,10 @@ within float rounding:
 * ``xla_cpu_use_fusion_emitters=False``: XLA:CPU's loop emitter instead of its MLIR fusion
   emitters. The estimate is hundreds of small kernels, and the fusion emitters pay a fixed cost
   per kernel at compile time: with the loop emitter a new process compiles ``score`` and ``refine``
-  in about two thirds of the time, and ``score`` runs as fast or faster; ``refine``'s small
-  single-pose kernels run slower (tens of percent, a few ms to tens of ms per call), a trade for
-  a start-up shorter by many seconds (``benchmarks/bench_emitters.py`` measures both).
+  in about two thirds of the time; ``score`` runs as fast or faster, ``estimate_batch`` a few
+  percent slower, and ``refine``'s single-pose kernels tens of percent slower (a few ms to tens of
+  ms per call): a trade for a start-up shorter by many seconds (``benchmarks/bench_emitters.py``
+  measures both).
 
 They are applied only on a CPU backend, and each only if this jaxlib accepts it (the second is
 experimental and may be renamed): the others still apply.

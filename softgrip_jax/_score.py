@@ -513,8 +513,9 @@ def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, ang
         s = scored(z)
         raw = jnp.where(s.valid, s.score, 0.0)
         # Leaving the valid set costs more than any score can gain. The score travels as one flat
-        # vector: the minimiser selects and carries its auxiliary output at every step, an operation
-        # per leaf otherwise (69 leaves, a tenth of the compiled program).
+        # vector: the minimiser selects and carries its auxiliary output at every step, otherwise an
+        # operation (a compiled kernel) per leaf. Its integers (case and status codes) and flags are
+        # exact in the vector's float dtype.
         return -raw + 10.0 * (1.0 - s.valid.astype(pose.dtype)), ravel_pytree(s)[0]
 
     # The start's and the end's scores are the minimiser's own evaluations (its auxiliary output):
