@@ -62,7 +62,7 @@ def export_cache(tmp_path, monkeypatch):
     compilation_cache.reset_cache()
 
 
-def _assert_identical(a, b) -> None:
+def _assert_same_results(a, b) -> None:
     la, ta = jax.tree_util.tree_flatten(a)
     lb, tb = jax.tree_util.tree_flatten(b)
     assert ta == tb
@@ -85,9 +85,9 @@ def test_exported_score_equals_the_jitted_one(export_cache) -> None:
     assert _score_one_device.export_info() == before._replace(exported=before.exported + 1)  # written to disk
     assert len(list(export_cache.glob("score_share-*.export"))) == 1
     jitted = _score_one_device._jitted(*_score_args(), chunk_size=8, estimator=Geometric())
-    _assert_identical(exported, jitted)
+    _assert_same_results(exported, jitted)
     # The public function goes the same way.
-    _assert_identical(softgrip_jax.score(GRIPPER, DISC, POSES, estimator=Geometric(), chunk_size=8), jitted)
+    _assert_same_results(softgrip_jax.score(GRIPPER, DISC, POSES, estimator=Geometric(), chunk_size=8), jitted)
 
 
 def _ignored_with_one_warning(path, reference, match: str) -> None:
@@ -96,7 +96,7 @@ def _ignored_with_one_warning(path, reference, match: str) -> None:
     _score_one_device._calls.clear()  # as a new process: read the file again
     before = _score_one_device.export_info()
     with pytest.warns(UntrustedCacheWarning, match=match) as caught:
-        _assert_identical(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
+        _assert_same_results(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
     assert len([w for w in caught if issubclass(w.category, UntrustedCacheWarning)]) == 1
     assert str(path) in str(caught[0].message)
     after = _score_one_device.export_info()
@@ -105,7 +105,7 @@ def _ignored_with_one_warning(path, reference, match: str) -> None:
     _score_one_device._calls.clear()
     with warnings.catch_warnings():
         warnings.simplefilter("error", UntrustedCacheWarning)
-        _assert_identical(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
+        _assert_same_results(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
     assert _score_one_device.export_info().loaded == before.loaded + 1
 
 
@@ -242,7 +242,7 @@ def test_an_export_folder_others_can_write_is_not_used(written_export) -> None:
     _score_one_device._calls.clear()
     before = _score_one_device.export_info()
     with pytest.warns(UntrustedCacheWarning, match="writable by other users"):
-        _assert_identical(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
+        _assert_same_results(_score_one_device(*_score_args(), chunk_size=8, estimator=Geometric()), reference)
     after = _score_one_device.export_info()
     assert (after.loaded, after.exported, after.fallback) == (before.loaded, before.exported, before.fallback + 1)
 
@@ -275,7 +275,7 @@ def test_without_the_cache_nothing_is_exported(export_cache, monkeypatch, off) -
 @pytest.mark.slow
 def test_exported_refine_equals_the_jitted_one(export_cache) -> None:
     args = (GRIPPER, DISC, POSES[:2], ScoreWeights(), ContactConfig(), None, 10, jnp.asarray(0.05), Geometric())
-    _assert_identical(_refine_batch(*args), _refine_batch._jitted(*args))
+    _assert_same_results(_refine_batch(*args), _refine_batch._jitted(*args))
     assert len(list(export_cache.glob("refine_poses-*.export"))) == 1
 
 

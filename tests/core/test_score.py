@@ -5,6 +5,7 @@ import subprocess
 import sys
 import textwrap
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -58,6 +59,16 @@ def test_refine_improves_an_off_centre_pose_and_keeps_it_valid():
     # The reported score is the refined pose's own.
     again = score(GRIPPER, DISC, result.pose[None], estimator=Geometric())
     assert float(again.score[0]) == pytest.approx(float(result.score.score), abs=1e-4)
+    # All of it, integers (cases, statuses) and flags exactly: refine carries the score through the
+    # minimiser as one float vector and unpacks it.
+    mine, theirs = jax.tree_util.tree_flatten(result.score), jax.tree_util.tree_flatten(again)
+    assert mine[1] == theirs[1]
+    for a, b in zip(mine[0], theirs[0]):
+        assert a.dtype == b.dtype and a.shape == b.shape[1:]
+        if jnp.issubdtype(a.dtype, jnp.floating):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b[0]), rtol=1e-4, atol=1e-3)
+        else:
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b[0]))
 
 
 
