@@ -40,12 +40,6 @@ from softgrip_jax._sharding import device_mesh, run_sharded
 from softgrip_jax._stage import Estimate, refine_search, search_contact, search_further, stage_of
 from softgrip_jax._trace import trace_once
 
-#: Candidates per compiled call (a piece): every batch runs as pieces of this size through one
-#: compiled program, so a new batch size compiles nothing; peak memory scales with it, not the batch.
-#: Pieces of a few hundred are as fast per candidate as larger ones on a CPU (benchmarks/RESULTS.md,
-#: "One program for every batch size"), and a batch smaller than a piece costs a piece.
-DEFAULT_CHUNK = 256
-
 #: Chunks smaller than this refine every finger (see :func:`finger_chunk`).
 _SMALL_CHUNK = 16
 
@@ -124,13 +118,14 @@ def map_chunks(fn, xs, chunk_size):
     return jax.lax.fori_loop(0, n_chunks, write, out)
 
 
-def run_batch(one_device, sharded, before: tuple, xs: jax.Array | np.ndarray, after: tuple, chunk_size: int,
+def run_batch(one_device, sharded, before: tuple, xs: jax.Array | np.ndarray, after: tuple, chunk_size: int | None,
               workers: int | None, estimator: AbstractEstimator, progress=None):
     """A jitted batch function over the candidates ``xs`` (B, ...), with outputs of leading axis B:
     with several JAX devices (GPUs, or processes joined by ``jax.distributed``) ``sharded`` on an
     even share per device (:func:`~softgrip_jax._sharding.run_sharded`), else ``one_device`` in
-    pieces of ``chunk_size`` candidates, ``workers`` at a time (:func:`~softgrip_jax._concurrent.run_in_pieces`):
-    one compiled program whatever B is. Both are called as ``fn(*before, xs, *after, chunk_size=...,
+    pieces of ``chunk_size`` candidates (None: a bucketed size chosen by B), ``workers`` at a time
+    (:func:`~softgrip_jax._concurrent.run_in_pieces`): one compiled program per piece size. Both
+    are called as ``fn(*before, xs, *after, chunk_size=...,
     estimator=estimator)``; ``progress(done, total)`` after each piece."""
     mesh = device_mesh()
     if mesh is not None:
@@ -180,7 +175,7 @@ def estimate_batch(
     bases: Float[ArrayLike, "b 2"],
     config: ContactConfig = ContactConfig(),
     *,
-    chunk_size: int = DEFAULT_CHUNK,
+    chunk_size: int | None = None,
     estimator: AbstractEstimator | None = None,
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -196,8 +191,10 @@ def estimate_batch(
 
     Args:
         bases: (B, 2) finger bases in mm (each finger hangs toward +y and curls toward +x).
-        chunk_size: bases per compiled call (a piece; static): every B runs through the program of
-            this size (a new B compiles nothing); memory grows with it, not with B.
+        chunk_size: bases per compiled call (a piece; static); memory grows with it, not with B.
+            None (default): a piece size of :data:`~softgrip_jax._concurrent.PIECE_BUCKETS`
+            chosen by B (one base runs as a piece of one, 100,000 as pieces of 4096), each
+            compiled once, when first needed. An int: every B runs through the program of that size.
         estimator: ``Geometric()`` or ``Mechanics(config)`` (None: ``Mechanics()``); equal
             estimators reuse one compiled program.
         workers: on one device, pieces run at once (None: one per CPU core on a CPU backend, one
@@ -229,7 +226,7 @@ def estimate_grasp_batch(
     poses: Float[ArrayLike, "b 3"],
     config: ContactConfig = ContactConfig(),
     *,
-    chunk_size: int = DEFAULT_CHUNK,
+    chunk_size: int | None = None,
     estimator: AbstractEstimator | None = None,
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,

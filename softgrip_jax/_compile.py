@@ -16,6 +16,12 @@ within float rounding:
   ms per call): a trade for a start-up shorter by many seconds (``benchmarks/bench_emitters.py``
   measures both).
 
+Options are chosen per program: an estimator may override them for the batch programs that run
+it (``AbstractEstimator.cpu_options``). ``Geometric()`` compiles with the fusion emitters: its
+batch programs are short enough that their compile time barely changes, and they run faster with
+them; ``Mechanics()`` keeps the loop emitter, with which its batch programs both compile and run
+faster (``benchmarks/bench_emitters.py`` measures both).
+
 They are applied only on a CPU backend, and each only if this jaxlib accepts it (the second is
 experimental and may be renamed): the others still apply.
 """
@@ -34,14 +40,20 @@ CPU_OPTIONS: dict[str, object] = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_e
                                   "xla_cpu_use_fusion_emitters": False}
 
 
+def compiler_options(estimator: object = None) -> dict[str, object]:
+    """:data:`CPU_OPTIONS`, with the ``cpu_options`` overrides of ``estimator`` (if it has them),
+    on a CPU backend: those its XLA accepts; ``{}`` on any other backend."""
+    overrides = getattr(estimator, "cpu_options", None) or {}
+    return dict(_accepted_options(tuple(sorted({**CPU_OPTIONS, **overrides}.items()))))
+
+
 @functools.cache
-def compiler_options() -> dict[str, object]:
-    """:data:`CPU_OPTIONS` on a CPU backend, those its XLA accepts; ``{}`` on any other backend."""
+def _accepted_options(items: tuple[tuple[str, object], ...]) -> tuple[tuple[str, object], ...]:
     if jax.default_backend() != "cpu":
-        return {}
-    if _accepted(CPU_OPTIONS):
-        return dict(CPU_OPTIONS)
-    return {name: value for name, value in CPU_OPTIONS.items() if _accepted({name: value})}
+        return ()
+    if _accepted(dict(items)):
+        return items
+    return tuple((name, value) for name, value in items if _accepted({name: value}))
 
 
 def _accepted(options: dict[str, object]) -> bool:
@@ -53,7 +65,8 @@ def _accepted(options: dict[str, object]) -> bool:
 
 
 class tuned_jit:  # noqa: N801 - used as a decorator, like jax.jit
-    """``jax.jit(fn, **jit_kwargs)`` compiled with :func:`compiler_options`.
+    """``jax.jit(fn, **jit_kwargs)`` compiled with :func:`compiler_options` of the call's
+    ``estimator=`` keyword argument (if any).
 
     The backend is looked up at the first call, not at import. Attributes of the jitted function
     (``lower``, ``_cache_size``, ...) are those of ``jax.jit``'s. Inside another traced function
@@ -64,18 +77,21 @@ class tuned_jit:  # noqa: N801 - used as a decorator, like jax.jit
     def __init__(self, fn, **jit_kwargs):
         functools.update_wrapper(self, fn)
         self._fn, self._jit_kwargs = fn, jit_kwargs
-        self._tuned = self._plain = None
+        self._tuned: dict[tuple, object] = {}  # one jax.jit per set of compile options
+        self._plain = None
 
-    def _get(self):
-        if self._tuned is None:
-            self._tuned = jax.jit(self._fn, compiler_options=compiler_options() or None, **self._jit_kwargs)
-        return self._tuned
+    def _get(self, estimator: object = None):
+        options = compiler_options(estimator)
+        key = tuple(sorted(options.items()))
+        if key not in self._tuned:
+            self._tuned[key] = jax.jit(self._fn, compiler_options=options or None, **self._jit_kwargs)
+        return self._tuned[key]
 
     def __call__(self, *args, **kwargs):
         if is_traced((args, kwargs)):  # inside another trace: not the tuned jit, which JAX would refuse
             return self._plain_jit()(*args, **kwargs)
         try:
-            return self._get()(*args, **kwargs)
+            return self._get(kwargs.get("estimator"))(*args, **kwargs)
         except ValueError as err:  # "`compiler_options` can only be passed to top-level `jax.jit`"
             if "compiler_options" not in str(err):  # (a trace whose operands are all constants)
                 raise
@@ -85,6 +101,10 @@ class tuned_jit:  # noqa: N801 - used as a decorator, like jax.jit
         if self._plain is None:
             self._plain = jax.jit(self._fn, **self._jit_kwargs)
         return self._plain
+
+    def _cache_size(self) -> int:
+        """Programs compiled, over every set of compile options (``jax.jit``'s count, summed)."""
+        return sum(jitted._cache_size() for jitted in self._tuned.values())
 
     def __getattr__(self, name):
         if name.startswith("__"):

@@ -119,6 +119,39 @@ def balanced_chunk(rows: int, chunk_size: int) -> int:
     return min(int(chunk_size), -(-even // CHUNK_ALIGN) * CHUNK_ALIGN)
 
 
+#: The piece sizes a batch runs in when no ``chunk_size`` is given (:func:`bucket_piece`): each
+#: compiled once, when a batch first needs it. Larger pieces cost less per candidate (fewer kernel
+#: launches per candidate: benchmarks/RESULTS.md, "Piece sizes"); a piece of one lets a single
+#: candidate cost one. Few sizes, since each is a compilation of seconds to tens of seconds.
+PIECE_BUCKETS = (1, 256, 4096)
+
+#: A piece's fixed cost in candidates' worth of work, as :func:`bucket_piece` weighs it: a piece of
+#: one candidate takes about as long as this many candidates inside a large piece.
+PIECE_OVERHEAD = 256
+
+
+def bucket_piece(batch: int, workers: int) -> int:
+    """The piece size of :data:`PIECE_BUCKETS` that runs ``batch`` candidates soonest on ``workers``
+    concurrent workers, by the cost model ``rounds * (PIECE_OVERHEAD + size)`` (``rounds``: pieces
+    per worker, rounded up); of equal costs the larger piece.
+
+    Example:
+        >>> [bucket_piece(b, 2) for b in (1, 2, 5, 605, 2_000, 10_000, 100_000)]
+        [1, 1, 256, 256, 256, 4096, 4096]
+    """
+    def cost(size: int) -> int:
+        rounds = -(-max(1, -(-batch // size)) // max(1, workers))
+        return rounds * (PIECE_OVERHEAD + size)
+
+    return min(reversed(PIECE_BUCKETS), key=cost)
+
+
+def piece_size(chunk_size: object, batch: int, workers: int) -> int:
+    """``chunk_size`` checked (:func:`check_piece`), or for None the bucket :func:`bucket_piece`
+    chooses for ``batch`` candidates on ``workers`` workers."""
+    return bucket_piece(batch, workers) if chunk_size is None else check_piece(chunk_size)
+
+
 def check_piece(chunk_size: object) -> int:
     """``chunk_size`` as a positive int, or a :class:`SoftgripError` naming it."""
     if not isinstance(chunk_size, numbers.Integral) or isinstance(chunk_size, bool) or chunk_size < 1:
@@ -213,25 +246,27 @@ def _warm_threads(pool: ThreadPoolExecutor, threads: int, task: Callable[[], obj
             future.result()
 
 
-def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, workers: int | None, chunk_size: int,
+def run_in_pieces(fn, before: tuple, xs: jax.Array | np.ndarray, after: tuple, workers: int | None,
+                  chunk_size: int | None,
                   progress: Callable[[int, int], None] | None = None, **static):
     """``fn(*before, piece, *after, chunk_size=..., **static)`` for a jitted ``fn`` whose outputs all
     have the candidates' leading axis, over pieces of exactly ``chunk_size`` candidates
-    (:func:`split_pieces`), :func:`part_count` of them in flight at once on the shared threads.
+    (:func:`split_pieces`; None: the :func:`bucket_piece` for the batch), as many in flight at once
+    as there are workers, on the shared threads.
 
-    Every batch size runs the same compiled program, the one of a ``chunk_size`` piece: a planner
-    that calls with thousands of different batch sizes compiles once per estimator and settings,
-    and a batch costs its number of pieces (a batch smaller than one piece costs a piece).
+    Every batch size runs the compiled program of one of a few piece sizes: a planner that calls
+    with thousands of different batch sizes compiles at most once per piece size, estimator and
+    settings, and a batch costs its number of pieces.
     ``progress(done, total)`` is called on this thread after each piece, in order, ending with
     ``(B, B)``. Under tracing (``jit``, ``grad`` or ``vmap`` around the batch function) the traced
     batch is one program of its own shape, scanned in chunks of at most ``chunk_size``.
     """
-    size = check_piece(chunk_size)
     b = xs.shape[0]
+    threads = worker_count(workers)
+    size = piece_size(chunk_size, b, threads)
     if is_traced((before, xs, after)):
         return fn(*before, xs, *after, chunk_size=balanced_chunk(b, size), **static)
     pieces = split_pieces(xs, size)
-    threads = worker_count(workers)
     static = dict(static, chunk_size=size)
     leaves, treedef = jax.tree_util.tree_flatten((before, after))
     signature = (fn, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves),

@@ -202,6 +202,10 @@ def _station_spacing(finger, config):
 #: Stations around the first-touching one that the root finder watches.
 _ROOT_WINDOW = 5
 
+#: Clearance (mm) the root finder's function keeps at least at the bracket's lower end
+#: (:func:`refine_contact`).
+_END_MARGIN_MM = 1e-6
+
 
 def _window_stations(finger, base, s, config, first):
     """The ``_ROOT_WINDOW`` stations from index ``first`` at closing progress ``s``, in closed form.
@@ -300,7 +304,8 @@ def predict_contact(
     check_finger(finger)
     check_sdf(sdf)
     base = jnp.asarray(base, finger.length.dtype)
-    contact = predict_contact_local(finger, lambda q: sdf.distance(q + base), config)
+    contact = predict_contact_local(finger, lambda q: sdf.distance(q + base), config,
+                                    coarse=lambda q: sdf.coarse_distance(q + base))
     return eqx.tree_at(lambda c: (c.p_g1, c.p_o1, c.p_o2), contact,
                        (contact.p_g1 + base, contact.p_o1 + base, contact.p_o2 + base))
 
@@ -309,9 +314,12 @@ def predict_contact_local(
     finger: FingerModel,
     dist: Callable[[Float[Array, "*batch 2"]], Float[Array, "*batch"]],
     config: ContactConfig = ContactConfig(),
+    coarse: Callable[[Float[Array, "*batch 2"]], Float[Array, "*batch"]] | None = None,
 ) -> Contact:
     """:func:`predict_contact` in the finger's own frame: base at the origin, ``dist`` the object's
-    signed distance as a function of finger-frame points (mm).
+    signed distance as a function of finger-frame points (mm); ``coarse`` a cheaper approximation
+    of it for the coarse bracketing grid (:meth:`~softgrip_jax._sdf.AbstractSDF.coarse_distance`;
+    None: ``dist``).
 
     The scene enters only through ``dist``, so a finger placed by a frame (translated, rotated or
     mirrored) closes over that frame instead of carrying it inside the SDF: the SDF, usually a large
@@ -327,7 +335,7 @@ def predict_contact_local(
         >>> round(float(c.s1), 3) < 0.5  # the chord angle at first touch, before Theta
         True
     """
-    bracket = bracket_contact(finger, dist, config)
+    bracket = bracket_contact(finger, dist if coarse is None else coarse, config)
     refined = refine_contact(finger, dist, bracket, config)
     free = free_contact(finger, bracket)
     return jax.tree_util.tree_map(lambda a, b: jnp.where(bracket.needs_root, a, b), refined, free)
@@ -498,10 +506,21 @@ def refine_contact(
     need_root, touches, initial_overlap = bracket.needs_root, bracket.touches, bracket.initial_overlap
     lower, upper, start, first = bracket.lower, bracket.upper, bracket.start, bracket.first
 
+    # The bracket may come from a coarser lookup than ``dist`` (SDFGrid's bilinear one): where the
+    # two disagree at the bracket's ends (a graze of micrometres, or a window of stations whose
+    # clearance differs from the whole chain's) the clearance solved for is tilted by the straight
+    # line that makes it positive at ``lower`` and not positive at ``upper``, as the root finder
+    # needs. Where they agree, as almost everywhere, the tilt is exactly zero.
+    g_lower = _window_clearance(finger, dist, base, lower, config, first)
+    g_upper = _window_clearance(finger, dist, base, upper, config, first)
+    lift = jnp.maximum(_END_MARGIN_MM - g_lower, 0.0)
+    drop = jnp.maximum(g_upper, 0.0)
+
     def fn(s):
         # Where there is no bracket, solve a harmless stand-in (root at the start, slope -1), so
         # that the implicit derivative stays finite.
-        real = _window_clearance(finger, dist, base, s, config, first)
+        along = safe_divide(s - lower, upper - lower, 0.0)
+        real = _window_clearance(finger, dist, base, s, config, first) + lift - along * (lift + drop)
         return jnp.where(need_root, real, start - s)
 
     def solve(fn_, s0):

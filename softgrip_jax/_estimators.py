@@ -59,6 +59,9 @@ class AbstractEstimator(eqx.Module):
     """
 
     name: eqx.AbstractClassVar[str]
+    #: XLA:CPU compile options of the batch programs that run this estimator, over
+    #: :data:`softgrip_jax._compile.CPU_OPTIONS` (chosen by measurement: ``benchmarks/bench_emitters.py``).
+    cpu_options: ClassVar[dict[str, object]] = {}
 
     def __check_init__(self):
         loose = [f.name for f in dataclasses.fields(self) if not f.metadata.get("static", False)]
@@ -115,6 +118,8 @@ class Geometric(AbstractEstimator):
     """
 
     name: ClassVar[str] = "geometric"
+    #: XLA's fusion emitters: the geometric batch programs run faster with them and compile about as fast.
+    cpu_options: ClassVar[dict[str, object]] = {"xla_cpu_use_fusion_emitters": True}
 
     def deform(self, finger: FingerModel, sdf: AbstractSDF, stage: Stage, config: ContactConfig) -> Estimate:
         return finish(finger, stage)

@@ -132,10 +132,10 @@ def static_ident(value) -> str | None:
     return f"{kind.__module__}.{kind.__qualname__}" + (f"[{name}]" if isinstance(name, str) else "") + f":{value!r}"
 
 
-def _backend_settings() -> str:
+def _backend_settings(estimator: object = None) -> str:
     x64 = jax.config.jax_enable_x64  # type: ignore[attr-defined]  # set at run time
     return (f"backend={jax.default_backend()};x64={x64};"
-            f"options={sorted(compiler_options().items())}")
+            f"options={sorted(compiler_options(estimator).items())}")
 
 
 class exportable:  # noqa: N801 - used like jax.jit
@@ -220,7 +220,8 @@ class exportable:  # noqa: N801 - used like jax.jit
         statics = [(k, static_ident(v)) for k, v in static]
         if any(ident is None for _, ident in statics):  # e.g. an estimator defined outside this package
             return None
-        ident = "\n".join([self._fn.__module__ + "." + self._fn.__qualname__, _environment(), _backend_settings(),
+        estimator = dict(static).get("estimator")
+        ident = "\n".join([self._fn.__module__ + "." + self._fn.__qualname__, _environment(), _backend_settings(estimator),
                            repr(names), str(treedef), repr([(a.shape, str(a.dtype), a.weak_type) for a in avals]),
                            repr(statics)])
         for place in (folder.parent, folder):
@@ -253,7 +254,7 @@ class exportable:  # noqa: N801 - used like jax.jit
                 self._exported += 1
             except (OSError, ValueError):  # not kept on disk; this process still uses the export
                 _log.debug("softgrip_jax: cannot write %s", path, exc_info=True)
-        options = compiler_options() or None
+        options = compiler_options(estimator) or None
         call = jax.jit(lambda *leaves: exported.call(*leaves), compiler_options=options)
         return call, out_treedef
 

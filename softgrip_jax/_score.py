@@ -42,7 +42,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._batch import DEFAULT_CHUNK, as_candidates, grasp_chunk, map_chunks, run_batch
+from softgrip_jax._batch import as_candidates, grasp_chunk, map_chunks, run_batch
 from softgrip_jax._checks import check_gripper, check_sdf
 from softgrip_jax._compile import tuned_jit
 from softgrip_jax._concurrent import run_in_pieces
@@ -396,7 +396,7 @@ def score(
     weights: ScoreWeights = ScoreWeights(),
     config: ContactConfig = ContactConfig(),
     *,
-    chunk_size: int = DEFAULT_CHUNK,
+    chunk_size: int | None = None,
     estimator: AbstractEstimator | None = None,
     workers: int | None = None,
     uncertainty: Uncertainty | None = None,
@@ -404,8 +404,9 @@ def score(
 ) -> Score:
     """Score B candidate poses (x mm, y mm, angle rad) in one compiled call.
 
-    Poses are evaluated ``chunk_size`` at a time by one compiled program, whatever B is (a new
-    batch size compiles nothing; memory does not grow with B). When several JAX devices are
+    Poses are evaluated in pieces of a few fixed sizes chosen by B (one pose as a piece of one,
+    thousands as pieces of 4096), each size compiled once, when first needed (memory does not grow
+    with B). When several JAX devices are
     present (GPUs, or hosts joined by ``jax.distributed``), each device runs pieces of the same size
     with ``jax.sharding``; results agree with a single device's to float32 rounding. Returns a
     :class:`Score` whose leaves have a leading axis B; rank with ``jnp.argsort(-result.score)``.
@@ -416,8 +417,9 @@ def score(
         gripper: both fingers and the base separation W (mm, rad).
         sdf: the object (mm), in the frame's millimetre coordinates (x right, y down).
         poses: (B, 3) candidate poses: gripper centre x, y (mm) and angle (rad).
-        chunk_size: poses per compiled call (a piece; static): every B runs through the program
-            of this size; memory grows with it, not with B.
+        chunk_size: poses per compiled call (a piece; static); memory grows with it, not with B.
+            None (default): chosen by B, as for :func:`estimate_batch`. An int: every B runs
+            through the program of that size.
         estimator: ``Geometric()`` or ``Mechanics(config)`` (None: ``Mechanics()``); equal
             estimators reuse one compiled program.
         workers: on one device, pieces run at once (None: one per CPU core on a CPU, one

@@ -17,7 +17,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from softgrip_jax._concurrent import check_piece, join_pieces, split_pieces
+from softgrip_jax._concurrent import join_pieces, piece_size, split_pieces
 
 AXIS = "candidates"
 
@@ -28,16 +28,17 @@ def device_mesh() -> Mesh | None:
     return Mesh(np.array(devices), (AXIS,)) if len(devices) > 1 else None
 
 
-def run_sharded(fn, mesh: Mesh, before: tuple, xs: jax.Array | np.ndarray, after: tuple, chunk_size: int,
+def run_sharded(fn, mesh: Mesh, before: tuple, xs: jax.Array | np.ndarray, after: tuple, chunk_size: int | None,
                 progress: Callable[[int, int], None] | None = None, **static):
     """``fn(*before, shares, *after, chunk_size=..., **static)`` for a jitted ``fn`` that maps a
     (devices, chunk_size, ...) array of candidates to outputs with those two leading axes, in rounds
-    of one ``chunk_size`` piece per device of ``mesh`` (the same program whatever B is; the last
+    of one ``chunk_size`` piece per device of ``mesh`` (None: the bucket that
+    :func:`~softgrip_jax._concurrent.bucket_piece` chooses; a few programs whatever B is; the last
     round padded). Returns outputs with ``xs``'s leading axis; ``progress(done, total)`` after each
     round."""
-    size = check_piece(chunk_size)
     b = xs.shape[0]
     n_dev = mesh.devices.size
+    size = piece_size(chunk_size, b, n_dev)
     pieces = split_pieces(xs, size)
     pieces += [pieces[-1]] * (-len(pieces) % n_dev)  # whole rounds (the extra pieces' rows are dropped)
     replicated = NamedSharding(mesh, PartitionSpec())

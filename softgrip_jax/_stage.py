@@ -170,6 +170,10 @@ def _distance_in(sdf: AbstractSDF, frame: FingerFrame):
     return lambda q: sdf.distance(frame.to_world(q))
 
 
+def _coarse_distance_in(sdf: AbstractSDF, frame: FingerFrame):
+    return lambda q: sdf.coarse_distance(frame.to_world(q))
+
+
 def search_contact(
     finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, config: ContactConfig, estimator: AbstractEstimator,
     rows: tuple[int, int] | None = None,
@@ -192,14 +196,14 @@ def search_contact(
         handedness=frame.handedness,
     )
     return Search(frame=safe_frame, finite=finite, inside=inside,
-                  bracket=bracket_contact(finger, _distance_in(sdf, safe_frame), config, rows), problem=problem)
+                  bracket=bracket_contact(finger, _coarse_distance_in(sdf, safe_frame), config, rows), problem=problem)
 
 
 def search_further(
     finger: FingerModel, sdf: AbstractSDF, search: Search, config: ContactConfig, rows: tuple[int, int]
 ) -> Bracket:
     """The bracket of a search over later ``rows`` of the coarse grid (the finger was free before)."""
-    return bracket_contact(finger, _distance_in(sdf, search.frame), config, rows)
+    return bracket_contact(finger, _coarse_distance_in(sdf, search.frame), config, rows)
 
 
 def refine_search(finger: FingerModel, sdf: AbstractSDF, search: Search, config: ContactConfig) -> Contact:

@@ -11,9 +11,9 @@ from softgrip_jax._compile import CPU_OPTIONS, compiler_options, tuned_jit
 
 @pytest.fixture
 def fresh_options():
-    compiler_options.cache_clear()
+    _compile._accepted_options.cache_clear()
     yield
-    compiler_options.cache_clear()
+    _compile._accepted_options.cache_clear()
 
 
 def test_this_xla_accepts_the_cpu_options(fresh_options):
@@ -26,10 +26,18 @@ def test_this_xla_accepts_the_cpu_options(fresh_options):
 def test_an_option_xla_does_not_know_is_left_out_and_the_others_kept(fresh_options, monkeypatch):
     monkeypatch.setattr(_compile, "CPU_OPTIONS", {"xla_cpu_no_such_option_anywhere": 1})
     assert compiler_options() == {}
-    compiler_options.cache_clear()
+    _compile._accepted_options.cache_clear()
     known = {"xla_cpu_use_fusion_emitters": False}
     monkeypatch.setattr(_compile, "CPU_OPTIONS", {"xla_cpu_no_such_option_anywhere": 1, **known})
     assert compiler_options() == known
+
+
+def test_an_estimator_overrides_the_options_of_its_programs_only(fresh_options):
+    from softgrip_jax import Geometric, Mechanics
+
+    assert compiler_options(Geometric()) == {**CPU_OPTIONS, "xla_cpu_use_fusion_emitters": True}
+    assert compiler_options(Mechanics()) == CPU_OPTIONS  # no overrides
+    assert compiler_options() == CPU_OPTIONS
 
 
 def test_tuned_jit_computes_what_jit_does_and_compiles_once_per_shape():

@@ -230,3 +230,27 @@ def test_a_warm_up_that_fails_does_not_fail_the_call():
     _warm_threads(pool, 2, lambda: 1 / 0)  # e.g. memory for two pieces at once: the batch's own run decides
     assert pool.submit(lambda: 7).result() == 7  # the pool still serves
     pool.shutdown()
+
+
+def test_a_default_batch_runs_in_the_piece_size_its_size_needs():
+    from softgrip_jax._concurrent import PIECE_BUCKETS, bucket_piece
+
+    for workers in (1, 2, 4):
+        sizes = [bucket_piece(b, workers) for b in range(1, 20_000, 7)]
+        assert set(sizes) <= set(PIECE_BUCKETS)
+        assert sizes == sorted(sizes)  # a larger batch never gets a smaller piece
+    assert bucket_piece(1, 2) == 1  # one pose costs a piece of one, not of hundreds
+    assert bucket_piece(100_000, 2) == max(PIECE_BUCKETS)
+    # Padding stays bounded: a batch computes at most twice its rows, or a piece per worker.
+    for b in range(1, 20_000, 13):
+        size = bucket_piece(b, 2)
+        assert -(-b // size) * size <= max(2 * b, 2 * size)
+
+
+def test_the_default_pieces_give_the_fixed_pieces_results():
+    bases = np.random.default_rng(5).uniform(-20.0, 10.0, (70, 2)).astype(np.float32)
+    default = estimate_batch(FINGER, GRID, bases, estimator=Geometric())  # a piece of 256
+    fixed = estimate_batch(FINGER, GRID, bases, estimator=Geometric(), chunk_size=CHUNK)
+    np.testing.assert_array_equal(default.case, fixed.case)
+    np.testing.assert_array_equal(default.valid, fixed.valid)
+    np.testing.assert_allclose(default.joints, fixed.joints, atol=1e-4)

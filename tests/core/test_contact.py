@@ -174,3 +174,48 @@ def test_bracket_in_two_parts_equals_the_whole_grid(n_links, sweep):
     # The scene exercises both parts: touches in the first, only in the second, and none.
     late_only = np.asarray(whole.touches & ~early)
     assert np.asarray(early).sum() > 20 and late_only.sum() > 20 and (~np.asarray(whole.touches)).sum() > 20
+
+
+class _CubicEverywhere(SDFGrid):
+    """The same grid, its coarse sweep read with the bicubic lookup too (the reference)."""
+
+    def coarse_distance(self, points):
+        return self.distance(points)
+
+
+def test_a_bilinear_coarse_sweep_finds_the_contact_the_bicubic_one_does():
+    # A grid sampled coarsely (1 mm cells) from a disc, so that the two lookups differ by more than
+    # they do on a camera's grid; 400 bases around it, touching, grazing and missing.
+    exact = lambda p: jnp.linalg.norm(p - jnp.asarray([20.0, 34.0]), axis=-1) - 9.0  # noqa: E731
+    grid = SDFGrid.sample(exact, origin=(-40.0, -30.0), spacing=(1.0, 1.0), shape=(110, 110))
+    reference = _CubicEverywhere(grid.values, grid.origin, grid.spacing)
+    finger = FingerModel(length=52.0, theta_entire=0.8, half_thickness=4.0, n_links=20)
+    bases = np.random.default_rng(3).uniform([-14.0, -12.0], [8.0, 8.0], (400, 2)).astype(np.float32)
+    import jax
+
+    run = jax.jit(jax.vmap(lambda sdf, b: _predict_contact(finger, sdf, b), in_axes=(None, 0)))
+    fast, ref = run(grid, jnp.asarray(bases)), run(reference, jnp.asarray(bases))
+    assert bool(jnp.all(fast.root_converged))
+    assert 100 < int(jnp.sum(ref.touches & ~ref.initial_overlap)) < 390  # both kinds are present
+    same = np.asarray(fast.touches == ref.touches) & np.asarray(fast.initial_overlap == ref.initial_overlap)
+    assert same.mean() >= 0.99  # a graze of micrometres may flip; nothing else
+    both = same & np.asarray(ref.touches & ~ref.initial_overlap)
+    np.testing.assert_allclose(np.asarray(fast.s1)[both], np.asarray(ref.s1)[both], atol=2e-4)
+    np.testing.assert_array_equal(np.asarray(fast.case)[both], np.asarray(ref.case)[both])
+
+
+def test_the_root_converges_when_the_bracket_end_is_still_free():
+    # A bracket whose upper end the coarse lookup saw touching and the fine one sees free (here
+    # made by hand: the upper end moved just short of the true root): the root finder's function
+    # is tilted to cross zero inside the bracket, converges, and lands at that end.
+    from softgrip_jax._contact import bracket_contact, refine_contact
+
+    finger = FingerModel(length=L, theta_entire=0.8, half_thickness=R_FINGER, n_links=10)
+    disc = circle((16.0, 32.0), 7.0)
+    true = predict_contact(finger, disc, jnp.zeros(2))
+    bracket = bracket_contact(finger, disc.distance)
+    short = eqx.tree_at(lambda b: (b.upper, b.start), bracket, (true.s1 - 1e-3, true.s1 - 2e-3))
+    c = eqx.filter_jit(refine_contact)(finger, disc.distance, short)
+    assert bool(c.root_converged)
+    assert float(short.lower) <= float(c.s1) <= float(short.upper) + 1e-6
+    assert float(c.s1) == pytest.approx(float(short.upper), abs=2e-4)
