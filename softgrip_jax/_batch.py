@@ -25,7 +25,7 @@ from jaxtyping import ArrayLike, Float
 
 from softgrip_jax._checks import check_finger, check_gripper, check_sdf
 from softgrip_jax._compile import tuned_jit
-from softgrip_jax._concurrent import pad_rows, run_in_pieces
+from softgrip_jax._concurrent import bucket_piece, pad_rows, run_in_pieces, worker_count
 from softgrip_jax._contact import ContactConfig, sweep_parts
 from softgrip_jax._estimate import estimate_in_frame
 from softgrip_jax._estimators import AbstractEstimator, as_estimator
@@ -123,11 +123,15 @@ def run_batch(one_device, sharded, before: tuple, xs: jax.Array | np.ndarray, af
     """A jitted batch function over the candidates ``xs`` (B, ...), with outputs of leading axis B:
     with several JAX devices (GPUs, or processes joined by ``jax.distributed``) ``sharded`` on an
     even share per device (:func:`~softgrip_jax._sharding.run_sharded`), else ``one_device`` in
-    pieces of ``chunk_size`` candidates (None: a bucketed size chosen by B), ``workers`` at a time
+    pieces of ``chunk_size`` candidates (None: a bucketed size chosen by B, at most the SDF's
+    ``largest_piece``; ``before`` is ``(finger or gripper, sdf)``), ``workers`` at a time
     (:func:`~softgrip_jax._concurrent.run_in_pieces`): one compiled program per piece size. Both
     are called as ``fn(*before, xs, *after, chunk_size=...,
     estimator=estimator)``; ``progress(done, total)`` after each piece."""
     mesh = device_mesh()
+    if chunk_size is None:  # the piece size for this batch, no larger than the object's lookups allow
+        parallel = mesh.devices.size if mesh is not None else worker_count(workers)
+        chunk_size = bucket_piece(xs.shape[0], parallel, largest=before[1].largest_piece)
     if mesh is not None:
         return run_sharded(sharded, mesh, before, xs, after, chunk_size, progress, estimator=estimator)
     return run_in_pieces(one_device, before, xs, after, workers, chunk_size, progress, estimator=estimator)

@@ -130,10 +130,11 @@ PIECE_BUCKETS = (1, 256, 4096)
 PIECE_OVERHEAD = 256
 
 
-def bucket_piece(batch: int, workers: int) -> int:
+def bucket_piece(batch: int, workers: int, largest: int | None = None) -> int:
     """The piece size of :data:`PIECE_BUCKETS` that runs ``batch`` candidates soonest on ``workers``
     concurrent workers, by the cost model ``rounds * (PIECE_OVERHEAD + size)`` (``rounds``: pieces
-    per worker, rounded up); of equal costs the larger piece.
+    per worker, rounded up); of equal costs the larger piece. ``largest``: no bucket above it
+    (the smallest bucket if all are).
 
     Example:
         >>> [bucket_piece(b, 2) for b in (1, 2, 5, 605, 2_000, 10_000, 100_000)]
@@ -143,7 +144,8 @@ def bucket_piece(batch: int, workers: int) -> int:
         rounds = -(-max(1, -(-batch // size)) // max(1, workers))
         return rounds * (PIECE_OVERHEAD + size)
 
-    return min(reversed(PIECE_BUCKETS), key=cost)
+    allowed = [size for size in PIECE_BUCKETS if largest is None or size <= largest] or [PIECE_BUCKETS[0]]
+    return min(reversed(allowed), key=cost)
 
 
 def piece_size(chunk_size: object, batch: int, workers: int) -> int:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Literal, cast
+from typing import TYPE_CHECKING, ClassVar, Literal, cast
 
 import equinox as eqx
 import jax
@@ -45,6 +45,11 @@ def _as_pair(x: ArrayLike) -> Array:
 
 class AbstractSDF(eqx.Module):
     """A signed-distance function of the image plane (mm; negative inside the object)."""
+
+    #: The largest piece of candidates (:data:`softgrip_jax._concurrent.PIECE_BUCKETS`) a default
+    #: batch runs in against this SDF: a lookup whose intermediate arrays grow with the object
+    #: (a polygon's points x edges) keeps its pieces smaller.
+    largest_piece: ClassVar[int] = 4096
 
     @abc.abstractmethod
     def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
@@ -372,6 +377,9 @@ class PolygonSDF(AbstractSDF):
     """
 
     vertices: Float[Array, "v 2"] = eqx.field(converter=_as_array)
+    #: A lookup materialises (points, edges) arrays: in pieces of 4096 candidates they outgrow the
+    #: CPU's caches and the batch runs slower than in pieces of 256 (benchmarks/RESULTS.md).
+    largest_piece: ClassVar[int] = 256
 
     if TYPE_CHECKING:  # the signature the converter accepts (type checkers do not apply it)
         def __init__(self, vertices: Float[ArrayLike, "v 2"]) -> None: ...
