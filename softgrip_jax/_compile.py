@@ -29,6 +29,7 @@ experimental and may be renamed): the others still apply.
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -77,7 +78,7 @@ class tuned_jit:  # noqa: N801 - used as a decorator, like jax.jit
     def __init__(self, fn, **jit_kwargs):
         functools.update_wrapper(self, fn)
         self._fn, self._jit_kwargs = fn, jit_kwargs
-        self._tuned: dict[tuple, object] = {}  # one jax.jit per set of compile options
+        self._tuned: dict[tuple, Any] = {}  # one jax.jit per set of compile options
         self._plain = None
 
     def _get(self, estimator: object = None):
