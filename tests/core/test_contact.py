@@ -46,13 +46,15 @@ def test_rigid_sweep_first_contact_is_the_tangent_angle(center, radius):
     assert float(c.theta_o1) == pytest.approx(math.atan2(foot[0], foot[1]), abs=2e-3)
 
 
-def dense_first_contact(distance, theta, n, length, r, base=(0.0, 0.0), n_s=4001, per_link=200):
+def dense_first_contact(distance, theta, n, length, r, base=(0.0, 0.0), n_s=4001, per_link=200, between=None):
     """Independent brute force: chains of eq. 2 from ``base``, links sampled densely, the object's
-    exact ``distance`` (numpy, points (M, 2) -> (M,) mm). Returns (s1 rad, the first point touching,
+    exact ``distance`` (numpy, points (M, 2) -> (M,) mm), at ``n_s`` values of s over ``between``
+    (lo, hi) rad (default (0, theta)), lo excluded. Returns (s1 rad, the first point touching,
     its arc length from the base mm), or None when nothing touches up to ``theta``."""
     i = np.arange(n + 1)
     t = np.linspace(0, 1, per_link, endpoint=False)
-    for s in np.linspace(0, theta, n_s)[1:]:
+    lo, hi = between or (0.0, theta)
+    for s in np.linspace(lo, hi, n_s)[1:]:
         chord = (length / n) * np.sin(s * i / n) / np.sin(s / n)
         joints = np.stack([chord * np.sin(s * i / n), chord * np.cos(s * i / n)], -1) + np.asarray(base)
         pts = (joints[:-1, None] + t[None, :, None] * (joints[1:] - joints[:-1])[:, None]).reshape(-1, 2)
@@ -114,8 +116,13 @@ def test_the_first_contact_root_converges_inside_its_bracket(vertices, theta, ba
     c = predict_contact(finger, PolygonSDF(jnp.asarray(vertices, jnp.float32)), jnp.asarray(base, jnp.float32))
     assert bool(c.touches) and bool(c.root_converged)
     # The polygon's unsigned distance: the finger is outside it until the first touch.
-    expected = dense_first_contact(lambda p: polygon_distance(p, np.asarray(vertices, np.float64)), theta, 20, 52.0,
-                                   4.0, base=base, n_s=14001)
+    distance = lambda p: polygon_distance(p, np.asarray(vertices, np.float64))  # noqa: E731
+    # Two levels (s steps of theta / 1400, then of theta / 1400^2 in the step that touches first): a
+    # touch the coarse level misses can only move the reference later, failing the test, not passing it.
+    coarse = dense_first_contact(distance, theta, 20, 52.0, 4.0, base=base, n_s=1401, per_link=50)
+    step = theta / 1400
+    expected = dense_first_contact(distance, theta, 20, 52.0, 4.0, base=base, n_s=1401, per_link=50,
+                                   between=(coarse[0] - step, coarse[0]))
     assert float(c.s1) == pytest.approx(expected[0], abs=2e-3)
 
 
