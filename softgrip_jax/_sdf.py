@@ -11,6 +11,7 @@ Two implementations behind one interface, :class:`AbstractSDF`:
 from __future__ import annotations
 
 import abc
+import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING, ClassVar, Literal, cast
 
@@ -408,6 +409,43 @@ class PolygonSDF(AbstractSDF):
         """Whether every vertex is finite (checked at construction unless traced)."""
         return jnp.all(jnp.isfinite(self.vertices))
 
+    def to_grid(self, cell_mm: float = 0.25, margin_mm: float = 60.0, interpolation: str = "cubic") -> SDFGrid:
+        """The polygon's signed distance sampled on an :class:`SDFGrid` (exact at the grid's nodes),
+        for batches: a grid lookup reads 16 samples where the polygon's reads every edge, so a batch
+        of many poses runs several times faster (benchmarks/RESULTS.md), with the bicubic lookup's
+        small error between the nodes (about cell_mm^2 / (8 R) mm on an arc of radius R mm).
+
+        Args:
+            cell_mm: the grid's spacing (mm), > 0.
+            margin_mm: how far (mm, >= 0) the grid reaches beyond the polygon's bounding box on
+                every side. Every finger base of the poses scored must lie on the grid: an estimate
+                whose base is off it is invalid (``Status.BASE_OUTSIDE_SDF``), so give at least
+                the distance from the object to the farthest base (a finger's length and half the
+                base separation, plus how far the poses range).
+            interpolation: the grid's lookup, ``"cubic"`` (C1, the default) or ``"linear"``.
+
+        Example:
+            >>> square = PolygonSDF(jnp.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]))
+            >>> grid = square.to_grid(cell_mm=0.5, margin_mm=5.0)
+            >>> grid.values.shape, round(float(grid.distance(jnp.array([13.0, 5.0]))), 4)
+            ((41, 41), 3.0)
+        """
+        for name, value, least in (("cell_mm", cell_mm, None), ("margin_mm", margin_mm, 0.0)):
+            good = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            if not good or (value <= 0 if least is None else value < least):
+                raise SoftgripError(f"PolygonSDF.to_grid: {name} must be a finite number of mm "
+                                    f"{'> 0' if least is None else '>= 0'}, got {value!r}")
+        vertices = np.asarray(self.vertices, np.float64)
+        low = vertices.min(axis=0) - margin_mm
+        shape = tuple(int(n) for n in np.ceil((vertices.max(axis=0) + margin_mm - low) / cell_mm).astype(int)[::-1] + 1)
+        if shape[0] * shape[1] > _MAX_GRID_CELLS:
+            raise SoftgripError(f"PolygonSDF.to_grid: a grid of {shape[0]} x {shape[1]} cells of {cell_mm:g} mm is "
+                                f"too large (more than {_MAX_GRID_CELLS:,} cells): use larger cells or a smaller margin_mm")
+        # A few rows of the (H, W, 2) points at a time: all at once the lookup would hold H x W x V arrays.
+        rows = jax.jit(lambda points: jax.lax.map(self.distance, points, batch_size=8))
+        return SDFGrid.sample(rows, origin=(float(low[0]), float(low[1])), spacing=(cell_mm, cell_mm), shape=shape,
+                              interpolation=cast(Literal["cubic", "linear"], interpolation))
+
     def mass_properties(self) -> tuple[Float[Array, "2"], Float[Array, ""]]:
         """Area centroid (the shoelace formula, either orientation) and ``rho``, the farthest vertex.
 
@@ -441,6 +479,10 @@ class PolygonSDF(AbstractSDF):
         x_cross = a[:, 0] + safe_divide((py - a[:, 1]) * ab[:, 0], ab[:, 1])
         inside = jnp.sum(straddles & (px < x_cross), axis=-1) % 2 == 1
         return jnp.where(inside, -dist, dist)
+
+
+#: The largest grid :meth:`PolygonSDF.to_grid` makes (cells): 256 MB of float32 samples.
+_MAX_GRID_CELLS = 64_000_000
 
 
 def _safe_sqrt(x: Array) -> Array:

@@ -38,6 +38,12 @@ def test_rigid_sweep_first_contact_is_the_tangent_angle(center, radius):
     c = predict_contact(finger, circle(center, radius), jnp.zeros(2), ContactConfig(sweep="rigid"))
     assert bool(c.touches) and not bool(c.initial_overlap)
     assert float(c.s1) == pytest.approx(s1, abs=1e-3)
+    # The same circle sampled on a grid of 0.25 mm (the fast path for batches): the same contact.
+    on_grid = predict_contact(finger, circle(center, radius).to_grid(margin_mm=32.0), jnp.zeros(2),
+                              ContactConfig(sweep="rigid"))
+    assert float(on_grid.s1) == pytest.approx(s1, abs=1e-3)
+    assert float(on_grid.s1) == pytest.approx(float(c.s1), abs=1e-4)
+    np.testing.assert_allclose(on_grid.p_o1, c.p_o1, atol=0.01)
     np.testing.assert_allclose(c.p_g1, foot, atol=0.1)
     np.testing.assert_allclose(c.p_o1, p_o1, atol=0.1)
     assert float(c.l_g1) == pytest.approx(np.linalg.norm(foot), abs=0.1)  # eq. 6

@@ -87,6 +87,30 @@ def test_sdf_constructors_reject_bad_input():
         SDFGrid(values=jnp.zeros((3, 3)), origin=jnp.zeros(2), spacing=jnp.array([1.0, 0.0]))
 
 
+def test_a_polygon_on_a_grid_is_exact_at_the_nodes_and_covers_its_margin():
+    poly = random_star_polygon(np.random.default_rng(3), 16)
+    grid = PolygonSDF(jnp.asarray(poly, jnp.float32)).to_grid(cell_mm=0.5, margin_mm=7.0)
+    low, high = poly.min(axis=0) - 7.0, poly.max(axis=0) + 7.0
+    h, w = grid.values.shape
+    far_corner = np.asarray(grid.origin) + np.array([w - 1, h - 1]) * np.asarray(grid.spacing)
+    np.testing.assert_allclose(grid.origin, low, atol=1e-5)
+    assert np.all(far_corner >= high - 1e-4) and np.all(far_corner < high + 0.5)
+    # OpenCV's signed distance (positive inside) at 300 random nodes, against the grid's samples.
+    rows, cols = np.random.default_rng(4).integers(0, [h, w], (300, 2)).T
+    nodes = np.asarray(grid.origin) + np.stack([cols, rows], -1) * 0.5
+    contour = poly.astype(np.float32).reshape(-1, 1, 2)
+    expected = [-cv2.pointPolygonTest(contour, (float(x), float(y)), True) for x, y in nodes]
+    np.testing.assert_allclose(np.asarray(grid.values)[rows, cols], expected, atol=1e-4)
+
+
+def test_a_polygon_grid_rejects_bad_sizes():
+    square = PolygonSDF(jnp.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]))
+    for kwargs, name in (({"cell_mm": 0.0}, "cell_mm"), ({"cell_mm": float("nan")}, "cell_mm"),
+                         ({"margin_mm": -1.0}, "margin_mm"), ({"cell_mm": 1e-4, "margin_mm": 100.0}, "too large")):
+        with pytest.raises(SoftgripError, match=name):
+            square.to_grid(**kwargs)
+
+
 def test_sdf_grid_from_numpy_with_a_scalar_spacing_matches_the_jax_grid():
     """numpy arrays and a scalar spacing are accepted at construction and at lookup (planners hand
     over numpy grids), and give the same distances as the JAX arrays they stand for."""
