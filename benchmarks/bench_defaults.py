@@ -13,8 +13,9 @@ Rows (every call at its defaults: no ``chunk_size``, no ``workers``, default int
   estimator, best of 3 after a compiling call; one ``estimate`` under ``jax.jit``, median of 101.
   The scene of ``../shared/speedcheck.py``.
 * ``planner``: ``score`` on the README's planner scene (its gripper, ``PolygonSDF.regular`` disc of
-  128 vertices), 10,000 random poses around the disc: poses/s with each estimator; one pose, warm
-  (median of 21 calls of ``score`` on a (1, 3) batch); robust K = 16 on 1,000 poses.
+  128 vertices, and the same disc sampled by ``PolygonSDF.to_grid()``), 10,000 random poses around
+  the disc: poses/s with each estimator; one pose, warm (median of 21 calls of ``score`` on a (1, 3)
+  batch); robust K = 16 on 1,000 poses.
 * ``pieces``: ``estimate_batch`` (Geometric(), the ``estimate`` scene, 16,384 bases) with each
   fixed ``chunk_size`` of ``PIECE_BUCKETS``: candidate-fingers/s, and the time of one piece per
   worker, from which the fixed cost per piece that ``bucket_piece`` weighs is read.
@@ -100,19 +101,25 @@ def readme_scene():
 
 
 def planner_rows():
-    gripper, obj, poses = readme_scene()
-    for name, est in (("Geometric()", sg.Geometric()), ("default (Mechanics())", None)):
-        first, t = first_and_best(lambda est=est: sg.score(gripper, obj, poses, estimator=est).score, k=2)
-        one = [best_of(lambda i=i, est=est: sg.score(gripper, obj, poses[i:i + 1], estimator=est).score, 1)
-               for i in range(21)]
-        print(f"| score, README scene, {name}, 10,000 poses | {len(poses) / t:,.0f} poses/s | first call {first:.1f} s; "
-              f"one pose warm {sorted(one)[10] * 1e3:.1f} ms (median of 21) |")
-    robust = poses[:1000]
-    for name, est in (("Geometric()", sg.Geometric()), ("default (Mechanics())", None)):
-        first, t = first_and_best(lambda est=est: sg.score(gripper, obj, robust, estimator=est,
-                                                           uncertainty=sg.Uncertainty(samples=16)).score, k=2)
-        print(f"| score, README scene, {name}, robust K = 16, 1,000 poses | {len(robust) / t:,.0f} poses/s | "
-              f"first call {first:.1f} s |")
+    gripper, polygon, poses = readme_scene()
+    t0 = time.perf_counter()
+    grid = jax.block_until_ready(polygon.to_grid())
+    made = time.perf_counter() - t0
+    print(f"| `PolygonSDF.to_grid()` of the README disc ({grid.values.shape[0]} x {grid.values.shape[1]} cells) | "
+          f"{made * 1e3:,.0f} ms | first call, compiles included |")
+    for obj_name, obj in (("PolygonSDF", polygon), ("to_grid()", grid)):
+        for name, est in (("Geometric()", sg.Geometric()), ("default (Mechanics())", None)):
+            first, t = first_and_best(lambda est=est, obj=obj: sg.score(gripper, obj, poses, estimator=est).score, k=2)
+            one = [best_of(lambda i=i, est=est, obj=obj: sg.score(gripper, obj, poses[i:i + 1], estimator=est).score, 1)
+                   for i in range(21)]
+            print(f"| score, README scene, {obj_name}, {name}, 10,000 poses | {len(poses) / t:,.0f} poses/s | first call "
+                  f"{first:.1f} s; one pose warm {sorted(one)[10] * 1e3:.1f} ms (median of 21) |")
+        robust = poses[:1000]
+        for name, est in (("Geometric()", sg.Geometric()), ("default (Mechanics())", None)):
+            first, t = first_and_best(lambda est=est, obj=obj: sg.score(gripper, obj, robust, estimator=est,
+                                                                        uncertainty=sg.Uncertainty(samples=16)).score, k=2)
+            print(f"| score, README scene, {obj_name}, {name}, robust K = 16, 1,000 poses | {len(robust) / t:,.0f} "
+                  f"poses/s | first call {first:.1f} s |")
 
 
 def piece_rows():
