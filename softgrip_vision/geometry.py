@@ -247,6 +247,19 @@ class PlaneCamera:
         i = self.intrinsics
         return np.stack([i.fx * p[..., 0] / p[..., 2] + i.ppx, i.fy * p[..., 1] / p[..., 2] + i.ppy], -1)
 
+    def grid_mm_to_px(self, xs: ArrayLike, ys: ArrayLike) -> np.ndarray:
+        """(H, W, 2) pixels of the regular grid of plane points (xs[col], ys[row]) in mm, (W,) and
+        (H,): :meth:`mm_to_px` of that grid, to the last bit, with its arithmetic split by row and
+        column (the plane point of each node is a column's term plus a row's)."""
+        xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
+        if self.faces_camera:
+            return self.mm_to_px(np.stack(np.broadcast_arrays(xs[None, :], ys[:, None]), axis=-1))
+        ex, ey, n = self.axes
+        origin = np.array([0.0, 0.0, self.depth_mm]) + self.offset_mm * n
+        p = [(origin[k] + xs * ex[k])[None, :] + (ys * ey[k])[:, None] for k in range(3)]  # as points_3d
+        i = self.intrinsics
+        return np.stack([i.fx * p[0] / p[2] + i.ppx, i.fy * p[1] / p[2] + i.ppy], -1)
+
     def local_mm_per_px(self, uv: ArrayLike) -> np.ndarray:
         """(...,) length scale (mm per px) at pixels (..., 2): sqrt of the mapping's area change."""
         uv = np.asarray(uv, dtype=np.float64)

@@ -156,12 +156,13 @@ def _signed_distance(level: np.ndarray, camera: PlaneCamera, origin: np.ndarray,
                      spacing: np.ndarray) -> np.ndarray:
     """(H, W) signed distance (mm) on the grid to the 0 level of ``level`` (H, W), > 0 inside."""
     h, w = level.shape
-    rows, cols = np.indices((h, w), dtype=np.float64)
-    nodes_mm = origin + np.stack([cols, rows], axis=-1) * spacing
+    # The grid is regular in mm: node (row, col) is (xs[col], ys[row]).
+    xs = origin[0] + np.arange(w, dtype=np.float64) * spacing[0]
+    ys = origin[1] + np.arange(h, dtype=np.float64) * spacing[1]
     if camera.faces_camera:  # grid points are the pixel centres
         margin, inside = 0, level > 0
     else:  # grid points anywhere on the image's footprint and a little beyond
-        nodes_px = camera.mm_to_px(nodes_mm)
+        nodes_px = camera.grid_mm_to_px(xs, ys)
         reach = max(0.0, -nodes_px.min(), float((nodes_px - (w - 1.0, h - 1.0)).max()))
         margin = int(np.ceil(reach)) + 1
         level = cv2.copyMakeBorder(level, margin, margin, margin, margin, cv2.BORDER_REPLICATE)
@@ -169,9 +170,9 @@ def _signed_distance(level: np.ndarray, camera: PlaneCamera, origin: np.ndarray,
         inside = cv2.remap(level, map_px[..., 0], map_px[..., 1], cv2.INTER_LINEAR,
                            borderMode=cv2.BORDER_REPLICATE) > 0
     segments_mm = camera.px_to_mm(_zero_crossings(level) - margin)
-    distance = _distance_to_segments(nodes_mm, segments_mm, origin, spacing,
-                                     _EXACT_BAND_PX * float(np.max(spacing)))
-    return np.where(inside, -distance, distance)
+    distance = _distance_to_segments(xs, ys, segments_mm, origin, spacing, _EXACT_BAND_PX * float(np.max(spacing)))
+    np.negative(distance, out=distance, where=inside)
+    return distance
 
 
 def _zero_crossings(level: np.ndarray) -> np.ndarray:
@@ -214,14 +215,15 @@ def _zero_crossings(level: np.ndarray) -> np.ndarray:
     return np.concatenate(pairs)
 
 
-def _distance_to_segments(nodes: np.ndarray, segments: np.ndarray, origin: np.ndarray,
+def _distance_to_segments(xs: np.ndarray, ys: np.ndarray, segments: np.ndarray, origin: np.ndarray,
                           spacing: np.ndarray, band_mm: float) -> np.ndarray:
-    """(H, W) distance (mm) from grid points (H, W, 2) to the nearest of segments (S, 2, 2), mm.
+    """(H, W) distance (mm) from the grid points (xs[col], ys[row]) (W,), (H,) to the nearest of
+    segments (S, 2, 2), mm.
 
     Exact within ``band_mm`` of the grid points next to the segments; beyond, the distance to the
     segment holding the closest point of the nearest of those grid points.
     """
-    h, w = nodes.shape[:2]
+    h, w = len(ys), len(xs)
     t = np.linspace(0.0, 1.0, _SAMPLES_PER_SEGMENT + 1)
     samples = (segments[:, :1] + t[None, :, None] * (segments[:, 1:] - segments[:, :1])).reshape(-1, 2)
     owner = np.repeat(np.arange(len(segments)), len(t))
@@ -236,19 +238,46 @@ def _distance_to_segments(nodes: np.ndarray, segments: np.ndarray, origin: np.nd
     to_seed, (seed_row, seed_col) = ndimage.distance_transform_edt(~seed, sampling=(spacing[1], spacing[0]),
                                                                      return_indices=True)
     near = to_seed <= band_mm
-    distance = np.empty((h, w))
-    closest = np.zeros((h, w, 2))
-    nearest_segment = np.zeros((h, w), np.int64)
-    k = min(_NEAREST_SAMPLES, len(samples))
-    _, index = tree.query(nodes[near], k=list(range(1, k + 1)))
+    near_row, near_col = np.nonzero(near)
+    near_nodes = np.stack([xs[near_col], ys[near_row]], axis=-1)
+    k = min(_NEAREST_SAMPLES, len(samples))  # >= 2: every segment has several samples
+    _, index = tree.query(near_nodes, k=k)
     candidates = owner[index]
-    distance[near], closest[near], best = _nearest_on(nodes[near], segments[candidates])
-    nearest_segment[near] = candidates[np.arange(len(best)), best]
-    far = ~near
-    if far.any():
-        seeds = seed_row[far], seed_col[far]
-        along, _, _ = _nearest_on(nodes[far], segments[nearest_segment[seeds]][:, None])
-        distance[far] = np.minimum(along, np.hypot(*(nodes[far] - closest[seeds]).T))
+    near_distance, near_closest, best = _nearest_on(near_nodes, segments[candidates])
+    # Every grid point, beyond the band: the segment (and its closest point) of its nearest seed,
+    # itself in the band. Computed on the whole grid, component by component (the arithmetic of
+    # _nearest_on with K = 1), then the band's exact values put in.
+    near_flat = np.ravel_multi_index((near_row, near_col), (h, w))
+    nearest_segment = np.zeros(h * w, np.int64)
+    nearest_segment[near_flat] = candidates[np.arange(len(best)), best]
+    closest_x, closest_y = np.zeros(h * w), np.zeros(h * w)
+    closest_x[near_flat], closest_y[near_flat] = near_closest[:, 0], near_closest[:, 1]
+    seed_flat = seed_row * w
+    seed_flat += seed_col
+    del seed_row, seed_col
+    owner_of = nearest_segment[seed_flat]
+    ax, ay = segments[:, 0, 0], segments[:, 0, 1]
+    abx, aby = segments[:, 1, 0] - ax, segments[:, 1, 1] - ay
+    abab = abx * abx + aby * aby
+    abab[abab == 0.0] = 1.0  # a segment of no length: t = 0 / 1 = 0, as _nearest_on's nan_to_num(0 / 0) gives
+    px, py = xs[None, :], ys[:, None]
+    seg_ax, seg_ay, seg_abx, seg_aby = ax[owner_of], ay[owner_of], abx[owner_of], aby[owner_of]
+    apx, apy = px - seg_ax, py - seg_ay
+    along = apx * seg_abx
+    along += apy * seg_aby
+    along /= abab[owner_of]
+    np.clip(along, 0.0, 1.0, out=along)  # t, the foot's position along its segment
+    seg_abx *= along
+    seg_abx += seg_ax  # the foot's x
+    seg_aby *= along
+    seg_aby += seg_ay  # the foot's y
+    dx, dy = px - seg_abx, py - seg_aby
+    dx *= dx
+    dy *= dy
+    dx += dy
+    distance = np.sqrt(dx, out=dx)
+    np.minimum(distance, np.hypot(px - closest_x[seed_flat], py - closest_y[seed_flat]), out=distance)
+    distance[near] = near_distance
     return distance
 
 
