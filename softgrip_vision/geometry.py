@@ -46,8 +46,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
-from scipy.stats import trim_mean
 
+from softgrip_vision._masks import distance_inside
 from softgrip_vision.frames import Frame, FrameError, Intrinsics
 
 #: A camera tilted more than this (degrees) from the gripper plane gets a warning: the finger's
@@ -376,9 +376,10 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
     for k, region in enumerate(regions):
         region = np.asarray(region, dtype=bool)
         _readings(frame, region, f"finger region {k}")  # shape check and a clear error without readings
-        insides.append(cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
-    bands = [_mixed_band_px(frame.depth * scale, np.asarray(region, bool) & (frame.depth > 0), inside, float(r_px),
-                            intr.fx) for region, inside, r_px in zip(regions, insides, half_thickness_px)]
+        insides.append(distance_inside(region))
+    depth_mm, has_depth = frame.depth * scale, frame.depth > 0
+    bands = [_mixed_band_px(depth_mm, np.asarray(region, bool) & has_depth, inside, float(r_px), intr.fx)
+             for region, inside, r_px in zip(regions, insides, half_thickness_px)]
     mixed, capped = max(b[0] for b in bands), any(b[1] for b in bands)
     rays, fractions, radii_px, labels = [], [], [], []
     for k, (region, inside, r_px) in enumerate(zip(regions, insides, half_thickness_px)):
@@ -491,14 +492,15 @@ def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarra
     """
     if r_px <= 2.0:
         return _EDGE_PX, False
-    rings = np.floor(inside + 0.5).astype(int)
+    rings = np.floor(inside[readings] + 0.5).astype(int)  # the readings' rings, in the image's order
+    depths = depth_mm[readings]
     limit = int(math.floor(r_px))
     means, errors = {}, {}
     for k in range(1, limit + 1):
-        values = depth_mm[readings & (rings == k)]
+        values = depths[rings == k]
         if values.size < 20:
             continue
-        trimmed = trim_mean(values, 0.2)
+        trimmed = _trim_mean(values, 0.2)
         spread = 1.4826 * float(np.median(np.abs(values - np.median(values))))
         means[k], errors[k] = trimmed, 1.2 * max(spread, 0.05) / math.sqrt(values.size)
     if not means:
@@ -523,6 +525,14 @@ def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarra
     # inner half of the width) would amplify tenfold. One ring and a quarter of the band more go.
     wanted, cap = band + 1.5 + 0.25 * band, max(_EDGE_PX, 0.6 * r_px + 0.5)
     return float(min(wanted, cap)), bool(wanted > cap)
+
+
+def _trim_mean(values: np.ndarray, proportion: float) -> float:
+    """``scipy.stats.trim_mean(values, proportion)`` of a 1-D float array, without the cost of its
+    array-API wrapper (a millisecond a call): the same partition and mean."""
+    low = int(proportion * values.size)
+    high = values.size - low
+    return float(np.mean(np.partition(values, (low, high - 1))[low:high]))
 
 
 def _bulge_in_plane(points: np.ndarray, label: np.ndarray, plane: PlaneCamera,
@@ -603,7 +613,7 @@ def face_offset_mm(frame: Frame, mask: np.ndarray, camera: PlaneCamera) -> float
     region = np.asarray(mask, dtype=bool)
     if region.shape != frame.depth.shape or not region.any():
         return None
-    inside = cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    inside = distance_inside(region)
     v, u = np.nonzero(region & (frame.depth > 0) & (inside >= _EDGE_PX))
     if u.size < _MIN_READINGS:
         return None

@@ -50,6 +50,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from softgrip_jax import SoftgripError
+from softgrip_vision._masks import distance_inside
 from softgrip_vision.coverage import edge_coverage
 from softgrip_vision.geometry import PlaneCamera
 from softgrip_vision.segmentation import Segmentation
@@ -337,7 +338,7 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
     """
     _sign(side)
     finger, contour = _finger_region(np.asarray(mask, dtype=bool), side)
-    inside = cv2.distanceTransform(finger.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    inside = distance_inside(finger)
     ridge = _ridge(finger, inside)
     line = _smooth(resample_polyline(ridge, max(1, int(np.ceil(_arc(ridge)[-1])))))
     arc = _arc(line)
@@ -807,5 +808,7 @@ def _band(mask: np.ndarray) -> np.ndarray:
 
 def _beyond(shape: tuple[int, int], base: np.ndarray, axis: np.ndarray) -> np.ndarray:
     """bool (H, W): pixels on the finger's side of the line through ``base`` across ``axis``."""
-    v, u = np.indices(shape)
-    return (u - base[0]) * axis[0] + (v - base[1]) * axis[1] >= 0.0
+    h, w = shape  # the same arithmetic as on np.indices(shape), split by column and row
+    across = (np.arange(w) - base[0]) * axis[0]
+    down = (np.arange(h) - base[1]) * axis[1]
+    return across[None, :] + down[:, None] >= 0.0
