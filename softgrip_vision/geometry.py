@@ -47,7 +47,6 @@ from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from softgrip_vision._masks import distance_inside
 from softgrip_vision.frames import Frame, FrameError, Intrinsics
 
 #: A camera tilted more than this (degrees) from the gripper plane gets a warning: the finger's
@@ -376,7 +375,7 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
     for k, region in enumerate(regions):
         region = np.asarray(region, dtype=bool)
         _readings(frame, region, f"finger region {k}")  # shape check and a clear error without readings
-        insides.append(distance_inside(region))
+        insides.append(cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
     depth_mm, has_depth = frame.depth * scale, frame.depth > 0
     bands = [_mixed_band_px(depth_mm, np.asarray(region, bool) & has_depth, inside, float(r_px), intr.fx)
              for region, inside, r_px in zip(regions, insides, half_thickness_px)]
@@ -613,7 +612,7 @@ def face_offset_mm(frame: Frame, mask: np.ndarray, camera: PlaneCamera) -> float
     region = np.asarray(mask, dtype=bool)
     if region.shape != frame.depth.shape or not region.any():
         return None
-    inside = distance_inside(region)
+    inside = cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     v, u = np.nonzero(region & (frame.depth > 0) & (inside >= _EDGE_PX))
     if u.size < _MIN_READINGS:
         return None

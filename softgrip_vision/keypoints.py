@@ -50,7 +50,6 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from softgrip_jax import SoftgripError
-from softgrip_vision._masks import distance_inside
 from softgrip_vision.coverage import edge_coverage
 from softgrip_vision.geometry import PlaneCamera
 from softgrip_vision.segmentation import Segmentation
@@ -338,7 +337,7 @@ def finger_keypoints(mask: np.ndarray, camera: PlaneCamera, side: Side, rounded_
     """
     _sign(side)
     finger, contour = _finger_region(np.asarray(mask, dtype=bool), side)
-    inside = distance_inside(finger)
+    inside = cv2.distanceTransform(finger.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     ridge = _ridge(finger, inside)
     line = _smooth(resample_polyline(ridge, max(1, int(np.ceil(_arc(ridge)[-1])))))
     arc = _arc(line)
