@@ -18,7 +18,11 @@ own front face, as for a frame with the gripper in view; the fingers, which the 
 show, are the profile's, open, at that pose (:attr:`Scene.keypoints`).
 
 The object's signed-distance grid is widened past the image where the gripper reaches (the fingers
-hang from bases often above the view): the camera sees no object there, so none is assumed. An
+hang from bases often above the view): the camera sees no object there, so none is assumed. Its
+shape does not follow the pose: each side is a multiple of :data:`GRID_BUCKET_PX` that holds the
+image and the reach around a pose anywhere in it (1024 x 1024 px for a 640 x 480 D405 frame at
+120 mm), so new arm poses near the view, depths some mm apart or new frames of the same camera
+compile the scoring programs no more; the padding holds the padded mask's own signed distance. An
 object that runs off the image is warned about, since what lies beyond is unknown, and so is one that
 a gripper already in view borders (segmented as light, unsaturated foreground), since it may hide
 part of the object. A frame without an object is a scene without one (no contact); when the frame
