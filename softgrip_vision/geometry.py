@@ -36,6 +36,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -163,13 +164,16 @@ class PlaneCamera:
         """The plane ``offset_mm`` behind the gripper plane (< 0: nearer), same coordinates."""
         return dataclasses.replace(self, offset_mm=float(offset_mm))
 
-    @property
+    @functools.cached_property
     def axes(self) -> np.ndarray:
-        """(3, 3) rows e_x, e_y, n: the plane's axes in camera coordinates."""
+        """(3, 3) rows e_x, e_y, n: the plane's axes in camera coordinates (read-only: computed
+        once per camera, every conversion between pixels and mm uses them)."""
         n = np.asarray(self.normal)
         ex = np.array([1.0, 0.0, 0.0]) - n[0] * n
         ex /= np.linalg.norm(ex)
-        return np.stack([ex, np.cross(n, ex), n])
+        axes = np.stack([ex, np.cross(n, ex), n])
+        axes.flags.writeable = False
+        return axes
 
     @property
     def tilt_deg(self) -> float:
