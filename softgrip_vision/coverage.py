@@ -29,6 +29,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from softgrip_vision._masks import box
+
 _RING_PX = 3  # width of the rings whose median colours are the part's and the surroundings'
 
 
@@ -45,10 +47,17 @@ def edge_coverage(color: np.ndarray, mask: np.ndarray) -> np.ndarray:
         (0) to the inside colour (1), clipped. Where the two colours are within 10 levels of
         each other (no contrast to read), the mask itself.
     """
-    inside = np.asarray(mask, dtype=bool)
-    out = inside.astype(np.float32)
-    if not inside.any() or inside.all():
+    full = np.asarray(mask, dtype=bool)
+    out = full.astype(np.float32)
+    if not full.any() or full.all():
         return out
+    # All of it happens within _RING_PX of the mask: on its box that much wider (and one more
+    # pixel), the same pixels in the same order as on the whole image.
+    where = box(full, _RING_PX + 1)
+    assert where is not None
+    whole, out = out, out[where]
+    inside = np.ascontiguousarray(full[where])
+    color = np.asarray(color)[where]
     u8 = inside.view(np.uint8)
     cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
     grown, shrunk = cv2.dilate(u8, cross).view(bool), cv2.erode(u8, cross).view(bool)
@@ -57,12 +66,12 @@ def edge_coverage(color: np.ndarray, mask: np.ndarray) -> np.ndarray:
     inner = shrunk & ~cv2.erode(u8, ring).view(bool)
     outer = ~grown & cv2.dilate(u8, ring).view(bool)
     if not inner.any() or not outer.any():
-        return out
+        return whole
     pixels = np.asarray(color, np.float32)
     c_in, c_out = np.median(pixels[inner], axis=0), np.median(pixels[outer], axis=0)
     contrast = c_in - c_out
     if float(np.hypot.reduce(contrast)) < 10.0:
-        return out
+        return whole
     fraction = (pixels[band] - c_out) @ contrast / float(contrast @ contrast)
-    out[band] = np.clip(fraction, 0.0, 1.0)
-    return out
+    out[band] = np.clip(fraction, 0.0, 1.0)  # a view of the whole image's
+    return whole

@@ -638,10 +638,9 @@ def greyscale_problem(color: np.ndarray) -> str | None:
     if color.ndim == 2 or (color.ndim == 3 and color.shape[2] in (1, 2)):
         return f"is greyscale (1 channel); softgrip needs 8-bit colour with 3 channels (RGB): {_GREY_WHY}"
     if color.ndim == 3 and color.shape[2] == 3 and color.dtype == np.uint8 and color.size:
-        signed = color.astype(np.int16)
-        spread = max(int(np.abs(signed[..., 0] - signed[..., 1]).max()),
-                     int(np.abs(signed[..., 1] - signed[..., 2]).max()))
-        if spread <= GREY_TOLERANCE and int(signed[..., 1].max()) - int(signed[..., 1].min()) > GREY_MIN_CONTRAST:
+        red, green, blue = cv2.split(np.ascontiguousarray(color))  # |a - b| of uint8 channels, exactly
+        spread = max(int(cv2.absdiff(red, green).max()), int(cv2.absdiff(green, blue).max()))
+        if spread <= GREY_TOLERANCE and int(green.max()) - int(green.min()) > GREY_MIN_CONTRAST:
             return f"is greyscale (its 3 channels are equal); softgrip needs colour: {_GREY_WHY}"
     return None
 

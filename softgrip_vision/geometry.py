@@ -36,6 +36,7 @@ Example:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -46,7 +47,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
-from scipy.stats import trim_mean
 
 from softgrip_vision.frames import Frame, FrameError, Intrinsics
 
@@ -164,13 +164,16 @@ class PlaneCamera:
         """The plane ``offset_mm`` behind the gripper plane (< 0: nearer), same coordinates."""
         return dataclasses.replace(self, offset_mm=float(offset_mm))
 
-    @property
+    @functools.cached_property
     def axes(self) -> np.ndarray:
-        """(3, 3) rows e_x, e_y, n: the plane's axes in camera coordinates."""
+        """(3, 3) rows e_x, e_y, n: the plane's axes in camera coordinates (read-only: computed
+        once per camera, every conversion between pixels and mm uses them)."""
         n = np.asarray(self.normal)
         ex = np.array([1.0, 0.0, 0.0]) - n[0] * n
         ex /= np.linalg.norm(ex)
-        return np.stack([ex, np.cross(n, ex), n])
+        axes = np.stack([ex, np.cross(n, ex), n])
+        axes.flags.writeable = False
+        return axes
 
     @property
     def tilt_deg(self) -> float:
@@ -246,6 +249,19 @@ class PlaneCamera:
         p = self.points_3d(xy)
         i = self.intrinsics
         return np.stack([i.fx * p[..., 0] / p[..., 2] + i.ppx, i.fy * p[..., 1] / p[..., 2] + i.ppy], -1)
+
+    def grid_mm_to_px(self, xs: ArrayLike, ys: ArrayLike) -> np.ndarray:
+        """(H, W, 2) pixels of the regular grid of plane points (xs[col], ys[row]) in mm, (W,) and
+        (H,): :meth:`mm_to_px` of that grid, to the last bit, with its arithmetic split by row and
+        column (the plane point of each node is a column's term plus a row's)."""
+        xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
+        if self.faces_camera:
+            return self.mm_to_px(np.stack(np.broadcast_arrays(xs[None, :], ys[:, None]), axis=-1))
+        ex, ey, n = self.axes
+        origin = np.array([0.0, 0.0, self.depth_mm]) + self.offset_mm * n
+        p = [(origin[k] + xs * ex[k])[None, :] + (ys * ey[k])[:, None] for k in range(3)]  # as points_3d
+        i = self.intrinsics
+        return np.stack([i.fx * p[0] / p[2] + i.ppx, i.fy * p[1] / p[2] + i.ppy], -1)
 
     def local_mm_per_px(self, uv: ArrayLike) -> np.ndarray:
         """(...,) length scale (mm per px) at pixels (..., 2): sqrt of the mapping's area change."""
@@ -364,8 +380,9 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
         region = np.asarray(region, dtype=bool)
         _readings(frame, region, f"finger region {k}")  # shape check and a clear error without readings
         insides.append(cv2.distanceTransform(region.view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE))
-    bands = [_mixed_band_px(frame.depth * scale, np.asarray(region, bool) & (frame.depth > 0), inside, float(r_px),
-                            intr.fx) for region, inside, r_px in zip(regions, insides, half_thickness_px)]
+    depth_mm, has_depth = frame.depth * scale, frame.depth > 0
+    bands = [_mixed_band_px(depth_mm, np.asarray(region, bool) & has_depth, inside, float(r_px), intr.fx)
+             for region, inside, r_px in zip(regions, insides, half_thickness_px)]
     mixed, capped = max(b[0] for b in bands), any(b[1] for b in bands)
     rays, fractions, radii_px, labels = [], [], [], []
     for k, (region, inside, r_px) in enumerate(zip(regions, insides, half_thickness_px)):
@@ -478,14 +495,15 @@ def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarra
     """
     if r_px <= 2.0:
         return _EDGE_PX, False
-    rings = np.floor(inside + 0.5).astype(int)
+    rings = np.floor(inside[readings] + 0.5).astype(int)  # the readings' rings, in the image's order
+    depths = depth_mm[readings]
     limit = int(math.floor(r_px))
     means, errors = {}, {}
     for k in range(1, limit + 1):
-        values = depth_mm[readings & (rings == k)]
+        values = depths[rings == k]
         if values.size < 20:
             continue
-        trimmed = trim_mean(values, 0.2)
+        trimmed = _trim_mean(values, 0.2)
         spread = 1.4826 * float(np.median(np.abs(values - np.median(values))))
         means[k], errors[k] = trimmed, 1.2 * max(spread, 0.05) / math.sqrt(values.size)
     if not means:
@@ -510,6 +528,14 @@ def _mixed_band_px(depth_mm: np.ndarray, readings: np.ndarray, inside: np.ndarra
     # inner half of the width) would amplify tenfold. One ring and a quarter of the band more go.
     wanted, cap = band + 1.5 + 0.25 * band, max(_EDGE_PX, 0.6 * r_px + 0.5)
     return float(min(wanted, cap)), bool(wanted > cap)
+
+
+def _trim_mean(values: np.ndarray, proportion: float) -> float:
+    """``scipy.stats.trim_mean(values, proportion)`` of a 1-D float array, without the cost of its
+    array-API wrapper (a millisecond a call): the same partition and mean."""
+    low = int(proportion * values.size)
+    high = values.size - low
+    return float(np.mean(np.partition(values, (low, high - 1))[low:high]))
 
 
 def _bulge_in_plane(points: np.ndarray, label: np.ndarray, plane: PlaneCamera,

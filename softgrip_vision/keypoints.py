@@ -50,6 +50,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from softgrip_jax import SoftgripError
+from softgrip_vision._masks import box
 from softgrip_vision.coverage import edge_coverage
 from softgrip_vision.geometry import PlaneCamera
 from softgrip_vision.segmentation import Segmentation
@@ -424,11 +425,17 @@ def _finger_region(mask: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray]
     if mask.ndim != 2 or not mask.any():
         raise KeypointError(f"the {side} finger's mask is empty (or not 2-D, shape {mask.shape}): "
                             f"segment the frame first (softgrip_vision.segmentation.segment)")
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
+    # On the mask's box one pixel wider (the image's edge where it meets it): the same components,
+    # in the same order, and the same contour, moved by the box's corner.
+    rows, cols = box(mask, 1) or (slice(None), slice(None))
+    crop = np.ascontiguousarray(mask[rows, cols])
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(crop.view(np.uint8), connectivity=8)
     largest = (labels == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))).view(np.uint8)
     contours, _ = cv2.findContours(largest, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    filled = cv2.drawContours(np.zeros_like(largest), contours, -1, 1, thickness=cv2.FILLED).view(bool)
-    return filled, contours[0].reshape(-1, 2).astype(np.float64)
+    filled = np.zeros(mask.shape, bool)
+    filled[rows, cols] = cv2.drawContours(np.zeros_like(largest), contours, -1, 1, thickness=cv2.FILLED).view(bool)
+    corner = np.array([cols.start or 0, rows.start or 0], np.float64)
+    return filled, contours[0].reshape(-1, 2).astype(np.float64) + corner
 
 
 def _ridge(finger: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -807,5 +814,7 @@ def _band(mask: np.ndarray) -> np.ndarray:
 
 def _beyond(shape: tuple[int, int], base: np.ndarray, axis: np.ndarray) -> np.ndarray:
     """bool (H, W): pixels on the finger's side of the line through ``base`` across ``axis``."""
-    v, u = np.indices(shape)
-    return (u - base[0]) * axis[0] + (v - base[1]) * axis[1] >= 0.0
+    h, w = shape  # the same arithmetic as on np.indices(shape), split by column and row
+    across = (np.arange(w) - base[0]) * axis[0]
+    down = (np.arange(h) - base[1]) * axis[1]
+    return across[None, :] + down[:, None] >= 0.0

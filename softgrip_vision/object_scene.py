@@ -18,7 +18,11 @@ own front face, as for a frame with the gripper in view; the fingers, which the 
 show, are the profile's, open, at that pose (:attr:`Scene.keypoints`).
 
 The object's signed-distance grid is widened past the image where the gripper reaches (the fingers
-hang from bases often above the view): the camera sees no object there, so none is assumed. An
+hang from bases often above the view): the camera sees no object there, so none is assumed. Its
+shape does not follow the pose: each side is a multiple of :data:`GRID_BUCKET_PX` that holds the
+image and the reach around a pose anywhere in it (1024 x 1024 px for a 640 x 480 D405 frame at
+120 mm), so new arm poses near the view, depths some mm apart or new frames of the same camera
+compile the scoring programs no more; the padding holds the padded mask's own signed distance. An
 object that runs off the image is warned about, since what lies beyond is unknown, and so is one that
 a gripper already in view borders (segmented as light, unsaturated foreground), since it may hide
 part of the object. A frame without an object is a scene without one (no contact); when the frame
@@ -55,8 +59,13 @@ MIN_DISTANCE_MM = 20.0
 #: Default reach (mm) beyond the open fingers that the object's grid covers around the pose: the
 #: poses a planner scores near it keep their bases on the grid.
 DEFAULT_MARGIN_MM = 30.0
-#: The grid is widened by at most this many times the image's size on each side.
+#: The grid is widened by at most this many times the image's size on each side (the gripper
+#: reaching that far outside the image is taken for a unit mistake).
 MAX_PAD_FACTOR = 2.0
+#: The object grid's rows and columns are a multiple of this many pixels, enough for the gripper's
+#: reach around a pose anywhere in the image: the arm poses a planner scores, depths some mm apart
+#: included, give grids of one shape and compile the scoring programs once (``_widened_sdf``).
+GRID_BUCKET_PX = 256
 #: Object pixels within this many pixels of light, unsaturated foreground (a gripper in view) may
 #: have part of the object hidden behind that foreground: warned about.
 _HIDDEN_PX = 2
@@ -144,9 +153,11 @@ def open_fingers(camera: PlaneCamera, profile: ProfileLike, pose: np.ndarray) ->
     for side, frame, finger in zip(sides, frames, (gripper.left, gripper.right)):
         length = float(finger.length)
         steps = max(2, int(math.ceil(length / camera.mm_per_px)) + 1)  # about 1 px apart
-        along = jnp.linspace(0.0, length, steps, dtype=frame.origin.dtype)
-        local = jnp.stack([jnp.zeros_like(along), along], axis=-1)  # on the finger's axis, base to tip
-        centreline = np.asarray(frame.to_world(local), np.float64)
+        # On the finger's axis, base to tip; as many points for every depth of the plane near this
+        # one (a multiple of 256), or JAX would compile to_world's small programs again for each.
+        local = np.zeros((-(-steps // 256) * 256, 2), np.dtype(frame.origin.dtype))
+        local[:steps, 1] = np.linspace(0.0, length, steps)
+        centreline = np.asarray(frame.to_world(jnp.asarray(local)), np.float64)[:steps]
         centreline_px = camera.mm_to_px(centreline)
         out.append(FingerKeypoints(side=side, base_px=centreline_px[0], tip_px=centreline_px[-1],
                                    centreline_px=centreline_px,
@@ -242,7 +253,16 @@ def object_scene(frame: str | os.PathLike[str] | Frame, profile: ProfileLike,
 def _widened_sdf(mask: np.ndarray, camera: PlaneCamera, coverage: np.ndarray, centre_mm: np.ndarray,
                  reach_mm: float):
     """:func:`~softgrip_vision.object_sdf.object_sdf` on the mask padded (no object) so that the grid
-    covers the square of half-side ``reach_mm`` around ``centre_mm`` as well as the image."""
+    covers the square of half-side ``reach_mm`` around ``centre_mm`` as well as the image.
+
+    The grid's shape does not follow the pose: each side is the smallest multiple of
+    :data:`GRID_BUCKET_PX` that holds the image and the square around any centre in the image
+    (``max(n - 1, r) + r + 1`` px along a side of n px, r the reach in px at the optical axis), or,
+    for a centre outside the image, the image and its square; the pixels beyond those are shared
+    evenly between the two sides. The arm poses a planner scores near the view, depths some mm
+    apart included, give one shape, so the scoring programs compiled for one serve them all. The
+    padding holds the padded mask's own signed distance (the same computation as on the image):
+    the value at a point (mm) does not depend on how far the grid extends."""
     h, w = mask.shape
     corners = centre_mm + reach_mm * np.array([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])
     px = camera.mm_to_px(corners)
@@ -256,11 +276,23 @@ def _widened_sdf(mask: np.ndarray, camera: PlaneCamera, coverage: np.ndarray, ce
         raise FrameSceneError(f"the gripper at this pose reaches far outside the image ({left}, {top}, {right}, "
                               f"{bottom} px beyond its left, top, right and bottom edges): check that gripper_pose "
                               f"is in mm and in this camera's coordinates")
+    reach_px = math.ceil(reach_mm / camera.mm_per_px)
+    (top, bottom), (left, right) = (_bucketed(n, before, after, reach_px)
+                                    for n, before, after in ((h, top, bottom), (w, left, right)))
     pad = ((top, bottom), (left, right))
     i = camera.intrinsics
     wider = dataclasses.replace(i, width=w + left + right, height=h + top + bottom, ppx=i.ppx + left, ppy=i.ppy + top)
     return object_sdf(np.pad(mask, pad), dataclasses.replace(camera, intrinsics=wider),
                       coverage=np.pad(coverage, pad))
+
+
+def _bucketed(n: int, before: int, after: int, reach_px: int) -> tuple[int, int]:
+    """Padding (at least ``before``, at least ``after``) of a side of ``n`` px to the grid's size
+    along it (:func:`_widened_sdf`), the extra shared evenly (the odd pixel after)."""
+    needed = n + before + after
+    size = -(-max(needed, max(n - 1, reach_px) + reach_px + 1) // GRID_BUCKET_PX) * GRID_BUCKET_PX
+    extra = size - needed
+    return before + extra // 2, after + extra - extra // 2
 
 
 def _describe(value: Any) -> str:

@@ -65,6 +65,7 @@ _SMOOTH_PX = 0.5  # Gaussian sigma (px) smoothing the mask's staircase before it
 _EXACT_BAND_PX = 8.0  # distances within this many pixels of the outline are exact
 _SAMPLES_PER_SEGMENT = 4  # points per outline segment (<= 1.5 px long) in the k-d tree
 _NEAREST_SAMPLES = 8  # the segments of this many nearest sample points are measured exactly
+_BLOCK_NODES = 16384  # grid points per block of rows in the far field's arithmetic
 
 
 class ObjectMaskError(SoftgripError):
@@ -156,12 +157,13 @@ def _signed_distance(level: np.ndarray, camera: PlaneCamera, origin: np.ndarray,
                      spacing: np.ndarray) -> np.ndarray:
     """(H, W) signed distance (mm) on the grid to the 0 level of ``level`` (H, W), > 0 inside."""
     h, w = level.shape
-    rows, cols = np.indices((h, w), dtype=np.float64)
-    nodes_mm = origin + np.stack([cols, rows], axis=-1) * spacing
+    # The grid is regular in mm: node (row, col) is (xs[col], ys[row]).
+    xs = origin[0] + np.arange(w, dtype=np.float64) * spacing[0]
+    ys = origin[1] + np.arange(h, dtype=np.float64) * spacing[1]
     if camera.faces_camera:  # grid points are the pixel centres
         margin, inside = 0, level > 0
     else:  # grid points anywhere on the image's footprint and a little beyond
-        nodes_px = camera.mm_to_px(nodes_mm)
+        nodes_px = camera.grid_mm_to_px(xs, ys)
         reach = max(0.0, -nodes_px.min(), float((nodes_px - (w - 1.0, h - 1.0)).max()))
         margin = int(np.ceil(reach)) + 1
         level = cv2.copyMakeBorder(level, margin, margin, margin, margin, cv2.BORDER_REPLICATE)
@@ -169,9 +171,9 @@ def _signed_distance(level: np.ndarray, camera: PlaneCamera, origin: np.ndarray,
         inside = cv2.remap(level, map_px[..., 0], map_px[..., 1], cv2.INTER_LINEAR,
                            borderMode=cv2.BORDER_REPLICATE) > 0
     segments_mm = camera.px_to_mm(_zero_crossings(level) - margin)
-    distance = _distance_to_segments(nodes_mm, segments_mm, origin, spacing,
-                                     _EXACT_BAND_PX * float(np.max(spacing)))
-    return np.where(inside, -distance, distance)
+    distance = _distance_to_segments(xs, ys, segments_mm, origin, spacing, _EXACT_BAND_PX * float(np.max(spacing)))
+    np.negative(distance, out=distance, where=inside)
+    return distance
 
 
 def _zero_crossings(level: np.ndarray) -> np.ndarray:
@@ -182,6 +184,15 @@ def _zero_crossings(level: np.ndarray) -> np.ndarray:
     linearly between the edge's two pixel centres.
     """
     positive = level > 0
+    # Only cells with a positive corner can be crossed: those of the box around the positive
+    # values, one pixel wider (np.nonzero's row-major order of the cells is kept).
+    rows, cols = np.flatnonzero(positive.any(axis=1)), np.flatnonzero(positive.any(axis=0))
+    if len(rows):
+        top, left = max(0, int(rows[0]) - 1), max(0, int(cols[0]) - 1)
+        positive = positive[top:int(rows[-1]) + 2, left:int(cols[-1]) + 2]
+        level = level[top:int(rows[-1]) + 2, left:int(cols[-1]) + 2]
+    else:
+        top = left = 0
     f00, f01, f10, f11 = level[:-1, :-1], level[:-1, 1:], level[1:, :-1], level[1:, 1:]
     s00, s01, s10, s11 = positive[:-1, :-1], positive[:-1, 1:], positive[1:, :-1], positive[1:, 1:]
     # Edges: top (00-01), right (01-11), bottom (10-11), left (00-10).
@@ -190,7 +201,7 @@ def _zero_crossings(level: np.ndarray) -> np.ndarray:
     cell_rows, cell_cols = np.nonzero(count >= 2)
     cut = crossed[cell_rows, cell_cols]
     corners = [f[cell_rows, cell_cols].astype(np.float64) for f in (f00, f01, f10, f11)]
-    i, j = cell_rows.astype(np.float64), cell_cols.astype(np.float64)
+    i, j = (cell_rows + top).astype(np.float64), (cell_cols + left).astype(np.float64)
 
     def at(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # where the line from a to b crosses 0
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -214,14 +225,15 @@ def _zero_crossings(level: np.ndarray) -> np.ndarray:
     return np.concatenate(pairs)
 
 
-def _distance_to_segments(nodes: np.ndarray, segments: np.ndarray, origin: np.ndarray,
+def _distance_to_segments(xs: np.ndarray, ys: np.ndarray, segments: np.ndarray, origin: np.ndarray,
                           spacing: np.ndarray, band_mm: float) -> np.ndarray:
-    """(H, W) distance (mm) from grid points (H, W, 2) to the nearest of segments (S, 2, 2), mm.
+    """(H, W) distance (mm) from the grid points (xs[col], ys[row]) (W,), (H,) to the nearest of
+    segments (S, 2, 2), mm.
 
     Exact within ``band_mm`` of the grid points next to the segments; beyond, the distance to the
     segment holding the closest point of the nearest of those grid points.
     """
-    h, w = nodes.shape[:2]
+    h, w = len(ys), len(xs)
     t = np.linspace(0.0, 1.0, _SAMPLES_PER_SEGMENT + 1)
     samples = (segments[:, :1] + t[None, :, None] * (segments[:, 1:] - segments[:, :1])).reshape(-1, 2)
     owner = np.repeat(np.arange(len(segments)), len(t))
@@ -236,19 +248,54 @@ def _distance_to_segments(nodes: np.ndarray, segments: np.ndarray, origin: np.nd
     to_seed, (seed_row, seed_col) = ndimage.distance_transform_edt(~seed, sampling=(spacing[1], spacing[0]),
                                                                      return_indices=True)
     near = to_seed <= band_mm
-    distance = np.empty((h, w))
-    closest = np.zeros((h, w, 2))
-    nearest_segment = np.zeros((h, w), np.int64)
-    k = min(_NEAREST_SAMPLES, len(samples))
-    _, index = tree.query(nodes[near], k=list(range(1, k + 1)))
+    near_row, near_col = np.nonzero(near)
+    near_nodes = np.stack([xs[near_col], ys[near_row]], axis=-1)
+    k = min(_NEAREST_SAMPLES, len(samples))  # >= 2: every segment has several samples
+    _, index = tree.query(near_nodes, k=k)
     candidates = owner[index]
-    distance[near], closest[near], best = _nearest_on(nodes[near], segments[candidates])
-    nearest_segment[near] = candidates[np.arange(len(best)), best]
-    far = ~near
-    if far.any():
-        seeds = seed_row[far], seed_col[far]
-        along, _, _ = _nearest_on(nodes[far], segments[nearest_segment[seeds]][:, None])
-        distance[far] = np.minimum(along, np.hypot(*(nodes[far] - closest[seeds]).T))
+    near_distance, near_closest, best = _nearest_on(near_nodes, segments[candidates])
+    # Every grid point, beyond the band: the segment (and its closest point) of its nearest seed,
+    # itself in the band. Computed on the whole grid, component by component (the arithmetic of
+    # _nearest_on with K = 1), a block of rows at a time (arrays that stay in the cache), then the
+    # band's exact values put in.
+    near_flat = np.ravel_multi_index((near_row, near_col), (h, w))
+    nearest_segment = np.zeros(h * w, np.int64)
+    nearest_segment[near_flat] = candidates[np.arange(len(best)), best]
+    closest_x, closest_y = np.zeros(h * w), np.zeros(h * w)
+    closest_x[near_flat], closest_y[near_flat] = near_closest[:, 0], near_closest[:, 1]
+    ax, ay = segments[:, 0, 0], segments[:, 0, 1]
+    abx, aby = segments[:, 1, 0] - ax, segments[:, 1, 1] - ay
+    abab = abx * abx + aby * aby
+    abab[abab == 0.0] = 1.0  # a segment of no length: t = 0 / 1 = 0, as _nearest_on's nan_to_num(0 / 0) gives
+    distance = np.empty((h, w))
+    px = xs[None, :]
+    step = max(1, _BLOCK_NODES // w)
+    for r0 in range(0, h, step):
+        rows = slice(r0, min(h, r0 + step))
+        seed_flat = seed_row[rows] * w
+        seed_flat += seed_col[rows]
+        owner_of = nearest_segment[seed_flat]
+        py = ys[rows, None]
+        seg_ax, seg_ay, seg_abx, seg_aby = ax[owner_of], ay[owner_of], abx[owner_of], aby[owner_of]
+        t = px - seg_ax
+        t *= seg_abx
+        apy = py - seg_ay
+        apy *= seg_aby
+        t += apy
+        t /= abab[owner_of]
+        np.clip(t, 0.0, 1.0, out=t)  # the foot's position along its segment
+        seg_abx *= t
+        seg_abx += seg_ax  # the foot's x
+        seg_aby *= t
+        seg_aby += seg_ay  # the foot's y
+        dx, dy = px - seg_abx, py - seg_aby
+        dx *= dx
+        dy *= dy
+        dx += dy
+        out = distance[rows]
+        np.sqrt(dx, out=out)
+        np.minimum(out, np.hypot(px - closest_x[seed_flat], py - closest_y[seed_flat]), out=out)
+    distance[near] = near_distance
     return distance
 
 

@@ -103,6 +103,40 @@ def test_the_grid_reaches_fingers_that_hang_from_above_the_image():
     assert distance > 20.0  # free space there, not an object
 
 
+def test_arm_poses_near_the_view_share_one_grid_shape_whose_values_are_the_images_own():
+    # Tens of mm apart and a few mm deeper or nearer: one grid shape, so the scoring programs (and
+    # here a jitted lookup) compile once; on the image's pixels the padded grid holds exactly what
+    # object_sdf gives on the image alone, and beyond it the distance to the disc.
+    import jax
+
+    from softgrip_vision.coverage import edge_coverage
+    from softgrip_vision.geometry import face_offset_mm
+    from softgrip_vision.object_sdf import object_sdf
+
+    frame = render(Scene([], object_polygon=DISC), INTRINSICS)
+    lookup = jax.jit(lambda sdf, points: sdf.distance(points))
+    shapes = set()
+    for origin in ([0.0, -40.0, 120.0], [28.0, -12.0, 117.0], [-30.0, -75.0, 123.5]):
+        scene = object_scene(frame, PROFILE, _transform(np.eye(3), np.array(origin)), warn=lambda _: None)
+        shapes.add(scene.sdf.values.shape)
+        lookup(scene.sdf, np.zeros((4, 2), np.float32)).block_until_ready()
+        mask = scene.segmentation.object
+        alone = object_sdf(mask, scene.camera.parallel(face_offset_mm(scene.frame, mask, scene.camera)),
+                           coverage=edge_coverage(scene.frame.color, mask))
+        np.testing.assert_allclose(np.asarray(scene.sdf.spacing), np.asarray(alone.spacing), rtol=1e-6)
+        col, row = np.rint((np.asarray(alone.origin) - np.asarray(scene.sdf.origin))
+                           / np.asarray(alone.spacing)).astype(int)
+        assert row > 0 and col > 0  # padded on every side
+        np.testing.assert_array_equal(np.asarray(scene.sdf.values)[row:row + 480, col:col + 640],
+                                      np.asarray(alone.values))
+        # Past the image (the bases hang above it in the last pose): the distance to the disc, mm.
+        beyond = np.array([[0.0, float(alone.origin[1]) - 20.0], [float(alone.origin[0]) - 20.0, 12.0]])
+        np.testing.assert_allclose(np.asarray(scene.sdf.distance(beyond)),
+                                   np.hypot(beyond[:, 0], beyond[:, 1] - 12.0) - 14.0, atol=0.3)
+    assert len(shapes) == 1 and all(min(s) > 640 for s in shapes), shapes
+    assert lookup._cache_size() == 1
+
+
 @pytest.mark.parametrize("pose, match", [
     (np.eye(3), "4 x 4"),
     (np.full((4, 4), np.nan), "4 x 4"),
