@@ -61,7 +61,7 @@ from softgrip_jax._quality import (CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, 
                                    finger_contacts)
 from softgrip_jax._robust import (NOISE_SIZE, OffsetSDF, Uncertainty, linear_moments, noise_deviations, perturbations,
                                   perturbed)
-from softgrip_jax._safe import safe_divide
+from softgrip_jax._safe import safe_divide, tied_max
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate, Status
 from softgrip_jax._trace import trace_once
@@ -253,9 +253,11 @@ def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weigh
     quality = jnp.where(closure, margin, 0.0)
     r = jnp.stack([gripper.left.half_thickness, gripper.right.half_thickness])
     limit = weights.max_penetration * r
-    depth = jnp.max(jnp.clip(safe_divide(penetration, limit, 1.0), 0.0, 1.0))
+    # The fingers' larger risk; mirror images tie (to rounding) at a symmetric pose, where each
+    # side's derivative counts half (tied_max), as the symmetric score's derivative is.
+    depth = tied_max(jnp.clip(safe_divide(penetration, limit, 1.0), 0.0, 1.0))
     event = (grasp.left.event | grasp.right.event).astype(quality.dtype)
-    risk = 1.0 - (1.0 - weights.tip_only * jnp.max(tip)) * (1.0 - weights.penetration * depth) * (
+    risk = 1.0 - (1.0 - weights.tip_only * tied_max(tip)) * (1.0 - weights.penetration * depth) * (
         1.0 - weights.event * event)
     total = weights.touch + weights.wrap + weights.opposition
     progress = (weights.touch * jnp.mean(touch) + weights.wrap * jnp.mean(wrap)
