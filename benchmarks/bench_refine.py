@@ -56,7 +56,7 @@ def objects() -> dict[str, sg.AbstractSDF]:
     rectangle = sg.PolygonSDF(jnp.array([[-13.0, 28.0], [13.0, 28.0], [13.0, 48.0], [-13.0, 48.0]]))
     t = 2 * np.pi * np.arange(256) / 256
     ellipse = sg.PolygonSDF(jnp.asarray(np.c_[13.0 * np.cos(t), 38.0 + 10.0 * np.sin(t)], jnp.float32))
-    grid = sg.SDFGrid.sample(ellipse, origin=(-40.0, -10.0), spacing=(0.25, 0.25), shape=(321, 321))
+    grid = sg.SDFGrid.sample(ellipse, origin=(-40.0, -40.0), spacing=(0.25, 0.25), shape=(441, 321))
     return {"disc": disc, "rectangle": rectangle, "grid": grid}
 
 
