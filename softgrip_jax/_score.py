@@ -25,7 +25,8 @@ so a grasp in force closure always ranks above one without, whatever the weights
 deeper in the object than ``max_penetration`` r is flagged ``penetrating``; it and every other
 invalid candidate score -inf. Every setting is an array of :class:`ScoreWeights` (friction ``mu``
 included): changing one never recompiles. Within a tier the score is a continuous function of the
-estimate, so a pose can be refined by gradient (an optimistix minimiser).
+estimate, and its derivative in the pose is that of the estimate (implicit differentiation);
+:func:`refine` climbs it by a compass search, which also crosses the jumps between tiers.
 """
 
 from __future__ import annotations
@@ -519,8 +520,6 @@ _STENCIL = np.array([
     [1, 0, -1], [-1, 0, 1], [1, 0, 1], [-1, 0, -1],
     [1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0],
 ], np.float32)
-#: The stencil's rows one step away (the others are the approach axis's two steps and the diagonals).
-_NEAR = np.abs(_STENCIL).sum(axis=1) == 1
 #: A poll improves on the best pose when it scores more than this above it (float32 rounding of
 #: the score is below 1e-6): equal scores (a plateau, or a pose scored twice) never move it.
 _GAIN = 1e-6
@@ -563,10 +562,7 @@ def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, ang
         start_flat = jnp.where(first, flats[0], start_flat)
         value = jnp.where(first, values[0], value)
         flat = jnp.where(first, flats[0], flat)
-        # The best of the near points (one step) when one improves, else of all: a start nearer
-        # one optimum than another climbs the nearer one.
-        near = jnp.where(_NEAR, values, -jnp.inf)
-        i = jnp.where(jnp.max(near) > value + _GAIN, jnp.argmax(near), jnp.argmax(values))
+        i = jnp.argmax(values)
         better = (values[i] > value + _GAIN) & jnp.isfinite(start_value)
         return (jnp.where(better, best + offsets[i], best), jnp.where(better, values[i], value),
                 jnp.where(better, flats[i], flat), jnp.where(better, step, 0.5 * step), k + 1, start_value, start_flat)
@@ -623,7 +619,7 @@ def refine(
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     initial_step: float = 2.0,
-    final_step: float = 0.25,
+    final_step: float = 0.125,
 ) -> Refined:
     """Improve one pose (3,) or a batch (B, 3) to the best-scoring pose near it (a local optimum of
     the score: the grasp quality in force closure, robust with ``uncertainty``, as for :func:`score`).
@@ -631,10 +627,9 @@ def refine(
     A compass search (pattern search): each step (a *poll*) scores a small stencil of poses
     around the best pose so far in one batched call, ``step`` mm apart in the gripper's frame (up
     to two steps along the approach axis, one across it, ``step * angle_scale`` rad in angle, and
-    the diagonals of across with approach and with angle). It moves to the best of the points one
-    step away when one scores higher (else to the best of all, when that does), else halves
-    ``step``, from ``initial_step`` until it falls below ``final_step`` (converged). It needs no
-    derivative and crosses the score's jumps between tiers (an optimum at the edge of force
+    the diagonals of across with approach and with angle). It moves to the stencil's best pose
+    when that scores higher, else halves ``step``, from ``initial_step`` until it falls below
+    ``final_step`` (converged). It needs no derivative and crosses the score's jumps between tiers (an optimum at the edge of force
     closure lies just past the open tier's plateau), where a gradient method stalls; from starts
     within 3 mm and 0.05 rad of an optimum it reaches it (``benchmarks/bench_refine.py``).
 

@@ -80,15 +80,21 @@ def test_a_search_cut_short_says_max_steps_and_is_never_worse(line):
     assert float(r.score.score) >= float(r.start_score)
 
 
+@pytest.fixture(scope="module")
+def score_and_derivative():
+    f = jax.jit(lambda p: score_pose(GRIPPER, DISC, p, estimator=Geometric()).score)
+    return f, jax.jit(jax.grad(f))
+
+
 @pytest.mark.parametrize("dy", [1.0, 10.0])  # in force closure; in the open tier
-def test_the_derivative_at_the_symmetric_pose_matches_central_differences(line, dy):
+def test_the_derivative_at_the_symmetric_pose_matches_central_differences(line, score_and_derivative, dy):
     # The score is symmetric in x and in the angle at a centred pose (mirror the scene), so both
     # derivatives are 0; the old one was 0.67 in angle (a one-sided choice between the mirror
     # images' equal-to-rounding risks and hull facets).
     ys, s = line
+    f, derivative = score_and_derivative
     pose = jnp.array([0.0, float(ys[np.argmax(s)]) + dy, 0.0])
-    f = jax.jit(lambda p: score_pose(GRIPPER, DISC, p, estimator=Geometric()).score)
-    grad = np.asarray(jax.jit(jax.grad(f))(pose))
+    grad = np.asarray(derivative(pose))
     steps = np.array([1e-2, 1e-2, 2e-4], np.float32)
     central = [float(f(pose.at[i].add(h)) - f(pose.at[i].add(-h))) / (2 * h) for i, h in enumerate(steps)]
     assert abs(central[0]) < 1e-3 and abs(central[2]) < 5e-3
