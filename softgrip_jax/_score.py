@@ -471,8 +471,8 @@ def score(
         ...     f = getattr(refined.score.grasp, side)
         ...     print(side, f.case_name, "first contact on the object (mm):",
         ...           [round(float(v), 1) for v in f.contact.p_o1], "tip (mm):", [round(float(v), 1) for v in f.joints[-1]])
-        left tip first contact on the object (mm): [-14.8, 40.2] tip (mm): [-19.2, 38.6]
-        right tip first contact on the object (mm): [14.8, 40.2] tip (mm): [19.2, 38.6]
+        left tip first contact on the object (mm): [-14.9, 40.0] tip (mm): [-19.2, 38.3]
+        right tip first contact on the object (mm): [14.9, 40.0] tip (mm): [19.2, 38.3]
     """
     check_gripper(gripper)
     check_sdf(sdf)
