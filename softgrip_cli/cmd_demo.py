@@ -5,8 +5,8 @@ an installed wheel, the repository's ``data/`` in a source checkout).
 
 Calibrate from the calibration pair (one frame, eqs. 4-5), estimate every scene from its open
 frame and compare with the observed closure in its closed frame (eq. 10), score a default grid of
-gripper poses on the first scene and refine the best one by gradient, and write overlays, the heat
-map, the calibrated profile and a JSON summary into the output folder.
+gripper poses on the first scene and refine the best one (a compass search), and write overlays,
+the heat map, the calibrated profile and a JSON summary into the output folder.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ The output folder gets (files of the same names are replaced, nothing else is to
   profile.json              the calibration made from data/calib_open + data/calib_closed
   estimate_<scene>.png      each scene's estimate: joints blue, contacts red, observed closure green
   heatmap_<scene>.png       score of every gripper-centre position on the first scene
-  refined_<scene>.png       the best grid pose after refinement by gradient
+  refined_<scene>.png       the best grid pose after refinement
   summary.json              everything above as numbers (also printed with --json)
 """
 
@@ -274,7 +274,7 @@ def _score_scene(scene: pipe.FrameScene, out: Path, estimator) -> dict:
 
 
 def _refine(scene: pipe.FrameScene, scored: dict, out: Path, estimator) -> dict:
-    """Refine the best grid pose by gradient (softgrip_jax.refine with ``estimator``) and draw the result."""
+    """Refine the best grid pose (softgrip_jax.refine with ``estimator``) and draw the result."""
     import jax.numpy as jnp
 
     from softgrip_jax import RefineStatus, refine

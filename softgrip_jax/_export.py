@@ -2,7 +2,7 @@
 
 JAX's persistent compilation cache (:mod:`softgrip_jax._cache`) skips XLA's compilation, but it is
 looked up with the lowered program, so every new process first traces and lowers the Python
-program again. For ``refine`` and ``score`` (optimistix's BFGS and root finders, vmapped) that
+program again. For ``refine`` and ``score`` (optimistix's root finders, vmapped) that
 tracing is most of a new process's start-up.
 
 With the cache on, the batch functions wrapped by :class:`exportable` go through ``jax.export``

@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from softgrip_jax._safe import safe_divide, safe_norm
+from softgrip_jax._safe import safe_divide, safe_norm, tied_min
 from softgrip_jax._sdf import AbstractSDF
 
 #: Friction coefficient of silicone rubber on common dry objects (plastic, wood, cardboard, glass):
@@ -215,7 +215,9 @@ def closure_margin(wrenches: Float[Array, "w 3"], active: Bool[Array, " w"]) -> 
     a, b, c = (wrenches[triples[:, i]] for i in range(3))
     normal = jnp.cross(b - a, c - a)  # (T, 3), not normalised
     size2 = jnp.sum(normal * normal, axis=-1)
-    facet_ok = size2 > 1e-18
+    # Only the triples (pairs, single wrenches) of active wrenches: the others' directions repeat
+    # theirs, and a repeated direction would weigh twice where the minimum ties (tied_min below).
+    facet_ok = (size2 > 1e-18) & jnp.all(active[triples], axis=1)
     inverse = jax.lax.rsqrt(jnp.where(facet_ok, size2, 1.0))
     # Both signs of each normal from one (W, T) table: support(n) = max, support(-n) = -min.
     height = _heights(wrenches, normal)
@@ -225,8 +227,10 @@ def closure_margin(wrenches: Float[Array, "w 3"], active: Bool[Array, " w"]) -> 
     t = jnp.clip(safe_divide(-jnp.sum(p * along, axis=-1), jnp.sum(along * along, axis=-1)), 0.0, 1.0)
     away = -jnp.concatenate([p + t[:, None] * along, wrenches])  # from the pairs' and vertices' nearest points
     length = safe_norm(away)
-    near_ok = length > 1e-9
+    near_ok = (length > 1e-9) & jnp.concatenate([jnp.all(active[pairs], axis=1), active])
     away = away / jnp.where(near_ok, length, 1.0)[:, None]
     near = jnp.max(_heights(wrenches, away), axis=0)
-    margin = jnp.minimum(jnp.min(jnp.where(facet_ok, facets, jnp.inf)), jnp.min(jnp.where(near_ok, near, jnp.inf)))
+    # One minimum over both kinds of direction; a symmetric grasp's mirror-image facets tie to
+    # rounding, and each counts its share of the derivative (tied_min), not whichever rounds lower.
+    margin = tied_min(jnp.concatenate([jnp.where(facet_ok, facets, jnp.inf), jnp.where(near_ok, near, jnp.inf)]))
     return jnp.where(jnp.any(active) & jnp.isfinite(margin), margin, -1.0)

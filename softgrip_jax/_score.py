@@ -25,7 +25,8 @@ so a grasp in force closure always ranks above one without, whatever the weights
 deeper in the object than ``max_penetration`` r is flagged ``penetrating``; it and every other
 invalid candidate score -inf. Every setting is an array of :class:`ScoreWeights` (friction ``mu``
 included): changing one never recompiles. Within a tier the score is a continuous function of the
-estimate, so a pose can be refined by gradient (an optimistix minimiser).
+estimate, and its derivative in the pose is that of the estimate (implicit differentiation);
+:func:`refine` climbs it by a compass search, which also crosses the jumps between tiers.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from softgrip_jax._errors import SoftgripError, check_number_fields
 from softgrip_jax._export import exportable
 from softgrip_jax._gather import where_needed
 from softgrip_jax._grasp import GraspEstimate, estimate_grasp, per_finger
-from softgrip_jax._keep_start import KeepStart
+from softgrip_jax._frames import across_direction
 from softgrip_jax._kinematics import chain_stations
 from softgrip_jax._estimators import AbstractEstimator, Mechanics, as_estimator
 from softgrip_jax._mechanics import contact_forces
@@ -61,7 +62,7 @@ from softgrip_jax._quality import (CLOSURE_EPSILON, DEFAULT_MU, FingerContacts, 
                                    finger_contacts)
 from softgrip_jax._robust import (NOISE_SIZE, OffsetSDF, Uncertainty, linear_moments, noise_deviations, perturbations,
                                   perturbed)
-from softgrip_jax._safe import safe_divide
+from softgrip_jax._safe import safe_divide, tied_max, unit_direction
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate, Status
 from softgrip_jax._trace import trace_once
@@ -253,9 +254,11 @@ def _score_grasp(gripper: Gripper, sdf: AbstractSDF, grasp: GraspEstimate, weigh
     quality = jnp.where(closure, margin, 0.0)
     r = jnp.stack([gripper.left.half_thickness, gripper.right.half_thickness])
     limit = weights.max_penetration * r
-    depth = jnp.max(jnp.clip(safe_divide(penetration, limit, 1.0), 0.0, 1.0))
+    # The fingers' larger risk; mirror images tie (to rounding) at a symmetric pose, where each
+    # side's derivative counts half (tied_max), as the symmetric score's derivative is.
+    depth = tied_max(jnp.clip(safe_divide(penetration, limit, 1.0), 0.0, 1.0))
     event = (grasp.left.event | grasp.right.event).astype(quality.dtype)
-    risk = 1.0 - (1.0 - weights.tip_only * jnp.max(tip)) * (1.0 - weights.penetration * depth) * (
+    risk = 1.0 - (1.0 - weights.tip_only * tied_max(tip)) * (1.0 - weights.penetration * depth) * (
         1.0 - weights.event * event)
     total = weights.touch + weights.wrap + weights.opposition
     progress = (weights.touch * jnp.mean(touch) + weights.wrap * jnp.mean(wrap)
@@ -468,8 +471,8 @@ def score(
         ...     f = getattr(refined.score.grasp, side)
         ...     print(side, f.case_name, "first contact on the object (mm):",
         ...           [round(float(v), 1) for v in f.contact.p_o1], "tip (mm):", [round(float(v), 1) for v in f.joints[-1]])
-        left tip first contact on the object (mm): [-14.8, 40.2] tip (mm): [-19.2, 38.6]
-        right tip first contact on the object (mm): [14.8, 40.2] tip (mm): [19.2, 38.6]
+        left tip first contact on the object (mm): [-14.9, 40.0] tip (mm): [-19.2, 38.3]
+        right tip first contact on the object (mm): [14.9, 40.0] tip (mm): [19.2, 38.3]
     """
     check_gripper(gripper)
     check_sdf(sdf)
@@ -480,9 +483,10 @@ def score(
 
 
 class RefineStatus(enum.IntEnum):
-    IMPROVED = 0  #: the refined pose scores higher and is valid
-    NO_IMPROVEMENT = 1  #: the start was kept: the minimiser found nothing better that stays valid
+    IMPROVED = 0  #: the search converged at a valid pose that scores higher than the start
+    NO_IMPROVEMENT = 1  #: the search converged at the start: nothing near it scores higher (pose unchanged)
     INVALID_START = 2  #: the start pose is not valid; nothing to refine
+    MAX_STEPS = 3  #: the step budget ran out before the search converged: the best pose so far (never worse)
 
 
 class Refined(eqx.Module):
@@ -492,68 +496,111 @@ class Refined(eqx.Module):
     score: Score
     start_score: Float[Array, ""]
     status: Int[Array, ""]
-    solver_result: Int[Array, ""]  #: optimistix.RESULTS code of the minimiser, as an integer
-    steps: Int[Array, ""]
+    solver_result: Int[Array, ""]  #: optimistix.RESULTS code: successful, or nonlinear_max_steps_reached
+    steps: Int[Array, ""]  #: polls of the search (each one batched evaluation of the stencil)
 
     @property
     def status_name(self) -> str | np.ndarray:
-        """``status`` by name: ``"improved"``, ``"no_improvement"`` or ``"invalid_start"`` (an array of
-        names for a batch; outside ``jit``)."""
+        """``status`` by name: ``"improved"``, ``"no_improvement"``, ``"invalid_start"`` or
+        ``"max_steps"`` (an array of names for a batch; outside ``jit``)."""
         return code_names(self.status, RefineStatus)
 
 
-def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, angle_scale, estimator):
-    scale = jnp.array([1.0, 1.0, angle_scale], pose.dtype)
-
-    def scored(z):
-        return score_pose(gripper, sdf, z * scale, weights, config, estimator=estimator, uncertainty=uncertainty)
-
-    shapes, scored = trace_once(scored, pose / scale)
-    unflatten = ravel_pytree(jax.tree_util.tree_map(lambda leaf: jnp.zeros(leaf.shape, leaf.dtype), shapes))[1]
-
-    def objective(z, _):
-        s = scored(z)
-        raw = jnp.where(s.valid, s.score, 0.0)
-        # Leaving the valid set costs more than any score can gain. The score travels as one flat
-        # vector: the minimiser selects and carries its auxiliary output at every step, otherwise an
-        # operation (a compiled kernel) per leaf. Its integers (case and status codes) and flags are
-        # exact in the vector's float dtype.
-        return -raw + 10.0 * (1.0 - s.valid.astype(pose.dtype)), ravel_pytree(s)[0]
-
-    # The start's and the end's scores are the minimiser's own evaluations (its auxiliary output):
-    # no other traced copy of the score, which is most of the program and of its compile time.
-    solution = optx.minimise(objective, KeepStart(optx.BFGS(rtol=1e-4, atol=1e-4)), pose / scale, throw=False,
-                             max_steps=max_steps, has_aux=True)
-    candidate = solution.value * scale
-    start, refined = unflatten(solution.state.start_aux), unflatten(solution.state.inner.aux)
-    better = refined.valid & (refined.score > start.score)
-    keep = lambda new, old: jnp.where(better, new, old)
-    return Refined(
-        pose=keep(candidate, pose),
-        score=unflatten(keep(solution.state.inner.aux, solution.state.start_aux)),
-        start_score=start.score,
-        status=jnp.where(~start.valid, RefineStatus.INVALID_START,
-                         jnp.where(better, RefineStatus.IMPROVED, RefineStatus.NO_IMPROVEMENT)).astype(jnp.int32),
-        solver_result=jnp.asarray(solution.result._value, jnp.int32),
-        steps=jnp.asarray(solution.stats["num_steps"], jnp.int32),
-    )
+#: The search's stencil: offsets (across mm, approach mm, angle in units of ``angle_scale``) per
+#: unit step, all evaluated in one batched call per poll. Along the approach axis it reaches two
+#: steps (the score jumps between tiers there: an optimum at the edge of force closure lies just
+#: past a plateau of the open tier); across the gripper and in angle one; and the diagonals of
+#: across with approach and with angle (the edge of force closure moves with all three, so the
+#: way up along it is often diagonal). Row 0 is the best pose itself (the start at the first poll).
+_STENCIL = np.array([
+    [0, 0, 0],
+    [0, 1, 0], [0, -1, 0], [0, 2, 0], [0, -2, 0],
+    [1, 0, 0], [-1, 0, 0],
+    [0, 0, 1], [0, 0, -1],
+    [1, 0, -1], [-1, 0, 1], [1, 0, 1], [-1, 0, -1],
+    [1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0],
+], np.float32)
+#: A poll improves on the best pose when it scores more than this above it (float32 rounding of
+#: the score is below 1e-6): equal scores (a plateau, or a pose scored twice) never move it.
+_GAIN = 1e-6
 
 
-def _refine_poses(gripper, sdf, poses, weights, config, uncertainty, max_steps, angle_scale, estimator):
+def _offsets(pose, step, angle_scale, stencil):
+    """(S, 3) pose offsets of ``stencil`` (S, 3) at ``step`` mm, in the gripper's frame at ``pose``."""
+    across, down = across_direction(pose[2]), unit_direction(pose[2])
+    xy = step * (stencil[:, :1] * across + stencil[:, 1:2] * down)
+    return jnp.concatenate([xy, step * angle_scale * stencil[:, 2:]], axis=-1)
+
+
+def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, angle_scale, estimator, initial_step,
+                final_step):
+    """A compass search (pattern search) of the score from ``pose``: each poll scores the stencil
+    around the best pose at ``step`` in one batched call, moves to its best point when that is
+    higher, else halves ``step``; it converges when ``step`` falls below ``final_step``."""
+    dtype = pose.dtype
+    stencil = jnp.asarray(_STENCIL, dtype)
+
+    def scored(poses):
+        s = jax.vmap(lambda p: score_pose(gripper, sdf, p, weights, config, estimator=estimator,
+                                          uncertainty=uncertainty))(poses)
+        # The score travels as one flat vector per pose (one select per step, not one per leaf);
+        # its integers (case and status codes) and flags are exact in the vector's float dtype.
+        return jnp.where(s.valid, s.score, -jnp.inf), jax.vmap(lambda one: ravel_pytree(one)[0])(s), s
+
+    shapes, scored = trace_once(scored, jnp.zeros((stencil.shape[0], 3), dtype))
+    unflatten = ravel_pytree(jax.tree_util.tree_map(lambda leaf: jnp.zeros(leaf.shape[1:], leaf.dtype), shapes[2]))[1]
+    step0 = jnp.asarray(initial_step, dtype)
+    tol = jnp.asarray(final_step, dtype)
+    flat_size = shapes[1].shape[1]
+
+    def poll(carry):
+        best, value, flat, step, k, start_value, start_flat = carry
+        offsets = _offsets(best, step, angle_scale, stencil)
+        values, flats, _ = scored(best + offsets)
+        first = k == 0
+        start_value = jnp.where(first, values[0], start_value)
+        start_flat = jnp.where(first, flats[0], start_flat)
+        value = jnp.where(first, values[0], value)
+        flat = jnp.where(first, flats[0], flat)
+        i = jnp.argmax(values)
+        better = (values[i] > value + _GAIN) & jnp.isfinite(start_value)
+        return (jnp.where(better, best + offsets[i], best), jnp.where(better, values[i], value),
+                jnp.where(better, flats[i], flat), jnp.where(better, step, 0.5 * step), k + 1, start_value, start_flat)
+
+    def going(carry):
+        _, _, _, step, k, start_value, _ = carry
+        return (k == 0) | ((k < max_steps) & (step >= tol) & jnp.isfinite(start_value))
+
+    zeros = jnp.zeros((flat_size,), shapes[1].dtype)
+    carry = (pose, jnp.asarray(-jnp.inf, dtype), zeros, step0, jnp.asarray(0, jnp.int32), jnp.asarray(-jnp.inf, dtype),
+             zeros)
+    best, value, flat, step, k, start_value, start_flat = jax.lax.while_loop(going, poll, carry)
+    start, end = unflatten(start_flat), unflatten(flat)
+    converged = step < tol
+    moved = jnp.any(best != pose)
+    status = jnp.where(~start.valid, RefineStatus.INVALID_START,
+                       jnp.where(~converged, RefineStatus.MAX_STEPS,
+                                 jnp.where(moved, RefineStatus.IMPROVED, RefineStatus.NO_IMPROVEMENT)))
+    result = jnp.where(converged | ~start.valid, optx.RESULTS.successful._value,
+                       optx.RESULTS.nonlinear_max_steps_reached._value)
+    return Refined(pose=best, score=end, start_score=start.score, status=status.astype(jnp.int32),
+                   solver_result=jnp.asarray(result, jnp.int32), steps=k)
+
+
+def _refine_poses(gripper, sdf, poses, weights, config, uncertainty, max_steps, angle_scale, steps, estimator):
     # One pose (3,) is refined without vmap: a batched while_loop carries a select of its whole
-    # state at every step and runs both branches of each cond, a larger program that is slower to
-    # compile and to load from the cache.
-    if poses.ndim == 1:
-        return _refine_one(gripper, sdf, poses, weights, config, uncertainty, max_steps, angle_scale, estimator)
-    return jax.vmap(lambda p: _refine_one(gripper, sdf, p, weights, config, uncertainty, max_steps, angle_scale,
-                                          estimator))(poses)
+    # state at every step, a larger program that is slower to compile and to load from the cache.
+    initial_step, final_step = steps
+    run = lambda p: _refine_one(gripper, sdf, p, weights, config, uncertainty, max_steps, angle_scale,  # noqa: E731
+                                estimator, initial_step, final_step)
+    return run(poses) if poses.ndim == 1 else jax.vmap(run)(poses)
 
 
 _refine_batch = exportable(tuned_jit(_refine_poses, static_argnames=("max_steps", "estimator")),
                            ("max_steps", "estimator"))
 
 
-#: Poses of a batch refined together by :func:`refine` (each runs its own BFGS under ``vmap``).
+#: Poses of a batch refined together by :func:`refine` (each runs its own search under ``vmap``).
 REFINE_CHUNK = 16
 
 
@@ -564,56 +611,75 @@ def refine(
     weights: ScoreWeights = ScoreWeights(),
     config: ContactConfig = ContactConfig(),
     *,
-    max_steps: int = 40,
-    angle_scale: float = 0.05,
+    max_steps: int = 32,
+    angle_scale: float = 0.025,
     estimator: AbstractEstimator | None = None,
     uncertainty: Uncertainty | None = None,
     chunk_size: int = REFINE_CHUNK,
     workers: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    initial_step: float = 2.0,
+    final_step: float = 0.125,
 ) -> Refined:
-    """Improve one pose (3,) or a batch (B, 3) by gradient ascent of the score (optimistix BFGS):
-    the grasp quality in force closure, robust with ``uncertainty`` (as for :func:`score`).
+    """Improve one pose (3,) or a batch (B, 3) to the best-scoring pose near it (a local optimum of
+    the score: the grasp quality in force closure, robust with ``uncertainty``, as for :func:`score`).
 
-    The result never gets worse: when the minimiser ends at a pose that scores lower or is not
-    valid, the start pose is returned with ``status = NO_IMPROVEMENT``. ``angle_scale`` (rad per
-    unit of the minimiser's variable) balances millimetres against radians. ``estimator``
-    chooses the deformation estimate, as for :func:`score_pose`;
-    the mechanics estimate's gradient in the pose comes from implicit differentiation.
+    A compass search (pattern search): each step (a *poll*) scores a small stencil of poses
+    around the best pose so far in one batched call, ``step`` mm apart in the gripper's frame (up
+    to two steps along the approach axis, one across it, ``step * angle_scale`` rad in angle, and
+    the diagonals of across with approach and with angle). It moves to the stencil's best pose
+    when that scores higher, else halves ``step``, from ``initial_step`` until it falls below
+    ``final_step`` (converged). It needs no derivative and crosses the score's jumps between tiers (an optimum at the edge of force
+    closure lies just past the open tier's plateau), where a gradient method stalls; from starts
+    within 3 mm and 0.05 rad of an optimum it reaches it (``benchmarks/bench_refine.py``).
+
+    The result never gets worse than the start (a pose moves only to a strictly higher valid score).
+    ``status`` says what happened: ``IMPROVED`` (converged at a better pose), ``NO_IMPROVEMENT``
+    (converged at the start, which is returned unchanged), ``MAX_STEPS`` (``max_steps`` polls
+    ran out first: the best pose found, which may or may not be better; compare ``score.score``
+    with ``start_score``) or ``INVALID_START``. ``estimator`` chooses the deformation estimate,
+    as for :func:`score_pose`.
 
     One pose (3,) and a batch (B, 3) run two compiled programs of the same algorithm (a batch under
-    ``vmap``). Their rounding differs, and where BFGS wanders on a non-smooth score (contact cases
-    changing, the edge of the valid set) a pose refined alone may end elsewhere than the same pose
-    in a batch; each result keeps the guarantee above.
+    ``vmap``); their rounding differs, so on a score with jumps a pose refined alone may end
+    elsewhere than the same pose in a batch; each result keeps the guarantee above.
 
     A batch is refined ``chunk_size`` poses at a time by one compiled program whatever B is
     (pieces, ``workers`` at once, ``progress(done, total)`` after each, as for :func:`score`).
 
     Args:
         pose: (3,) or (B, 3) start poses: gripper centre x, y (mm) and angle (rad).
-        max_steps: BFGS iterations at most (static).
+        max_steps: polls at most (static); each scores the stencil (17 poses) once.
+        angle_scale: rad of the angle stencil per mm of ``step``.
         chunk_size: poses of a batch refined together (static).
+        initial_step, final_step: the stencil's first step and the step below which the search
+            has converged (mm).
 
     Returns:
         :class:`Refined` (leading axis B for a batch): ``pose`` (3,), its :class:`Score`,
-        ``start_score``, ``status`` (a :class:`RefineStatus`), the minimiser's result and steps.
+        ``start_score``, ``status`` (a :class:`RefineStatus`), ``solver_result`` (an optimistix
+        ``RESULTS`` code: successful, or max steps reached) and ``steps`` (polls).
 
     Example: :func:`score`'s example refines the best pose of a scored grid.
     """
     check_gripper(gripper)
     check_sdf(sdf)
     if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-        raise SoftgripError(f"refine: max_steps must be a whole number of BFGS iterations >= 1, got {max_steps!r}")
+        raise SoftgripError(f"refine: max_steps must be a whole number of search steps >= 1, got {max_steps!r}")
+    if not 0 < final_step <= initial_step:
+        raise SoftgripError(f"refine: need 0 < final_step <= initial_step (mm), got final_step={final_step!r}, "
+                            f"initial_step={initial_step!r}")
     estimator = as_estimator(estimator)
     poses = as_candidates(pose, 3, gripper.base_separation.dtype, "refine: pose", single=True)
     scale = jnp.asarray(angle_scale, poses.dtype)
+    steps = (jnp.asarray(initial_step, poses.dtype), jnp.asarray(final_step, poses.dtype))
     if poses.ndim == 1:
-        return _refine_batch(gripper, sdf, poses, weights, config, uncertainty, max_steps, scale, estimator)
-    return run_in_pieces(_refine_piece, (gripper, sdf), poses, (weights, config, uncertainty, scale), workers,
+        return _refine_batch(gripper, sdf, poses, weights, config, uncertainty, max_steps, scale, steps, estimator)
+    return run_in_pieces(_refine_piece, (gripper, sdf), poses, (weights, config, uncertainty, scale, steps), workers,
                          chunk_size, progress, max_steps=max_steps, estimator=estimator)
 
 
-
-def _refine_piece(gripper, sdf, poses, weights, config, uncertainty, scale, *, chunk_size, max_steps, estimator):
-    del chunk_size  # the piece is the batch: BFGS runs on all its poses at once
-    return _refine_batch(gripper, sdf, poses, weights, config, uncertainty, max_steps, scale, estimator)
+def _refine_piece(gripper, sdf, poses, weights, config, uncertainty, scale, steps, *, chunk_size, max_steps,
+                  estimator):
+    del chunk_size  # the piece is the batch: the search runs on all its poses at once
+    return _refine_batch(gripper, sdf, poses, weights, config, uncertainty, max_steps, scale, steps, estimator)

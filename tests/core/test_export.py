@@ -274,7 +274,8 @@ def test_without_the_cache_nothing_is_exported(export_cache, monkeypatch, off) -
 
 @pytest.mark.slow
 def test_exported_refine_equals_the_jitted_one(export_cache) -> None:
-    args = (GRIPPER, DISC, POSES[:2], ScoreWeights(), ContactConfig(), None, 10, jnp.asarray(0.05), Geometric())
+    args = (GRIPPER, DISC, POSES[:2], ScoreWeights(), ContactConfig(), None, 10, jnp.asarray(0.025),
+            (jnp.asarray(2.0), jnp.asarray(0.125)), Geometric())
     _assert_same_results(_refine_batch(*args), _refine_batch._jitted(*args))
     assert len(list(export_cache.glob("refine_poses-*.export"))) == 1
 

@@ -492,6 +492,6 @@ def test_grasp_batch_and_score_use_the_mechanics_estimate():
 @pytest.mark.slow
 def test_refine_with_the_mechanics_estimate():
     refined = refine(GRIPPER, DISC, POSES[2], estimator=Mechanics(), max_steps=3)
-    assert int(refined.status) in (RefineStatus.IMPROVED, RefineStatus.NO_IMPROVEMENT)
+    assert int(refined.status) in (RefineStatus.IMPROVED, RefineStatus.NO_IMPROVEMENT, RefineStatus.MAX_STEPS)
     assert float(refined.score.score) >= float(refined.start_score)
     assert bool(refined.score.valid)

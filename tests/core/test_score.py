@@ -123,9 +123,9 @@ def test_sharded_equals_unsharded():
 
 @pytest.mark.parametrize("steps", [0, -3, True])
 def test_refine_refuses_a_max_steps_that_is_not_a_whole_number_of_iterations(steps):
-    # No iteration would leave no evaluation of the start (refine reads the start's score from the
-    # minimiser's first step): refused before anything is compiled, naming the argument.
+    # No step would leave no evaluation of the start (refine reads the start's score from its
+    # first poll): refused before anything is compiled, naming the argument.
     from softgrip_jax import SoftgripError
 
-    with pytest.raises(SoftgripError, match=r"refine: max_steps must be a whole number of BFGS iterations >= 1"):
+    with pytest.raises(SoftgripError, match=r"refine: max_steps must be a whole number of search steps >= 1"):
         refine(GRIPPER, DISC, jnp.array([0.0, 0.0, 0.0]), max_steps=steps, estimator=Geometric())
