@@ -328,7 +328,7 @@ class Scene:
         return to_numpy(result)
 
     def refine(self, poses: Float[ArrayLike, "*b 3"] | None = None, *, estimator: AbstractEstimator | None = None,
-               weights: ScoreWeights | None = None, uncertainty: Uncertainty | None = None, max_steps: int = 40,
+               weights: ScoreWeights | None = None, uncertainty: Uncertainty | None = None, max_steps: int = 32,
                progress: Callable[[int, int], None] | None = None) -> Refined:
         """Improve poses by gradient ascent of the score (:func:`softgrip_jax.refine` on this
         scene's gripper and object), in the coordinates :meth:`score` takes: x mm, y mm, angle rad.
@@ -339,7 +339,7 @@ class Scene:
             estimator: as for :meth:`score`.
             weights: as for :meth:`score`.
             uncertainty: as for :meth:`score`.
-            max_steps: BFGS iterations at most (a new value compiles once more).
+            max_steps: stencil polls of the compass search at most (a new value compiles once more).
             progress: ``progress(done, total)`` after each piece of a batch.
 
         Returns:
