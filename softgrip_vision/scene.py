@@ -330,7 +330,7 @@ class Scene:
     def refine(self, poses: Float[ArrayLike, "*b 3"] | None = None, *, estimator: AbstractEstimator | None = None,
                weights: ScoreWeights | None = None, uncertainty: Uncertainty | None = None, max_steps: int = 32,
                progress: Callable[[int, int], None] | None = None) -> Refined:
-        """Improve poses by gradient ascent of the score (:func:`softgrip_jax.refine` on this
+        """Improve poses by a compass search of the score (:func:`softgrip_jax.refine` on this
         scene's gripper and object), in the coordinates :meth:`score` takes: x mm, y mm, angle rad.
 
         Args:
