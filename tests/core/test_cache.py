@@ -123,8 +123,9 @@ def test_refine_geometric_compiles_without_host_callbacks() -> None:
     EQX_ON_ERROR says."""
     from softgrip_jax._score import _refine_batch
 
+    steps = (jnp.asarray(2.0), jnp.asarray(0.125))  # the compass search's first and last step (mm)
     lowered = _refine_batch.lower(GRIPPER, DISC, jnp.zeros((1, 3)), ScoreWeights(), ContactConfig(),
-                                  None, 4, jnp.asarray(0.05), Geometric())
+                                  None, 4, jnp.asarray(0.05), steps, Geometric())
     assert _callbacks(lowered) == 0
 
 
@@ -142,7 +143,7 @@ def test_refine_mechanics_compiles_without_host_callbacks_whatever_eqx_on_error(
         g = Gripper(left=f, right=f, base_separation=56.0)
         lowered = _refine_batch.lower(g, PolygonSDF.regular((0.0, 38.0), 15.0, 32), jnp.zeros((1, 3)),
                                       ScoreWeights(), ContactConfig(), None, 4, jnp.asarray(0.05),
-                                      Mechanics(MechanicsConfig()))
+                                      (jnp.asarray(2.0), jnp.asarray(0.125)), Mechanics(MechanicsConfig()))
         print(equinox_errors_cacheable(), lowered.as_text().count("callback"))
     """)
     counts = {}
