@@ -652,8 +652,8 @@ def refine(
         max_steps: polls at most (static); each scores the stencil (17 poses) once.
         angle_scale: rad of the angle stencil per mm of ``step``.
         chunk_size: poses of a batch refined together (static).
-        initial_step, final_step: the stencil's first step and the step below which the search
-            has converged (mm).
+        initial_step: the stencil's first step (mm).
+        final_step: the step (mm) below which the search has converged.
 
     Returns:
         :class:`Refined` (leading axis B for a batch): ``pose`` (3,), its :class:`Score`,
