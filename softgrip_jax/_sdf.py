@@ -437,7 +437,8 @@ class PolygonSDF(AbstractSDF):
                                     f"{'> 0' if least is None else '>= 0'}, got {value!r}")
         vertices = np.asarray(self.vertices, np.float64)
         low = vertices.min(axis=0) - margin_mm
-        shape = tuple(int(n) for n in np.ceil((vertices.max(axis=0) + margin_mm - low) / cell_mm).astype(int)[::-1] + 1)
+        width, height = (int(n) + 1 for n in np.ceil((vertices.max(axis=0) + margin_mm - low) / cell_mm))
+        shape = (height, width)
         if shape[0] * shape[1] > _MAX_GRID_CELLS:
             raise SoftgripError(f"PolygonSDF.to_grid: a grid of {shape[0]} x {shape[1]} cells of {cell_mm:g} mm is "
                                 f"too large (more than {_MAX_GRID_CELLS:,} cells): use larger cells or a smaller margin_mm")
