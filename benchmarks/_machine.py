@@ -1,5 +1,6 @@
 """One line describing the machine and software a benchmark ran on."""
 
+import logging
 import os
 import platform
 
@@ -18,3 +19,15 @@ def describe() -> str:
         pass
     return (f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}, "
             f"Python {platform.python_version()}, jax {jax.__version__} on {jax.default_backend()}")
+
+
+class CompileCounter(logging.Handler):
+    """Counts the programs JAX compiles while installed (``jax_log_compiles`` messages)."""
+
+    def __init__(self):
+        super().__init__()
+        self.count = 0
+
+    def emit(self, record):
+        if record.getMessage().startswith("Finished XLA compilation"):
+            self.count += 1

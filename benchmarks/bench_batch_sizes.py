@@ -29,24 +29,12 @@ sys.path.insert(0, str(ROOT))
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from benchmarks._machine import describe  # noqa: E402
+from benchmarks._machine import CompileCounter, describe  # noqa: E402
 
 
 def memory_maps() -> int:
     with open("/proc/self/maps") as f:
         return sum(1 for _ in f)
-
-
-class CompileCounter(logging.Handler):
-    """Counts the programs JAX compiles while installed (``jax_log_compiles`` messages)."""
-
-    def __init__(self):
-        super().__init__()
-        self.count = 0
-
-    def emit(self, record):
-        if record.getMessage().startswith("Finished XLA compilation"):
-            self.count += 1
 
 
 def random_poses(rng, b: int) -> np.ndarray:

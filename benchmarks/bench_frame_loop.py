@@ -36,21 +36,9 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import CompileCounter, describe  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-class CompileCounter(logging.Handler):
-    """Counts the programs JAX compiles while installed (``jax_log_compiles`` messages)."""
-
-    def __init__(self):
-        super().__init__()
-        self.count = 0
-
-    def emit(self, record):
-        if record.getMessage().startswith("Finished XLA compilation"):
-            self.count += 1
 
 
 def near(pose: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
