@@ -37,11 +37,16 @@ from softgrip_jax._gather import where_needed
 from softgrip_jax._model import FingerModel, Gripper
 from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._sharding import device_mesh, run_sharded
-from softgrip_jax._stage import Estimate, refine_search, search_contact, search_further, stage_of
+from softgrip_jax._stage import (Estimate, finish_root_search, refine_search, search_contact, search_further,
+                                start_root_search, stage_of)
 from softgrip_jax._trace import trace_once
 
 #: Chunks smaller than this refine every finger (see :func:`finger_chunk`).
 _SMALL_CHUNK = 16
+
+#: The fingers whose root finder has not converged with the others' are continued in groups of
+#: this many (a few per chunk of thousands).
+_LATE_GROUP = 32
 
 
 def as_candidates(x, width: int, dtype, what: str, single: bool = False) -> jax.Array | np.ndarray:
@@ -73,7 +78,14 @@ def geometric_stages(finger, sdf, frames, config, estimator):
         brackets = jax.tree_util.tree_map(lambda a, b: jnp.where(free, a, b), later, searches.bracket)
         searches = eqx.tree_at(lambda s: s.bracket, searches, brackets)
     need = jax.vmap(lambda s: s.need_refining)(searches)
-    refined = where_needed(lambda s: refine_search(finger, sdf, s, config), need, searches)
+    # The root finder's first iterations for every touching finger together, then the rest only
+    # for the few not converged, in small groups, so that they do not hold up the others.
+    roots = where_needed(lambda s: start_root_search(finger, sdf, s, config), need, searches)
+    late = need & ~jax.vmap(lambda r: r.converged(config))(roots)
+    later = where_needed(lambda sr: finish_root_search(finger, sdf, sr[0], config, sr[1]), late, (searches, roots),
+                         group_size=_LATE_GROUP)
+    roots = jax.tree_util.tree_map(lambda a, b: jnp.where(late, a, b), later, roots)
+    refined = where_needed(lambda sr: refine_search(finger, sdf, sr[0], config, sr[1]), need, (searches, roots))
     return jax.vmap(lambda s, c: stage_of(finger, s, c))(searches, refined)
 
 

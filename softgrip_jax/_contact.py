@@ -9,7 +9,10 @@ the angle of the base-tip chord. The clearance
 
 is positive while the finger is free. The first contact s1 is the smallest root of g: bracketed on
 a coarse grid of s values (one vectorised SDF lookup), then refined by Newton's method kept inside
-that bracket (:class:`BracketedNewton`, an optimistix root finder), so that derivatives of s1 come from the implicit function theorem. Then (eqs. 6-8):
+that bracket (:class:`BracketedNewton`, an optimistix root finder), so that derivatives of s1 come from the implicit
+function theorem. Batched code takes the first :data:`ROOT_STEPS_TOGETHER` iterations for every
+touching finger at once (:func:`start_root`) and continues only the few not converged
+(:func:`finish_root`). Then (eqs. 6-8):
 
 * P_g1: the touching point of the finger (nearest the base), L_g1 its arc length, N_g1 = L_g1 N / L;
 * P_o1: P_g1 moved onto the object surface along the SDF's normal;
@@ -488,55 +491,127 @@ class BracketedNewton(optx.AbstractRootFinder):
         return y, aux, {}
 
 
+#: Root-finder iterations that every touching finger of a batch takes together (frozen once
+#: converged), before the few that have not converged yet go on alone (:func:`finish_root`): under
+#: ``vmap`` a loop runs until its slowest lane is done, and one finger in thousands that needs the
+#: whole budget (Newton bouncing off a corner, then bisection) made every finger of its group wait.
+ROOT_STEPS_TOGETHER = 2
+
+
+class RootSearch(eqx.Module):
+    """The first-contact root finder of one finger: its iterate, its bracket and the tilt of the
+    function it solves (:func:`root_function`)."""
+
+    s: Float[Array, ""]  #: the iterate (rad)
+    lower: Float[Array, ""]  #: the bracket: the clearance is positive at ``lower``...
+    upper: Float[Array, ""]  #: ...and not positive at ``upper`` (rad)
+    diff: Float[Array, ""]  #: the last step (rad; inf before the first)
+    value: Float[Array, ""]  #: |clearance| at the iterate before the last step (mm; inf before the first)
+    lift: Float[Array, ""]  #: the tilt (mm) at the bracket's lower end...
+    drop: Float[Array, ""]  #: ...and at its upper end
+
+    def converged(self, config: ContactConfig) -> Bool[Array, ""]:
+        """The last step and the clearance are both within ``config.root_atol``."""
+        return (jnp.abs(self.diff) <= config.root_atol) & (self.value <= config.root_atol)
+
+
+def root_function(finger: FingerModel, dist, bracket: Bracket, config: ContactConfig, search: RootSearch):
+    """The clearance of the root window as a function of s (mm), tilted to change sign across the bracket.
+
+    The bracket may come from a coarser lookup than ``dist`` (SDFGrid's bilinear one): where the
+    two disagree at the bracket's ends (a graze of micrometres, or a window of stations whose
+    clearance differs from the whole chain's) the clearance solved for is tilted by the straight
+    line that makes it positive at ``lower`` and not positive at ``upper``, as the root finder
+    needs. Where they agree, as almost everywhere, the tilt is exactly zero. Where there is no
+    bracket, it is a harmless stand-in (root at the start, slope -1), so that the implicit
+    derivative stays finite.
+    """
+    base = jnp.zeros(2, finger.length.dtype)
+    lower, upper = bracket.lower, bracket.upper
+
+    def fn(s):
+        along = safe_divide(s - lower, upper - lower, 0.0)
+        real = (_window_clearance(finger, dist, base, s, config, bracket.first)
+                + search.lift - along * (search.lift + search.drop))
+        return jnp.where(bracket.needs_root, real, bracket.start - s)
+
+    return fn
+
+
+def start_root(finger: FingerModel, dist, bracket: Bracket, config: ContactConfig,
+               steps: int = ROOT_STEPS_TOGETHER) -> RootSearch:
+    """The root search of one finger after its first ``steps`` iterations of :class:`BracketedNewton`
+    (an iterate that has converged stays where it is)."""
+    base = jnp.zeros(2, finger.length.dtype)
+    g_lower = _window_clearance(finger, dist, base, bracket.lower, config, bracket.first)
+    g_upper = _window_clearance(finger, dist, base, bracket.upper, config, bracket.first)
+    inf = jnp.asarray(jnp.inf, g_lower.dtype)
+    search = RootSearch(s=bracket.start, lower=bracket.lower, upper=bracket.upper, diff=inf, value=inf,
+                        lift=jnp.maximum(_END_MARGIN_MM - g_lower, 0.0), drop=jnp.maximum(g_upper, 0.0))
+    fn = root_function(finger, dist, bracket, config, search)
+    solver = BracketedNewton(atol=config.root_atol)
+    for _ in range(min(steps, config.root_max_steps)):
+        state = _BracketState(lower=search.lower, upper=search.upper, diff=search.diff, value=search.value)
+        s, state, _ = solver.step(lambda s, _: (fn(s), None), search.s, None, {}, state, frozenset())
+        stepped = RootSearch(s=s, lower=state.lower, upper=state.upper, diff=state.diff, value=state.value,
+                             lift=search.lift, drop=search.drop)
+        done = search.converged(config)
+        search = jax.tree_util.tree_map(lambda old, new: jnp.where(done, old, new), search, stepped)
+    return search
+
+
+def finish_root(finger: FingerModel, dist, bracket: Bracket, config: ContactConfig, search: RootSearch,
+                steps_taken: int = ROOT_STEPS_TOGETHER) -> RootSearch:
+    """The root search continued (optimistix's root finder, from the iterate and the bracket it has
+    reached) until it converges or the budget ``config.root_max_steps`` is spent."""
+    remaining = config.root_max_steps - min(steps_taken, config.root_max_steps)
+    if remaining <= 0:
+        return search
+    fn = root_function(finger, dist, bracket, config, search)
+    solution: optx.Solution = optx.root_find(
+        lambda s, _: fn(s), BracketedNewton(atol=config.root_atol), search.s,
+        options=dict(lower=search.lower, upper=search.upper), throw=False, max_steps=remaining,
+    )
+    ok = solution.result == optx.RESULTS.successful
+    tiny = jnp.zeros_like(search.s)
+    # (The solver's last step and value are within atol exactly when it succeeded.)
+    return eqx.tree_at(lambda r: (r.s, r.diff, r.value), search,
+                       (solution.value, jnp.where(ok, tiny, jnp.inf), jnp.where(ok, tiny, jnp.inf)))
+
+
 def refine_contact(
     finger: FingerModel,
     dist: Callable[[Float[Array, "*batch 2"]], Float[Array, "*batch"]],
     bracket: Bracket,
     config: ContactConfig = ContactConfig(),
+    search: RootSearch | None = None,
 ) -> Contact:
-    """The first contact s1 inside the bracket (optimistix root finder), where the finger touches
-    (eqs. 6-7), its angles (eq. 8) and the second contact (Fig. 8): the :class:`Contact` of a
-    finger whose ``bracket.needs_root``. (For any other bracket it returns finite values without
-    meaning, so that it can be evaluated, and differentiated, everywhere.)
+    """The first contact s1 inside the bracket (a bracketed Newton root finder), where the finger
+    touches (eqs. 6-7), its angles (eq. 8) and the second contact (Fig. 8): the :class:`Contact`
+    of a finger whose ``bracket.needs_root``. (For any other bracket it returns finite values
+    without meaning, so that it can be evaluated, and differentiated, everywhere.)
+
+    ``search``: the finished root search (:func:`start_root`, then :func:`finish_root` where it
+    has not converged), as batched code computes it; None: computed here.
     """
+    if search is None:
+        search = start_root(finger, dist, bracket, config)
+        search = jax.lax.cond(search.converged(config), lambda: search,
+                              lambda: finish_root(finger, dist, bracket, config, search))
     dtype = finger.length.dtype
     base = jnp.zeros(2, dtype)
     theta = finger.theta_entire
     n, r, length = finger.n_links, finger.half_thickness, finger.length
     need_root, touches, initial_overlap = bracket.needs_root, bracket.touches, bracket.initial_overlap
-    lower, upper, start, first = bracket.lower, bracket.upper, bracket.start, bracket.first
-
-    # The bracket may come from a coarser lookup than ``dist`` (SDFGrid's bilinear one): where the
-    # two disagree at the bracket's ends (a graze of micrometres, or a window of stations whose
-    # clearance differs from the whole chain's) the clearance solved for is tilted by the straight
-    # line that makes it positive at ``lower`` and not positive at ``upper``, as the root finder
-    # needs. Where they agree, as almost everywhere, the tilt is exactly zero.
-    g_lower = _window_clearance(finger, dist, base, lower, config, first)
-    g_upper = _window_clearance(finger, dist, base, upper, config, first)
-    lift = jnp.maximum(_END_MARGIN_MM - g_lower, 0.0)
-    drop = jnp.maximum(g_upper, 0.0)
-
-    def fn(s):
-        # Where there is no bracket, solve a harmless stand-in (root at the start, slope -1), so
-        # that the implicit derivative stays finite.
-        along = safe_divide(s - lower, upper - lower, 0.0)
-        real = _window_clearance(finger, dist, base, s, config, first) + lift - along * (lift + drop)
-        return jnp.where(need_root, real, start - s)
-
-    def solve(fn_, s0):
-        solution = optx.root_find(
-            lambda s, _: fn_(s), BracketedNewton(atol=config.root_atol), s0,
-            options=dict(lower=lower, upper=upper), throw=False, max_steps=config.root_max_steps,
-        )
-        # The flag as a float: custom_root gives its auxiliary outputs zero tangents of their own dtype.
-        return solution.value, (solution.result == optx.RESULTS.successful).astype(s0.dtype)
 
     # Gradients through s1 by the implicit function theorem, ds1 = -dg / (dg/ds), with JAX's own
-    # custom_root rather than optimistix's adjoint: that one solves the (here 1x1) tangent system
-    # with lineax, whose checks are host callbacks under reverse mode, and a program with host
-    # callbacks never enters the persistent compilation cache.
-    root, converged = jax.lax.custom_root(fn, start, solve, lambda g, y: y / g(jnp.ones_like(y)), has_aux=True)
-    root_converged = (converged > 0.5) | ~need_root
+    # custom_root around the root already found (its "solve" returns it): optimistix's adjoint
+    # solves the (here 1x1) tangent system with lineax, whose checks are host callbacks under
+    # reverse mode, and a program with host callbacks never enters the persistent compilation cache.
+    fn = root_function(finger, dist, bracket, config, search)
+    root = jax.lax.custom_root(fn, jax.lax.stop_gradient(search.s), lambda _, s: s,
+                               lambda g, y: y / g(jnp.ones_like(y)))
+    root_converged = search.converged(config) | ~need_root
     s1 = jnp.where(need_root, root, jnp.where(initial_overlap, 0.0, theta))
 
     # First contact point on the finger (eq. 6-7): the station nearest the base among those

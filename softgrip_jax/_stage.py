@@ -18,7 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from softgrip_jax._contact import Bracket, Contact, ContactCase, ContactConfig, bracket_contact, free_contact, refine_contact
+from softgrip_jax._contact import (Bracket, Contact, ContactCase, ContactConfig, RootSearch, bracket_contact, finish_root,
+                                   free_contact, refine_contact, start_root)
 from softgrip_jax._deformation import case_shape
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics
@@ -206,9 +207,22 @@ def search_further(
     return bracket_contact(finger, _coarse_distance_in(sdf, search.frame), config, rows)
 
 
-def refine_search(finger: FingerModel, sdf: AbstractSDF, search: Search, config: ContactConfig) -> Contact:
-    """The refined contact (eqs. 5-8, Fig. 8) of a search that ``need_refining``."""
-    return refine_contact(finger, _distance_in(sdf, search.frame), search.bracket, config)
+def refine_search(finger: FingerModel, sdf: AbstractSDF, search: Search, config: ContactConfig,
+                  root: RootSearch | None = None) -> Contact:
+    """The refined contact (eqs. 5-8, Fig. 8) of a search that ``need_refining``, from its finished
+    ``root`` search (None: found here)."""
+    return refine_contact(finger, _distance_in(sdf, search.frame), search.bracket, config, root)
+
+
+def start_root_search(finger: FingerModel, sdf: AbstractSDF, search: Search, config: ContactConfig) -> RootSearch:
+    """The first iterations of a search's first-contact root finder (:func:`start_root`)."""
+    return start_root(finger, _distance_in(sdf, search.frame), search.bracket, config)
+
+
+def finish_root_search(finger: FingerModel, sdf: AbstractSDF, search: Search, config: ContactConfig,
+                       root: RootSearch) -> RootSearch:
+    """A search's root finder continued until it converges (:func:`finish_root`)."""
+    return finish_root(finger, _distance_in(sdf, search.frame), search.bracket, config, root)
 
 
 def stage_of(finger: FingerModel, search: Search, refined: Contact) -> Stage:

@@ -232,3 +232,45 @@ def test_the_root_converges_when_the_bracket_end_is_still_free():
     assert bool(c.root_converged)
     assert float(short.lower) <= float(c.s1) <= float(short.upper) + 1e-6
     assert float(c.s1) == pytest.approx(float(short.upper), abs=2e-4)
+
+
+def test_fingers_whose_root_takes_longer_reach_the_root_brent_finds():
+    # The batch runs the first ROOT_STEPS_TOGETHER root iterations for every touching finger at
+    # once and continues only the unconverged ones (finish_root). Those must end where an
+    # independent solver (scipy's Brent method, in float64 on the same function) puts the root.
+    import jax
+    from scipy.optimize import brentq
+
+    from softgrip_jax._contact import (ROOT_STEPS_TOGETHER, bracket_contact, finish_root, root_function,
+                                       start_root)
+
+    xs = np.arange(-40.0, 80.0, 0.25)
+    x, y = np.meshgrid(xs, xs, indexing="xy")
+    grid = SDFGrid(values=jnp.asarray((np.hypot(x - 25.0, y - 45.0) - 10.0).astype(np.float32)),
+                   origin=jnp.array([-40.0, -40.0]), spacing=jnp.array([0.25, 0.25]))
+    finger = FingerModel(length=52.0, theta_entire=0.7, half_thickness=4.0, n_links=20)
+    config = ContactConfig()
+    bases = jnp.asarray(np.random.default_rng(0).uniform(-12.0, 12.0, (400, 2)).astype(np.float32))
+
+    def solve(base):
+        dist = lambda q: grid.distance(q + base)  # noqa: E731
+        bracket = bracket_contact(finger, lambda q: grid.coarse_distance(q + base), config)
+        started = start_root(finger, dist, bracket, config)
+        finished = finish_root(finger, dist, bracket, config, started)
+        return bracket, started, finished
+
+    brackets, started, finished = jax.jit(jax.vmap(solve))(bases)
+    need = np.asarray(jax.vmap(lambda b: b.needs_root)(brackets))
+    late = np.flatnonzero(need & ~np.asarray(jax.vmap(lambda r: r.converged(config))(started)))
+    assert len(late) >= 5  # fingers that the shared steps leave unconverged exist here
+    assert bool(jnp.all(jax.vmap(lambda r: r.converged(config))(finished)[need]))
+    for i in late[:10]:
+        take = lambda t: jax.tree_util.tree_map(lambda a: a[i], t)  # noqa: E731
+        bracket, search = take(brackets), take(finished)
+        fn = jax.jit(root_function(finger, lambda q: grid.distance(q + bases[i]), bracket, config, search))
+        g = lambda s: float(fn(jnp.float32(s)))  # noqa: E731
+        assert g(float(bracket.lower)) > 0 >= g(float(bracket.upper))  # the bracket holds a sign change
+        reference = brentq(g, float(bracket.lower), float(bracket.upper), xtol=1e-7)
+        # (A non-monotone clearance can hold several roots: then the solver's must be one of them.)
+        assert abs(float(search.s) - reference) <= 2 * config.root_atol or abs(g(float(search.s))) <= config.root_atol
+    assert ROOT_STEPS_TOGETHER < config.root_max_steps
