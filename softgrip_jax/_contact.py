@@ -252,27 +252,37 @@ def _point_at_arc_length(joints, length, l):
     return joints[k] + t * (joints[k + 1] - joints[k])
 
 
-def _second_contact(dist, centre, radius, n_circle):
+def _second_contact(dist, centre, radius, n_circle, coarse=None):
     """Crossings of the circle (``centre``, ``radius``) with the zero level of ``dist`` (Fig. 8).
 
     Returns (has_crossing, crossing point, angle of centre -> crossing): the crossing with the
-    largest y, i.e. the direction nearest the downward vertical.
+    largest y, i.e. the direction nearest the downward vertical. ``coarse`` (optional): a cheaper
+    lookup (SDFGrid's bilinear one) that finds the crossings on the ``n_circle`` samples; the two
+    samples around the chosen one are then looked up with ``dist``, which places it.
     """
     dtype = centre.dtype
     step = 2.0 * jnp.pi / n_circle
     phi = (jnp.arange(n_circle, dtype=dtype) - n_circle // 2) * step  # [-pi, pi)
-    d = dist(centre + radius * unit_direction(phi))
+    points = centre + radius * unit_direction(phi)
+    d = (dist if coarse is None else coarse)(points)
     d_next = jnp.roll(d, -1)
     crossing = (d > 0) != (d_next > 0)
-    frac = jnp.clip(safe_divide(d, d - d_next, 0.5), 0.0, 1.0)
-    angle = phi + frac * step
-    angle = jnp.where(angle >= jnp.pi, angle - 2.0 * jnp.pi, angle)
+
+    def angle_between(d, d_next, phi):
+        angle = phi + jnp.clip(safe_divide(d, d - d_next, 0.5), 0.0, 1.0) * step
+        return jnp.where(angle >= jnp.pi, angle - 2.0 * jnp.pi, angle)
+
+    angle = angle_between(d, d_next, phi)
     # Nearest the downward vertical: the largest cos(angle), i.e. the smallest |angle| in [-pi, pi)
     # (compared without computing the 64 cosines).
     ranking = jnp.where(crossing, -jnp.abs(angle), -jnp.inf)
     best = jnp.argmax(ranking)
     has = jnp.any(crossing)
-    theta_o1o2 = jnp.where(has, angle[best], 0.0)
+    chosen = angle[best]
+    if coarse is not None:
+        ends = dist(points[jnp.stack([best, (best + 1) % n_circle])])
+        chosen = angle_between(ends[0], ends[1], phi[best])
+    theta_o1o2 = jnp.where(has, chosen, 0.0)
     return has, centre + radius * unit_direction(theta_o1o2), theta_o1o2
 
 
@@ -307,8 +317,9 @@ def predict_contact(
     check_finger(finger)
     check_sdf(sdf)
     base = jnp.asarray(base, finger.length.dtype)
+    has_coarse = type(sdf).coarse_distance is not AbstractSDF.coarse_distance
     contact = predict_contact_local(finger, lambda q: sdf.distance(q + base), config,
-                                    coarse=lambda q: sdf.coarse_distance(q + base))
+                                    coarse=(lambda q: sdf.coarse_distance(q + base)) if has_coarse else None)
     return eqx.tree_at(lambda c: (c.p_g1, c.p_o1, c.p_o2), contact,
                        (contact.p_g1 + base, contact.p_o1 + base, contact.p_o2 + base))
 
@@ -321,8 +332,8 @@ def predict_contact_local(
 ) -> Contact:
     """:func:`predict_contact` in the finger's own frame: base at the origin, ``dist`` the object's
     signed distance as a function of finger-frame points (mm); ``coarse`` a cheaper approximation
-    of it for the coarse bracketing grid (:meth:`~softgrip_jax._sdf.AbstractSDF.coarse_distance`;
-    None: ``dist``).
+    of it for the coarse bracketing grid and the second contact's circle
+    (:meth:`~softgrip_jax._sdf.AbstractSDF.coarse_distance`; None: ``dist``).
 
     The scene enters only through ``dist``, so a finger placed by a frame (translated, rotated or
     mirrored) closes over that frame instead of carrying it inside the SDF: the SDF, usually a large
@@ -339,7 +350,7 @@ def predict_contact_local(
         True
     """
     bracket = bracket_contact(finger, dist if coarse is None else coarse, config)
-    refined = refine_contact(finger, dist, bracket, config)
+    refined = refine_contact(finger, dist, bracket, config, coarse=coarse)
     free = free_contact(finger, bracket)
     return jax.tree_util.tree_map(lambda a, b: jnp.where(bracket.needs_root, a, b), refined, free)
 
@@ -550,14 +561,17 @@ def start_root(finger: FingerModel, dist, bracket: Bracket, config: ContactConfi
                         lift=jnp.maximum(_END_MARGIN_MM - g_lower, 0.0), drop=jnp.maximum(g_upper, 0.0))
     fn = root_function(finger, dist, bracket, config, search)
     solver = BracketedNewton(atol=config.root_atol)
-    for _ in range(min(steps, config.root_max_steps)):
+
+    def iteration(_, search):
         state = _BracketState(lower=search.lower, upper=search.upper, diff=search.diff, value=search.value)
         s, state, _ = solver.step(lambda s, _: (fn(s), None), search.s, None, {}, state, frozenset())
         stepped = RootSearch(s=s, lower=state.lower, upper=state.upper, diff=state.diff, value=state.value,
                              lift=search.lift, drop=search.drop)
         done = search.converged(config)
-        search = jax.tree_util.tree_map(lambda old, new: jnp.where(done, old, new), search, stepped)
-    return search
+        return jax.tree_util.tree_map(lambda old, new: jnp.where(done, old, new), search, stepped)
+
+    # (A loop of a fixed count, not unrolled: its body is compiled once, and it runs as fast.)
+    return jax.lax.fori_loop(0, min(steps, config.root_max_steps), iteration, search)
 
 
 def finish_root(finger: FingerModel, dist, bracket: Bracket, config: ContactConfig, search: RootSearch,
@@ -568,15 +582,25 @@ def finish_root(finger: FingerModel, dist, bracket: Bracket, config: ContactConf
     if remaining <= 0:
         return search
     fn = root_function(finger, dist, bracket, config, search)
-    solution: optx.Solution = optx.root_find(
-        lambda s, _: fn(s), BracketedNewton(atol=config.root_atol), search.s,
-        options=dict(lower=search.lower, upper=search.upper), throw=False, max_steps=remaining,
-    )
-    ok = solution.result == optx.RESULTS.successful
+
+    def solve(fn_, s0):
+        solution = optx.root_find(
+            lambda s, _: fn_(s), BracketedNewton(atol=config.root_atol), s0,
+            options=dict(lower=search.lower, upper=search.upper), throw=False, max_steps=remaining,
+        )
+        # The flag as a float: custom_root gives its auxiliary outputs zero tangents of their own dtype.
+        return solution.value, (solution.result == optx.RESULTS.successful).astype(s0.dtype)
+
+    # Differentiated (refine_contact takes no derivative through the search, but a JVP traced
+    # through it is traced all the same), optimistix's adjoint would solve the 1x1 tangent system
+    # with lineax, whose checks are host callbacks, and a program with host callbacks never enters
+    # the persistent compilation cache: JAX's custom_root with a division instead.
+    value, ok = jax.lax.custom_root(fn, search.s, solve, lambda g, y: y / g(jnp.ones_like(y)), has_aux=True)
+    ok = ok > 0.5
     tiny = jnp.zeros_like(search.s)
     # (The solver's last step and value are within atol exactly when it succeeded.)
     return eqx.tree_at(lambda r: (r.s, r.diff, r.value), search,
-                       (solution.value, jnp.where(ok, tiny, jnp.inf), jnp.where(ok, tiny, jnp.inf)))
+                       (value, jnp.where(ok, tiny, jnp.inf), jnp.where(ok, tiny, jnp.inf)))
 
 
 def refine_contact(
@@ -585,6 +609,7 @@ def refine_contact(
     bracket: Bracket,
     config: ContactConfig = ContactConfig(),
     search: RootSearch | None = None,
+    coarse: Callable[[Float[Array, "*batch 2"]], Float[Array, "*batch"]] | None = None,
 ) -> Contact:
     """The first contact s1 inside the bracket (a bracketed Newton root finder), where the finger
     touches (eqs. 6-7), its angles (eq. 8) and the second contact (Fig. 8): the :class:`Contact`
@@ -592,7 +617,8 @@ def refine_contact(
     without meaning, so that it can be evaluated, and differentiated, everywhere.)
 
     ``search``: the finished root search (:func:`start_root`, then :func:`finish_root` where it
-    has not converged), as batched code computes it; None: computed here.
+    has not converged), as batched code computes it; None: computed here. ``coarse``: a cheaper
+    lookup that finds the second contact's crossings on the circle (None: ``dist``).
     """
     if search is None:
         search = start_root(finger, dist, bracket, config)
@@ -641,7 +667,8 @@ def refine_contact(
 
     # Second contact (Fig. 8).
     dilated = lambda q: dist(q) - r
-    has_second, p_g2, theta_o1o2 = _second_contact(dilated, p_g1, length - l_g1, config.n_circle)
+    coarse_dilated = None if coarse is None else (lambda q: coarse(q) - r)
+    has_second, p_g2, theta_o1o2 = _second_contact(dilated, p_g1, length - l_g1, config.n_circle, coarse_dilated)
     p_o1, p_o2 = jax.vmap(lambda q: surface_point(dist, q))(jnp.stack([p_g1, p_g2]))  # one traced copy
 
     at_tip = n_g1 >= n - config.tip_tolerance

@@ -58,9 +58,11 @@ class AbstractSDF(eqx.Module):
 
     def coarse_distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
         """A cheaper approximation of :meth:`distance` (mm), for the contact sweep's coarse
-        bracketing grid, where only the sign of the clearance at a few closing steps is read:
-        :meth:`distance` itself unless overridden. The root of the first contact is then found on
-        :meth:`distance`, so the estimate and its derivatives are those of :meth:`distance`."""
+        bracketing grid and the second contact's circle, where only signs are read (of the
+        clearance at a few closing steps, of the distance around the circle): :meth:`distance`
+        itself unless overridden. The root of the first contact and the chosen crossing on the
+        circle are then placed with :meth:`distance`, so the estimate and its derivatives are those
+        of :meth:`distance`."""
         return self.distance(points)
 
     def contains(self, points: Float[Array, "*batch 2"]) -> Bool[Array, "*batch"]:
