@@ -317,9 +317,8 @@ def predict_contact(
     check_finger(finger)
     check_sdf(sdf)
     base = jnp.asarray(base, finger.length.dtype)
-    has_coarse = type(sdf).coarse_distance is not AbstractSDF.coarse_distance
     contact = predict_contact_local(finger, lambda q: sdf.distance(q + base), config,
-                                    coarse=(lambda q: sdf.coarse_distance(q + base)) if has_coarse else None)
+                                    coarse=(lambda q: sdf.coarse_distance(q + base)) if sdf.has_coarse_lookup else None)
     return eqx.tree_at(lambda c: (c.p_g1, c.p_o1, c.p_o2), contact,
                        (contact.p_g1 + base, contact.p_o1 + base, contact.p_o2 + base))
 

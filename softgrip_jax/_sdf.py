@@ -65,6 +65,12 @@ class AbstractSDF(eqx.Module):
         of :meth:`distance`."""
         return self.distance(points)
 
+    @property
+    def has_coarse_lookup(self) -> bool:
+        """Whether :meth:`coarse_distance` is a lookup of its own (not :meth:`distance` itself):
+        only then do the coarse sweep and the circle gain from reading it first."""
+        return type(self).coarse_distance is not AbstractSDF.coarse_distance
+
     def contains(self, points: Float[Array, "*batch 2"]) -> Bool[Array, "*batch"]:
         """Whether ``points`` lie where the SDF has data (everywhere, unless overridden)."""
         return jnp.ones(jnp.shape(points)[:-1], dtype=bool)

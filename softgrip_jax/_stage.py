@@ -212,9 +212,8 @@ def refine_search(finger: FingerModel, sdf: AbstractSDF, search: Search, config:
     """The refined contact (eqs. 5-8, Fig. 8) of a search that ``need_refining``, from its finished
     ``root`` search (None: found here)."""
     # (A lookup without a cheaper coarse one would only look up the circle's chosen samples twice.)
-    has_coarse = type(sdf).coarse_distance is not AbstractSDF.coarse_distance
     return refine_contact(finger, _distance_in(sdf, search.frame), search.bracket, config, root,
-                          coarse=_coarse_distance_in(sdf, search.frame) if has_coarse else None)
+                          coarse=_coarse_distance_in(sdf, search.frame) if sdf.has_coarse_lookup else None)
 
 
 def start_root_search(finger: FingerModel, sdf: AbstractSDF, search: Search, config: ContactConfig) -> RootSearch:
