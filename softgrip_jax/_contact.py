@@ -471,7 +471,9 @@ class BracketedNewton(optx.AbstractRootFinder):
     Each evaluation's sign shrinks the bracket; a Newton step that would leave it (the clearance
     g(s) is not monotone: it dips below zero and rises again when the sweep passes a corner) is
     replaced by the bracket's midpoint, so the iterates never leave a bracket that holds a root.
-    Converged when the last step and |f| are both within ``atol``.
+    Converged when the last step and |f| are both within ``atol``. ``options["diff"]`` and
+    ``options["value"]`` (optional; inf by default): the last step and |f| of a search continued
+    from where it stopped (one that had converged takes no step).
     """
 
     atol: float  # type: ignore[misc]  # optimistix's abstract fields read to mypy as having defaults
@@ -480,8 +482,12 @@ class BracketedNewton(optx.AbstractRootFinder):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         inf = jnp.asarray(jnp.inf, f_struct.dtype)
+        # (``diff`` and ``value`` in the options: a search continued from where it stopped, which
+        # takes no step at all if it had converged.)
         return _BracketState(lower=jnp.asarray(options["lower"], f_struct.dtype),
-                             upper=jnp.asarray(options["upper"], f_struct.dtype), diff=inf, value=inf)
+                             upper=jnp.asarray(options["upper"], f_struct.dtype),
+                             diff=jnp.asarray(options.get("diff", inf), f_struct.dtype),
+                             value=jnp.asarray(options.get("value", inf), f_struct.dtype))
 
     def step(self, fn, y, args, options, state, tags):
         value, slope, aux = jax.jvp(lambda s: fn(s, args), (y,), (jnp.ones_like(y),), has_aux=True)
@@ -585,7 +591,8 @@ def finish_root(finger: FingerModel, dist, bracket: Bracket, config: ContactConf
     def solve(fn_, s0):
         solution = optx.root_find(
             lambda s, _: fn_(s), BracketedNewton(atol=config.root_atol), s0,
-            options=dict(lower=search.lower, upper=search.upper), throw=False, max_steps=remaining,
+            options=dict(lower=search.lower, upper=search.upper, diff=search.diff, value=search.value),
+            throw=False, max_steps=remaining,
         )
         # The flag as a float: custom_root gives its auxiliary outputs zero tangents of their own dtype.
         return solution.value, (solution.result == optx.RESULTS.successful).astype(s0.dtype)
@@ -621,8 +628,10 @@ def refine_contact(
     """
     if search is None:
         search = start_root(finger, dist, bracket, config)
-        search = jax.lax.cond(search.converged(config), lambda: search,
-                              lambda: finish_root(finger, dist, bracket, config, search))
+        # (Not behind a lax.cond on its convergence: under vmap that cond would become a select
+        # over copies of every operand, the object's grid included, one per finger. A search that
+        # has converged takes no step in finish_root.)
+        search = finish_root(finger, dist, bracket, config, search)
     dtype = finger.length.dtype
     base = jnp.zeros(2, dtype)
     theta = finger.theta_entire

@@ -10,7 +10,7 @@ import pytest
 from softgrip_jax import (CASE_NAMES, FingerModel, Gripper, PolygonSDF, SDFGrid, Status, estimate,
                           estimate_batch, estimate_grasp_batch)
 from softgrip_jax._batch import _estimate_batch
-from softgrip_jax import Geometric
+from softgrip_jax import Geometric, Mechanics
 
 #: The paper's estimate: these tests check its batching (the mechanics one has its own tests).
 geometric = functools.partial(estimate, estimator=Geometric())
@@ -73,6 +73,28 @@ def test_batch_refines_only_touching_fingers_with_the_same_results():
     for name in ("s1", "p_g1", "p_o1", "n_g1", "theta_o1", "theta_o1o2"):
         np.testing.assert_allclose(getattr(batch.contact, name), getattr(one.contact, name), atol=1e-4, err_msg=name)
     np.testing.assert_allclose(batch.joints, one.joints, atol=1e-4)
+
+
+@pytest.mark.parametrize("estimator", [pytest.param(Geometric(), id="geometric"),
+                                       pytest.param(Mechanics(), id="mechanics", marks=pytest.mark.slow)])
+def test_a_vmapped_estimate_holds_the_grid_once_not_once_per_finger(estimator):
+    # A lax.cond whose predicate is batched becomes a select over copies of all its operands,
+    # the grid among them: the program's scratch memory then grows by a grid per finger. Two grids
+    # of 1x and 4x the cells, 64 fingers: the scratch memory may grow by a few copies of the larger
+    # grid's extra cells (padding, per-cell coefficients), not by 64.
+    b = 64
+    many = jnp.asarray(bases(b, 5))
+    fine = SDFGrid.sample(CIRCLE, origin=(-40.0, -30.0), spacing=(0.25, 0.25), shape=(400, 480))
+    one = functools.partial(estimate, estimator=estimator)
+    program = jax.jit(jax.vmap(one, in_axes=(None, None, 0)))
+
+    def scratch(grid):
+        analysis = program.lower(FINGER, grid, many).compile().memory_analysis()
+        return analysis.temp_size_in_bytes
+
+    grown = scratch(fine) - scratch(GRID)
+    extra_grid_bytes = fine.values.nbytes - GRID.values.nbytes
+    assert grown < 8 * extra_grid_bytes, (grown, extra_grid_bytes)
 
 
 @pytest.mark.slow
