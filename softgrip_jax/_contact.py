@@ -482,8 +482,6 @@ class BracketedNewton(optx.AbstractRootFinder):
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         inf = jnp.asarray(jnp.inf, f_struct.dtype)
-        # (``diff`` and ``value`` in the options: a search continued from where it stopped, which
-        # takes no step at all if it had converged.)
         return _BracketState(lower=jnp.asarray(options["lower"], f_struct.dtype),
                              upper=jnp.asarray(options["upper"], f_struct.dtype),
                              diff=jnp.asarray(options.get("diff", inf), f_struct.dtype),
