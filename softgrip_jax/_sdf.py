@@ -13,6 +13,7 @@ from __future__ import annotations
 import abc
 import math
 from collections.abc import Callable
+from functools import partial
 from typing import TYPE_CHECKING, ClassVar, Literal, cast
 
 import equinox as eqx
@@ -145,6 +146,10 @@ class SDFGrid(AbstractSDF):
         far: distance in mm returned outside the grid (static).
         interpolation: ``"cubic"`` (default, C1 Catmull-Rom bicubic, 4 x 4 samples) or ``"linear"``
             (bilinear, 2 x 2 samples) (static).
+        cells: ((H-1) (W-1), 16) the cubic lookup's polynomial coefficients per cell, made from
+            ``values`` at construction (None for ``"linear"``): a lookup reads one row of 16
+            neighbouring floats instead of sixteen samples on four rows of the grid. Derived data:
+            build a new grid (not ``eqx.tree_at``) to change ``values``.
 
     Arrays may be numpy arrays, JAX arrays or nested lists (stored as JAX arrays of the default
     float type).
@@ -166,16 +171,20 @@ class SDFGrid(AbstractSDF):
         (5.0, [1.0, 1.0])
     """
 
-    values: Float[Array, "h w"] = eqx.field(converter=_as_array)
-    origin: Float[Array, "2"] = eqx.field(converter=_as_array)
-    spacing: Float[Array, "2"] = eqx.field(converter=_as_pair)
-    far: float = eqx.field(static=True, default=FAR_MM)
-    interpolation: str = eqx.field(static=True, default="cubic")  # "cubic" or "linear", checked below
+    values: Float[Array, "h w"]
+    origin: Float[Array, "2"]
+    spacing: Float[Array, "2"]
+    far: float = eqx.field(static=True)
+    interpolation: str = eqx.field(static=True)  # "cubic" or "linear", checked below
+    cells: Float[Array, "cells 16"] | None
 
-    if TYPE_CHECKING:  # the signature the converters accept (type checkers do not apply them)
-        def __init__(self, values: Float[ArrayLike, "h w"], origin: Float[ArrayLike, "2"],
-                     spacing: Float[ArrayLike, "2"] | float, far: float = FAR_MM,
-                     interpolation: str = "cubic") -> None: ...
+    def __init__(self, values: Float[ArrayLike, "h w"], origin: Float[ArrayLike, "2"],
+                 spacing: Float[ArrayLike, "2"] | float, far: float = FAR_MM, interpolation: str = "cubic"):
+        self.values, self.origin, self.spacing = _as_array(values), _as_array(origin), _as_pair(spacing)
+        self.far, self.interpolation = far, interpolation
+        usable = interpolation == "cubic" and jnp.ndim(self.values) == 2 and min(jnp.shape(self.values)) >= 2
+        # (Otherwise __check_init__ says what is wrong.)
+        self.cells = catmull_rom_cells(self.values) if usable else None
 
     def __check_init__(self):
         if self.interpolation not in ("cubic", "linear"):
@@ -255,7 +264,7 @@ class SDFGrid(AbstractSDF):
         row = jnp.clip(jnp.where(inside, row, 0.0), 0, h - 1)
         col = jnp.clip(jnp.where(inside, col, 0.0), 0, w - 1)
         if interpolation == "cubic":
-            value = _catmull_rom(self.values, row, col)
+            value = _catmull_rom(cast(Array, self.cells), row, col, w)
         else:
             value = _bilinear(self.values, row, col)
         return jnp.where(inside, value, jnp.asarray(self.far, value.dtype))
@@ -279,92 +288,88 @@ def _bilinear(values: Float[Array, "h w"], row: Float[Array, "*batch"], col: Flo
     return top + fy * (bottom - top)
 
 
-def _cubic_weights(t: Array) -> list[Array]:
-    """Catmull-Rom (cubic convolution, a = -1/2) weights of the samples at -1, 0, 1, 2 for a point
-    at fraction ``t`` in [0, 1] of the cell from 0 to 1."""
-    t2 = t * t
-    t3 = t2 * t
-    return [0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (3.0 * t3 - 5.0 * t2) + 1.0,
-            0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2)]
+#: Catmull-Rom (cubic convolution, a = -1/2) weights of the samples at -1, 0, 1, 2 of a point at
+#: fraction t of the cell from 0 to 1, as polynomials: weight a is sum over k of _CATMULL_ROM[a, k] t^k.
+_CATMULL_ROM = np.array([[0.0, -0.5, 1.0, -0.5], [1.0, 0.0, -2.5, 1.5], [0.0, 0.5, 2.0, -1.5], [0.0, 0.0, -0.5, 0.5]])
 
 
-def _cubic_slopes(t: Array) -> list[Array]:
-    """d/dt of :func:`_cubic_weights`."""
-    t2 = t * t
-    return [0.5 * (-3.0 * t2 + 4.0 * t - 1.0), 0.5 * (9.0 * t2 - 10.0 * t),
-            0.5 * (-9.0 * t2 + 8.0 * t + 1.0), 0.5 * (3.0 * t2 - 2.0 * t)]
+@jax.jit
+def catmull_rom_cells(values: Float[Array, "h w"]) -> Float[Array, "cells 16"]:
+    """The bicubic Catmull-Rom lookup of ``values`` as one polynomial per cell: row
+    ``r (W-1) + c`` holds the coefficients ``C[k, l]`` (index ``4 k + l``) of the cell between
+    rows r, r+1 and columns c, c+1, whose value at fractions (ty, tx) is sum C[k, l] ty^k tx^l.
 
-
-def _fold_ghosts(w: list[Array], first: Array, last: Array) -> list[Array]:
-    """Weights of the taps -1, 0, 1, 2 with the ghost samples past the grid's edge folded onto the
-    samples inside. In the first cell (``first``) tap -1 is the ghost 2 v0 - v1, in the last
-    (``last``) tap 2 is the ghost 2 v1 - v0 (linear extrapolation: a linear field stays exact and
-    the lookup stays C1 up to the edge); a grid two samples long has both."""
-    wm, w0, w1, w2 = w
-    zero = jnp.zeros_like(wm)
-    before, after = jnp.where(first, wm, zero), jnp.where(last, w2, zero)  # the ghosts' weights
-    return [wm - before, w0 + 2.0 * before - after, w1 - before + 2.0 * after, w2 - after]
-
-
-def _cubic_cell(n: int, c: Array) -> tuple[Array, Array, Array, Array]:
-    """Cell index (as a float), fraction within it, and whether it is the first or last cell, for
-    coordinates ``c`` in [0, n-1] along an axis of n samples."""
-    c0 = jnp.minimum(jnp.floor(c), n - 2)
-    return c0, c - c0, c0 == 0, c0 == n - 2
-
-
-def _cubic_taps(values: Array, row0: Array, col0: Array) -> list[list[Array]]:
-    """The 4 x 4 samples around each cell (rows row0-1 ... row0+2, columns col0-1 ... col0+2), with
-    indices clamped into the grid (a clamped tap is a folded ghost and has weight 0): sixteen
-    gathers by flat index, which XLA:CPU fuses with the weights (a single gather of a 4 x 4 patch,
-    or of a 2-D index array, is not fused and ran much slower)."""
+    The 4 x 4 samples around a cell (rows r-1 ... r+2) include, beside the grid's edge, ghost
+    samples extrapolated linearly past it (2 v0 - v1): a linear field stays exact and the lookup
+    stays C1 up to the edge. Linear in ``values`` (so derivatives with respect to the samples
+    pass through it)."""
     h, w = values.shape
-    flat = values.reshape(-1)
-    rows = [jnp.clip(row0 + k, 0, h - 1).astype(jnp.uint32) * jnp.uint32(w) for k in (-1, 0, 1, 2)]
-    cols = [jnp.clip(col0 + k, 0, w - 1).astype(jnp.uint32) for k in (-1, 0, 1, 2)]
-    return [[flat.at[r + c].get(mode="promise_in_bounds") for c in cols] for r in rows]
+    v = jnp.concatenate([2.0 * values[:1] - values[1:2], values, 2.0 * values[-1:] - values[-2:-1]], axis=0)
+    v = jnp.concatenate([2.0 * v[:, :1] - v[:, 1:2], v, 2.0 * v[:, -1:] - v[:, -2:-1]], axis=1)  # (h+2, w+2)
+    m = jnp.asarray(_CATMULL_ROM, values.dtype)
+    # C = M^T T M for each cell's taps T: along the columns first, then along the rows.
+    along_x = jnp.stack([v[:, b:b + w - 1] for b in range(4)], axis=-1) @ m  # (h+2, w-1, 4): by tx power
+    taps = jnp.stack([along_x[a:a + h - 1] for a in range(4)], axis=-2)  # (h-1, w-1, 4 rows, 4)
+    return jnp.einsum("ak,...al->...kl", m, taps).reshape((h - 1) * (w - 1), 16)
 
 
-def _contract(wy: list[Array], wx: list[Array], taps: list[list[Array]]) -> Array:
-    return cast(Array, sum(wy[a] * sum(wx[b] * taps[a][b] for b in range(4)) for a in range(4)))
+def _cell_of(row: Array, col: Array, h: int, w: int) -> tuple[Array, Array, Array]:
+    """The row of :func:`catmull_rom_cells` of the cell holding grid coordinates (row, col) within
+    [0, H-1] x [0, W-1] (the last row and column read the cell before them), and the fractions
+    (ty, tx) within it."""
+    row0 = jnp.minimum(jnp.floor(row), h - 2)
+    col0 = jnp.minimum(jnp.floor(col), w - 2)
+    return row0.astype(jnp.uint32) * jnp.uint32(w - 1) + col0.astype(jnp.uint32), row - row0, col - col0
 
 
-@jax.custom_jvp
-def _catmull_rom(values: Float[Array, "h w"], row: Float[Array, "*batch"], col: Float[Array, "*batch"]) -> Float[Array, "*batch"]:
-    """Bicubic Catmull-Rom lookup at grid coordinates (row, col) within [0, H-1] x [0, W-1].
+def _cell_coefficients(cells: Array, index: Array) -> list[Array]:
+    """The 16 coefficients of each ``index``'s cell: sixteen gathers by flat index from one row of
+    64 bytes, which XLA:CPU fuses with the polynomial (a single gather of 16-wide rows ran slower)."""
+    flat = cells.reshape(-1)
+    start = index * jnp.uint32(16)
+    return [flat.at[start + jnp.uint32(k)].get(mode="promise_in_bounds") for k in range(16)]
 
-    Its derivative (custom JVP) is the analytic one, from the same sixteen samples: left to plain
+
+def _horner(c: list[Array], t: Array) -> Array:
+    return ((c[3] * t + c[2]) * t + c[1]) * t + c[0]
+
+
+def _horner_slope(c: list[Array], t: Array) -> Array:
+    return (3.0 * c[3] * t + 2.0 * c[2]) * t + c[1]
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(3,))
+def _catmull_rom(cells: Float[Array, "cells 16"], row: Float[Array, "*batch"], col: Float[Array, "*batch"],
+                 w: int) -> Float[Array, "*batch"]:
+    """Bicubic Catmull-Rom lookup at grid coordinates (row, col) within [0, H-1] x [0, W-1] of a
+    grid W samples wide, from its :func:`catmull_rom_cells`.
+
+    Its derivative (custom JVP) is the analytic one, from the same coefficients: left to plain
     autodiff, the reverse pass ran much slower than the lookup. Higher derivatives (the Hessian the
     implicit differentiation of an equilibrium uses) differentiate that rule.
     """
-    h, w = values.shape
-    row0, ty, first_r, last_r = _cubic_cell(h, row)
-    col0, tx, first_c, last_c = _cubic_cell(w, col)
-    wy = _fold_ghosts(_cubic_weights(ty), first_r, last_r)
-    wx = _fold_ghosts(_cubic_weights(tx), first_c, last_c)
-    return _contract(wy, wx, _cubic_taps(values, row0, col0))
+    h = cells.shape[0] // (w - 1) + 1
+    index, ty, tx = _cell_of(row, col, h, w)
+    c = _cell_coefficients(cells, index)
+    return _horner([_horner(c[4 * k:4 * k + 4], tx) for k in range(4)], ty)
 
 
-def _catmull_rom_jvp(primals, tangents):
-    values, row, col = primals
-    d_values, d_row, d_col = tangents
-    h, w = values.shape
-    row0, ty, first_r, last_r = _cubic_cell(h, row)
-    col0, tx, first_c, last_c = _cubic_cell(w, col)
-    wy = _fold_ghosts(_cubic_weights(ty), first_r, last_r)
-    wx = _fold_ghosts(_cubic_weights(tx), first_c, last_c)
-    taps = _cubic_taps(values, row0, col0)
-    along_x = [sum(wx[b] * taps[a][b] for b in range(4)) for a in range(4)]
-    value = sum(wy[a] * along_x[a] for a in range(4))
+def _catmull_rom_jvp(w, primals, tangents):
+    cells, row, col = primals
+    d_cells, d_row, d_col = tangents
+    h = cells.shape[0] // (w - 1) + 1
+    index, ty, tx = _cell_of(row, col, h, w)
+    c = _cell_coefficients(cells, index)
+    along_x = [_horner(c[4 * k:4 * k + 4], tx) for k in range(4)]  # one polynomial in ty
+    value = _horner(along_x, ty)
     tangent = jnp.zeros_like(value)
     if not isinstance(d_row, SymbolicZero):
-        dwy = _fold_ghosts(_cubic_slopes(ty), first_r, last_r)
-        tangent = tangent + sum(dwy[a] * along_x[a] for a in range(4)) * d_row
+        tangent = tangent + _horner_slope(along_x, ty) * d_row
     if not isinstance(d_col, SymbolicZero):
-        dwx = _fold_ghosts(_cubic_slopes(tx), first_c, last_c)
-        tangent = tangent + _contract(wy, dwx, taps) * d_col
-    if not isinstance(d_values, SymbolicZero):  # the lookup is linear in the samples
-        tangent = tangent + _contract(wy, wx, _cubic_taps(d_values, row0, col0))
+        tangent = tangent + _horner([_horner_slope(c[4 * k:4 * k + 4], tx) for k in range(4)], ty) * d_col
+    if not isinstance(d_cells, SymbolicZero):  # the lookup is linear in the coefficients
+        dc = _cell_coefficients(d_cells, index)
+        tangent = tangent + _horner([_horner(dc[4 * k:4 * k + 4], tx) for k in range(4)], ty)
     return value, tangent
 
 

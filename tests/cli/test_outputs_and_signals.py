@@ -93,7 +93,8 @@ def one_error_line(stderr: bytes, *needles: str) -> str:
 
 
 @pytest.mark.parametrize("name", ["SIGTERM", "SIGHUP", "SIGINT"])
-def test_a_signal_while_an_output_is_written_leaves_no_temporary_file(tmp_path: Path, name: str) -> None:
+def test_a_signal_while_an_output_is_written_leaves_no_temporary_file(tmp_path: Path, name: str,
+                                                                      sigint_delivered) -> None:
     out = tmp_path / "out"
     out.mkdir()
     run = run_fake(tmp_path, f"write-then-{name}", capture_argv(out))

@@ -125,7 +125,7 @@ def _mapped(pid: int, name: str) -> bool:
 
 
 @pytest.mark.parametrize("when", ["numpy loaded", "0.3 s"])
-def test_ctrl_c_while_starting_exits_130_without_a_traceback(when: str) -> None:
+def test_ctrl_c_while_starting_exits_130_without_a_traceback(when: str, sigint_delivered) -> None:
     """Ctrl-C inside the command's imports of numpy, JAX and OpenCV. Not earlier: a SIGINT while
     the interpreter itself starts (before any of the command's code, ``init_import_site``) is
     Python's own fatal error, whatever the command does."""

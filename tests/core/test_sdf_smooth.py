@@ -147,6 +147,36 @@ def test_jax_grad_and_hessian_of_the_cubic_lookup_match_central_differences(x64)
     assert float(jnp.sum(by_values)) == pytest.approx(1.0) and int(jnp.sum(by_values != 0)) == 16
 
 
+def keys_kernel(x, a=-0.5):
+    """Keys' cubic convolution kernel (1981), the textbook form of Catmull-Rom for a = -1/2."""
+    x = np.abs(x)
+    near = (a + 2) * x**3 - (a + 3) * x**2 + 1
+    far = a * x**3 - 5 * a * x**2 + 8 * a * x - 4 * a
+    return np.where(x <= 1, near, np.where(x < 2, far, 0.0))
+
+
+def test_the_cubic_lookup_is_keys_cubic_convolution_of_the_samples_with_linear_ghosts(x64):
+    # An independent reference for the per-cell polynomial table the lookup reads: the sum over
+    # the 4 x 4 nearest samples of kernel(row distance) kernel(column distance) v, in numpy, on the
+    # grid extended by one ghost sample per side extrapolated linearly (2 v0 - v1, corners
+    # included: the extension applied along rows, then along columns).
+    grid, v = random_grid("cubic", seed=5)
+    ghost = np.concatenate([2 * v[:1] - v[1:2], v, 2 * v[-1:] - v[-2:-1]], axis=0)
+    ghost = np.concatenate([2 * ghost[:, :1] - ghost[:, 1:2], ghost, 2 * ghost[:, -1:] - ghost[:, -2:-1]], axis=1)
+    rng = np.random.default_rng(6)
+    h, w = v.shape
+    coords = rng.uniform([0, 0], [h - 1, w - 1], (500, 2))  # (row, col), the border cells included
+    coords[:4] = [[0, 0], [h - 1, w - 1], [0, w - 1], [h - 1, 3.5]]  # the corners and an edge
+    expected = []
+    for row, col in coords:
+        r0, c0 = min(int(row), h - 2), min(int(col), w - 2)
+        taps_r, taps_c = np.arange(r0 - 1, r0 + 3), np.arange(c0 - 1, c0 + 3)
+        weights = np.outer(keys_kernel(row - taps_r), keys_kernel(col - taps_c))
+        expected.append(np.sum(weights * ghost[taps_r[:, None] + 1, taps_c[None, :] + 1]))
+    points = jnp.asarray(np.array([-1.0, 2.0]) + coords[:, ::-1] * [0.3, 0.4])
+    np.testing.assert_allclose(jax.jit(lambda p: grid.distance(p))(points), expected, atol=1e-12)
+
+
 def test_the_cubic_lookup_jits_vmaps_over_grids_and_stays_far_outside():
     grids = [random_grid("cubic", seed=s)[0] for s in range(3)]
     stacked = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *grids)
