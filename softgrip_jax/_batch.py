@@ -169,7 +169,7 @@ def _estimate_sharded(finger, sdf, bases, config, chunk_size, estimator):
 def grasp_chunk(gripper, sdf, poses, config, estimator):
     left, right = jax.vmap(lambda p: finger_frames(gripper, p))(poses)
     left, right = per_finger(lambda finger, frames: finger_chunk(finger, sdf, frames, config, estimator),
-                             gripper, (left, right))
+                             gripper, (left, right), in_turn=True)
     return jax.vmap(lambda a, b: GraspEstimate(left=a, right=b, valid=a.valid & b.valid))(left, right)
 
 

@@ -93,17 +93,23 @@ def estimate_grasp(
     return GraspEstimate(left=left, right=right, valid=left.valid & right.valid)
 
 
-def per_finger(fn, gripper: Gripper, *pairs):
+def per_finger(fn, gripper: Gripper, *pairs, in_turn: bool = False):
     """``(fn(gripper.left, *lefts), fn(gripper.right, *rights))`` for ``pairs`` of (left, right)
     arguments (pytrees of arrays).
 
     Fingers of one structure (the same N) go through one traced copy of ``fn``, vmapped over the
-    pair: half the program of two copies, so less tracing and compiling for everything built on
-    it. Fingers of different N take two copies.
+    pair (``in_turn``: looped over it): half the program of two copies, so less tracing and
+    compiling for everything built on it. Fingers of different N take two copies. A batch's
+    ``fn`` loops (``in_turn``): under ``vmap`` the finger's parameters would be batched, and its
+    skips of the work no candidate needs (``lax.cond`` on a now batched predicate) would run both
+    branches.
     """
     lefts, rights = (tuple(p[i] for p in pairs) for i in (0, 1))
     if gripper.left.n_links != gripper.right.n_links:  # (the only static field of a finger)
         return fn(gripper.left, *lefts), fn(gripper.right, *rights)
     stacked = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), (gripper.left, lefts), (gripper.right, rights))
-    both = jax.vmap(lambda finger, args: fn(finger, *args))(*stacked)
+    if in_turn:
+        both = jax.lax.map(lambda pair: fn(pair[0], *pair[1]), stacked)
+    else:
+        both = jax.vmap(lambda finger, args: fn(finger, *args))(*stacked)
     return tuple(jax.tree_util.tree_map(lambda x, i=i: x[i], both) for i in (0, 1))
