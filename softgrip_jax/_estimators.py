@@ -36,13 +36,20 @@ from softgrip_jax._mechanics import (DEFAULT_METHOD, METHODS, MechanicsConfig, c
                                      path_increments)
 from softgrip_jax._model import FingerModel
 from softgrip_jax._sdf import AbstractSDF
-from softgrip_jax._stage import Estimate, Stage, finish, mechanics_of, needs_mechanics
+from softgrip_jax._stage import (Estimate, Stage, continue_mechanics, finish, finish_mechanics, mechanics_of,
+                                needs_mechanics, start_mechanics)
 
 #: A chunk's touching candidates are solved for their equilibrium in groups of this many: under
 #: vmap a group iterates until its slowest element is done (the longest closing path, the most
 #: Gauss-Newton steps), so small groups keep few lanes waiting (eight groups per chunk, as for the
 #: contact, are far slower: benchmarks/RESULTS.md, issue 20).
 _MECHANICS_GROUP = 64
+
+#: The solve's iterations every touching finger takes in its group (most converge in two: the
+#: convergence test wants two small steps in a row), and the size of the groups in which the few
+#: that need more continue to the budget, ``MechanicsConfig.max_steps``.
+_FIRST_STEPS = 2
+_LATE_GROUP = 16
 
 
 class AbstractEstimator(eqx.Module):
@@ -131,7 +138,8 @@ class Mechanics(AbstractEstimator):
     (:class:`~softgrip_jax.MechanicsConfig`). A finger that touches nothing keeps its PCC shape.
 
     It reads the finger's ``stiffness_ratio`` (> 0) and ``base_compliance`` (>= 0). Batched, it
-    solves only the fingers that touch, in groups of 64 ordered by their closing path's increments.
+    solves only the fingers that touch, in groups of 64 ordered by their closing path's increments
+    (the few whose solve needs more than two iterations continue in groups of 16).
 
     Example:
         >>> import jax, jax.numpy as jnp
@@ -167,8 +175,19 @@ class Mechanics(AbstractEstimator):
         # Ordered by the closing path's increments, so that short paths do not wait on long ones.
         increments = jax.vmap(lambda st: path_increments(finger, closing_start(finger, st.contact, config)[0],
                                                          self.config))(stages)
-        eq = where_needed(lambda st: mechanics_of(finger, sdf, st, self.config, config), need, stages,
-                          kinds=increments, n_kinds=self.config.path_steps + 1, group_size=_MECHANICS_GROUP)
+        # The closing path and the solve's first iterations in groups; the few fingers whose solve
+        # goes on past them continue in small groups of their own (under vmap a group iterates until
+        # its slowest element is done); then every solved finger's equilibrium and derivatives.
+        mech = self.config
+        progress = where_needed(lambda st: start_mechanics(finger, sdf, st, mech, config, _FIRST_STEPS), need,
+                                stages, kinds=increments, n_kinds=mech.path_steps + 1, group_size=_MECHANICS_GROUP)
+        late = need & ~progress.done
+        later = where_needed(lambda sp: continue_mechanics(finger, sdf, sp[0], sp[1], mech), late, (stages, progress),
+                             group_size=_LATE_GROUP)
+        progress = jax.tree_util.tree_map(lambda a, b: jnp.where(late.reshape(late.shape + (1,) * (a.ndim - 1)), a, b),
+                                          later, progress)
+        eq = where_needed(lambda sp: finish_mechanics(finger, sdf, sp[0], sp[1], mech, config), need,
+                          (stages, progress), group_size=_MECHANICS_GROUP)
         return jax.vmap(lambda st, e: finish(finger, st, e))(stages, eq)
 
 

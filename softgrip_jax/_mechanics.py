@@ -55,7 +55,9 @@ negative (past the fold: the step then goes a bounded multiple of the Gauss-Newt
 slide, and the solve reaches the equilibrium after the slide-off). Where the contacts do not bend
 the energy this is the Gauss-Newton step. The fixed point and the equilibrium are unchanged; the
 convergence test reads the corrected step, the distance to the equilibrium with the curvature
-included. From the converged point one full Newton step, with the energy's whole Hessian, finishes
+included. The closing path's increments (below) take the plain Gauss-Newton step: they only carry
+the shape along its branch to the next increment, and the correction costs about as much as the
+rest of a step; the solve at Theta, which decides convergence, takes the corrected one. From the converged point one full Newton step, with the energy's whole Hessian, finishes
 the solve where it is small and lowers the energy (:func:`_polish`): what the few conjugate
 directions leave out would otherwise stop the solve short by a pose-dependent amount.
 
@@ -361,7 +363,7 @@ def _curvature_operator(problem: _Problem, joints, index, p, g, force) -> Callab
     return apply
 
 
-def _with_curvature(problem: _Problem, joints, index, p, g, force, a, step) -> Float[Array, " n1"]:
+def _with_curvature(problem: _Problem, joints, index, p, g, force, a, low, step) -> Float[Array, " n1"]:
     """The Gauss-Newton ``step`` corrected for the contact terms' curvature (see _newton_step).
 
     The step s minimises the model G . x + x^T B x / 2 with B = I + A^T A (``a``: the step's rows),
@@ -373,17 +375,15 @@ def _with_curvature(problem: _Problem, joints, index, p, g, force, a, step) -> F
     surface), so a few suffice. Where the model curves down along a direction (past a fold, where
     the held equilibrium has ceased to exist) or its minimum lies beyond _STRETCH_MAX times s (in
     the B-norm), the iterate goes that far along the direction and stops (Steihaug's truncated
-    conjugate gradients).
+    conjugate gradients). ``low``: the Cholesky factor of I + A A^T (:func:`_cholesky`), the step's own.
     """
     curvature = _curvature_operator(problem, joints, index, p, g, force)
-    k = a.shape[0]
-    gram = _cholesky(jnp.eye(k, dtype=a.dtype) + a @ a.T)
 
     def b_times(x):
         return x + a.T @ (a @ x)
 
     def b_solve(r):
-        return r - a.T @ _cholesky_solve(gram, a @ r)
+        return r - a.T @ _cholesky_solve(low, a @ r)
 
     bs = b_times(step)
     sbs = jnp.dot(step, bs)
@@ -413,9 +413,9 @@ def _with_curvature(problem: _Problem, joints, index, p, g, force, a, step) -> F
     return x
 
 
-def _newton_step(problem: _Problem, y, previous):
-    """The Gauss-Newton step at y, corrected for the contacts' curvature, and diagnostics (see the
-    module docstring).
+def _newton_step(problem: _Problem, y, previous, curvature: bool = True):
+    """The Gauss-Newton step at y, corrected for the contacts' curvature (unless ``curvature`` is
+    False, as on the closing path), and diagnostics (see the module docstring).
 
     Returns (step, moved, penetration, pushed): the step in y, the largest joint displacement the
     full (unshortened) step makes (mm, to first order), the deepest station inside r at y (mm, >= 0)
@@ -454,11 +454,15 @@ def _newton_step(problem: _Problem, y, previous):
     # object, which no contact can do: they are dropped and the step recomputed.
     signed = weight * depth
 
+    # The products with A, once: a round's system is their rows and columns of the stations kept.
+    gram = a_k @ a_k.T
+    rhs = signed - a_k @ y
+
     def solve(rows_on):
-        a = jnp.where(rows_on[:, None], a_k, 0.0)
-        c = jnp.where(rows_on, signed, 0.0)
-        lam = _spd_solve(jnp.eye(k, dtype=dtype) + a @ a.T, c - a @ y)
-        return -y - a.T @ lam, lam
+        both = rows_on[:, None] & rows_on[None, :]
+        low = _cholesky(jnp.eye(k, dtype=dtype) + jnp.where(both, gram, 0.0))
+        lam = jnp.where(rows_on, _cholesky_solve(low, jnp.where(rows_on, rhs, 0.0)), 0.0)
+        return -y - a_k.T @ lam, lam, low
 
     # Dropping one station changes the others' multipliers, and a glued station outside the
     # object can turn negative only after another is dropped: were it kept, the step's fixed point
@@ -469,19 +473,20 @@ def _newton_step(problem: _Problem, y, previous):
     # two rounds) with the rows K rounds would give.
     def drop_pulling(carry):
         rounds, rows_on, _ = carry
-        _, lam = solve(rows_on)
+        _, lam, _ = solve(rows_on)
         kept = rows_on & (lam >= 0)
         return rounds + 1, kept, jnp.any(kept != rows_on)
 
     _, modelled, _ = jax.lax.while_loop(lambda c: (c[0] < k) & c[2], drop_pulling,
                                         (jnp.array(0, jnp.int32), depth > -_GLUE_MM, jnp.array(True)))
-    step, lam = solve(modelled)
+    step, lam, low = solve(modelled)
     # The stations that carry contact force after the step (the model's residuals, positive: pushed
     # by the object), for the contact case (see solve_equilibrium).
     pushed = jnp.any((index[:, None] == jnp.arange(m)[None, :]) & (modelled & (lam > 0))[:, None], axis=0)
     # The contacts' curvature, which the model leaves out, matters near a fold (module docstring).
-    step = _with_curvature(problem, joints, index, p, g, weight * weight * jnp.maximum(depth, 0.0),
-                           jnp.where(modelled[:, None], a_k, 0.0), step)
+    if curvature:
+        step = _with_curvature(problem, joints, index, p, g, weight * weight * jnp.maximum(depth, 0.0),
+                               jnp.where(modelled[:, None], a_k, 0.0), low, step)
 
     # Trust region on the angles.
     turns = jnp.concatenate([step[:-1] * per_link_scale, (step[-1] * base_scale)[None]])
@@ -531,8 +536,12 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
     rtol: float
     atol: float
     norm: Callable = optx.max_norm
+    #: Iterations in all, counted in the state across calls that resume it (``options["state"]``).
+    max_steps: int | None = eqx.field(static=True, default=None)
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        if options and "state" in options:  # resuming a solve under way (see Progress)
+            return options["state"]
         inf = jnp.asarray(jnp.inf, y.dtype)
         pushed = jnp.zeros(args.n_stations, bool)
         return _SolverState(previous=jnp.zeros_like(y), moved=inf, moved_before=inf, penetration=inf,
@@ -550,42 +559,85 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
         # next step sees; near a fold, such a point lay a few tenths of a millimetre from any
         # equilibrium.
         done = (state.moved <= self.atol) & (state.moved_before <= self.atol) & (state.penetration <= self.rtol)
-        return done, optx.RESULTS.successful
+        if self.max_steps is None:
+            return done, optx.RESULTS.successful
+        spent = state.steps >= self.max_steps
+        # (The result must read successful while the solve goes on: optimistix stops on any other.)
+        return done | spent, optx.RESULTS.where(spent & ~done, optx.RESULTS.nonlinear_max_steps_reached,
+                                                optx.RESULTS.successful)
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return y, aux, {}
 
 
-def _solve_equilibrium(problem: _Problem, y0, mechanics: MechanicsConfig):
-    """The equilibrium ``y`` of ``problem`` from ``y0`` (:class:`ChainGaussNewton`), and the solver's
-    ``(pushed stations (M,), last step (mm), steps, converged)``.
+class Progress(eqx.Module):
+    """A solve of the equilibrium under way (no derivatives): where its iterations stand.
 
-    Gradients through ``y`` by the implicit function theorem on the optimality condition of the
-    least squares (the gradient of 0.5 |r|^2 vanishes), with JAX's ``custom_root`` and a dense
-    solve of its Jacobian (the chain's few variables), rather than optimistix's adjoint: that one
-    solves the tangent system with lineax, whose checks are host callbacks under reverse mode unless
-    ``EQX_ON_ERROR`` was set before equinox was imported; a program with host callbacks never
-    enters the persistent compilation cache.
+    The solve runs in phases (:func:`start_equilibrium`, :func:`continue_equilibrium`,
+    :func:`finish_equilibrium`) so that a batch can take the few slow elements on in small groups
+    of their own instead of holding every group to its slowest element; the phases one after the
+    other are one uninterrupted solve.
     """
-    solver = ChainGaussNewton(rtol=mechanics.contact_tol, atol=mechanics.step_tol)
 
-    def optimality(y):
-        return jax.grad(lambda z: 0.5 * jnp.sum(_residual_fn(z, problem) ** 2))(y)
+    y: Float[Array, " n1"]  #: the scaled variables (see :class:`_Problem`)
+    state: _SolverState
+    done: Bool[Array, ""]  #: the solve stopped: converged, or failed on a non-finite value
+    converged: Bool[Array, ""]
+    tip_pressed: Bool[Array, ""]  #: the tip carried contact force along the closing path
 
-    def solve(_, start):
-        solution = optx.least_squares(_residual_fn, solver, start, args=problem, max_steps=mechanics.max_steps,
-                                      throw=False)
-        # Auxiliary outputs as floats: custom_root gives them zero tangents of their own dtype.
-        aux = (solution.state.pushed.astype(start.dtype), solution.state.moved.astype(start.dtype),
-               jnp.asarray(solution.stats["num_steps"], start.dtype),
-               (solution.result == optx.RESULTS.successful).astype(start.dtype))
-        return solution.value, aux
 
-    def tangent_solve(linear, rhs):
-        return jnp.linalg.solve(jax.jacfwd(linear)(rhs), rhs)
+def _iterate(problem: _Problem, y, state: _SolverState, steps: int, mechanics: MechanicsConfig):
+    """At most ``steps`` more iterations of :class:`ChainGaussNewton` from ``y`` and its ``state``:
+    ``(y, state, done, converged)``."""
+    solver = ChainGaussNewton(rtol=mechanics.contact_tol, atol=mechanics.step_tol, max_steps=mechanics.max_steps)
+    solution = optx.least_squares(_residual_fn, solver, y, args=problem, options={"state": state},
+                                  max_steps=steps, throw=False)
+    converged = solution.result == optx.RESULTS.successful
+    # Stopped: converged, failed (a non-finite value), or the whole budget spent.
+    done = (solution.result != optx.RESULTS.nonlinear_max_steps_reached) | (solution.state.steps >= mechanics.max_steps)
+    return solution.value, solution.state, done, converged
 
-    y, (pushed, moved, steps, converged) = jax.lax.custom_root(optimality, y0, solve, tangent_solve, has_aux=True)
-    return y, (pushed > 0.5, moved, steps.astype(jnp.int32), converged > 0.5)
+
+def start_equilibrium(
+    finger: FingerModel,
+    sdf: AbstractSDF,
+    frame: FingerFrame,
+    start_psi: Float[Array, ""],
+    start_turning: Float[Array, " n"],
+    mechanics: MechanicsConfig = MechanicsConfig(),
+    config: ContactConfig = ContactConfig(),
+    *,
+    start_actuation: Float[Array, ""] | None = None,
+    steps: int | None = None,
+) -> Progress:
+    """The first phase of :func:`solve_equilibrium` (same arguments): the closing path, if
+    ``start_actuation`` is given, then at most ``steps`` iterations of the solve at Theta (None:
+    the whole budget, ``mechanics.max_steps``). No derivatives."""
+    finger, sdf, frame, start_psi, start_turning, start_actuation = jax.lax.stop_gradient(
+        (finger, sdf, frame, start_psi, start_turning, start_actuation))
+    problem = _Problem(finger=finger, sdf=sdf, frame=frame, config=mechanics)
+    tip_pressed = jnp.array(False)
+    if start_actuation is not None:
+        start_psi, start_turning, tip_pressed = follow_closing_path(problem, start_actuation, start_psi,
+                                                                    start_turning, config)
+    y0 = problem.variables(start_psi, start_turning)
+    inf = jnp.asarray(jnp.inf, y0.dtype)
+    state = _SolverState(previous=jnp.zeros_like(y0), moved=inf, moved_before=inf, penetration=inf,
+                         pushed=jnp.zeros(problem.n_stations, bool), steps=jnp.array(0))
+    budget = mechanics.max_steps if steps is None else min(steps, mechanics.max_steps)
+    y, state, done, converged = _iterate(problem, y0, state, budget, mechanics)
+    return Progress(y=y, state=state, done=done, converged=converged, tip_pressed=tip_pressed)
+
+
+def continue_equilibrium(finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, progress: Progress,
+                         mechanics: MechanicsConfig = MechanicsConfig()) -> Progress:
+    """The solve of :func:`start_equilibrium` continued to its whole budget, ``mechanics.max_steps``
+    iterations in all (none where it is ``done``). No derivatives."""
+    finger, sdf, frame, progress = jax.lax.stop_gradient((finger, sdf, frame, progress))
+    problem = _Problem(finger=finger, sdf=sdf, frame=frame, config=mechanics)
+    # (optimistix's budget counts this call's steps, the solver's the state's: all of them.)
+    y, state, done, converged = _iterate(problem, progress.y, progress.state, mechanics.max_steps, mechanics)
+    return Progress(y=y, state=state, done=done, converged=converged, tip_pressed=progress.tip_pressed)
 
 
 def closing_start(
@@ -634,7 +686,7 @@ def follow_closing_path(
 ) -> tuple[Float[Array, ""], Float[Array, " n"], Bool[Array, ""]]:
     """Close the chain quasi-statically from actuation ``s_start`` (rad) and shape ``(psi, turning)``
     to Theta: the rest turning ramps in ``n = clip(ceil((Theta - s_start) / path_step), 1,
-    path_steps)`` equal increments, each followed by ``path_iterations`` Gauss-Newton steps
+    path_steps)`` equal increments, each followed by ``path_iterations`` plain Gauss-Newton steps
     (:func:`_newton_step`) warm-started from the last shape, contact frictionless.
 
     Returns the shape at Theta (psi () and turning (N,), rad; not yet converged: the caller's
@@ -659,7 +711,7 @@ def follow_closing_path(
 
         def iteration(_, carry):
             y, previous, pressed = carry
-            step, _moved, _penetration, pushed = _newton_step(here, y, previous)
+            step, _moved, _penetration, pushed = _newton_step(here, y, previous, curvature=False)
             return y + step, step, pressed | jnp.any(pushed & tip_zone)
 
         y, previous, pressed = jax.lax.fori_loop(0, mech.path_iterations, iteration,
@@ -912,14 +964,41 @@ def solve_equilibrium(
     links, another area's otherwise. So a graze is no contact, and a single area that straddles
     the edge of the tip zone is a tip contact, as the observed-closure rod's case counts areas.
     """
+    progress = start_equilibrium(finger, sdf, frame, start_psi, start_turning, mechanics, config,
+                                 start_actuation=start_actuation)
+    return finish_equilibrium(finger, sdf, frame, progress, mechanics, config)
+
+
+def finish_equilibrium(finger: FingerModel, sdf: AbstractSDF, frame: FingerFrame, progress: Progress,
+                       mechanics: MechanicsConfig = MechanicsConfig(),
+                       config: ContactConfig = ContactConfig()) -> Equilibrium:
+    """The :class:`Equilibrium` of a finished solve (:func:`start_equilibrium`, then
+    :func:`continue_equilibrium` where it was not ``done``), with the equilibrium's derivatives in
+    the finger, the object and the frame.
+
+    Those come by the implicit function theorem on the optimality condition of the least squares
+    (the gradient of 0.5 |r|^2 vanishes), with JAX's ``custom_root`` around the solve already done
+    and a dense solve of its Jacobian (the chain's few variables), rather than optimistix's adjoint:
+    that one solves the tangent system with lineax, whose checks are host callbacks under reverse
+    mode unless ``EQX_ON_ERROR`` was set before equinox was imported; a program with host callbacks
+    never enters the persistent compilation cache.
+    """
     problem = _Problem(finger=finger, sdf=sdf, frame=frame, config=mechanics)
-    tip_pressed = jnp.array(False)
-    if start_actuation is not None:
-        start_psi, start_turning, tip_pressed = follow_closing_path(
-            jax.lax.stop_gradient(problem), jax.lax.stop_gradient(start_actuation),
-            jax.lax.stop_gradient(start_psi), jax.lax.stop_gradient(start_turning), config)
-    y0 = jax.lax.stop_gradient(problem.variables(start_psi, start_turning))
-    y, (pushed, moved, steps, converged) = _solve_equilibrium(problem, y0, mechanics)
+    progress = jax.lax.stop_gradient(progress)
+
+    def optimality(y):
+        return jax.grad(lambda z: 0.5 * jnp.sum(_residual_fn(z, problem) ** 2))(y)
+
+    def solved(_, start):  # the solve is done: custom_root only supplies the derivatives
+        return start
+
+    def tangent_solve(linear, rhs):
+        return jnp.linalg.solve(jax.jacfwd(linear)(rhs), rhs)
+
+    y = jax.lax.custom_root(optimality, progress.y, solved, tangent_solve)
+    state = progress.state
+    pushed, moved, steps, converged, tip_pressed = (state.pushed, state.moved, state.steps, progress.converged,
+                                                    progress.tip_pressed)
     sensitivity, newton, gradient = _second_order(problem, y)
     y = y + jax.lax.stop_gradient(_polish(problem, y, newton, gradient, converged))
     psi, turning = problem.shape(y)

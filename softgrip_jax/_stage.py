@@ -23,7 +23,8 @@ from softgrip_jax._contact import (Bracket, Contact, ContactCase, ContactConfig,
 from softgrip_jax._deformation import case_shape
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics
-from softgrip_jax._mechanics import Equilibrium, MechanicsConfig, closing_start, solve_equilibrium
+from softgrip_jax._mechanics import (Equilibrium, MechanicsConfig, Progress, closing_start, continue_equilibrium,
+                                     finish_equilibrium, start_equilibrium)
 from softgrip_jax._model import FingerModel
 from softgrip_jax._names import code_names
 from softgrip_jax._sdf import AbstractSDF
@@ -330,7 +331,18 @@ def mechanics_of(
     but solving (and differentiating) the real one would feed NaN to the implicit adjoint's linear
     solve, which then fails the whole batch's gradient. So one bad row never costs the others
     theirs; its own gradient is zero or NaN.
+
+    It is :func:`start_mechanics` with the whole iteration budget, then :func:`finish_mechanics`. A
+    batch splits the same iterations between :func:`start_mechanics` and :func:`continue_mechanics`
+    (``Mechanics.deform_batch``), to the same result.
     """
+    progress = start_mechanics(finger, sdf, stage, mechanics, config)
+    return finish_mechanics(finger, sdf, stage, progress, mechanics, config)
+
+
+def _stand_in(finger: FingerModel, stage: Stage) -> tuple[FingerModel, Stage]:
+    """The finger and stage that :func:`mechanics_of` solves: the stage's own, or the harmless
+    stand-in of an unusable one (see there)."""
     bad = ~(stage.finite & stage.inside & (stage.problem == Status.OK))
     nominal = {"length": 50.0, "theta_entire": 0.5, "half_thickness": 1.0, "stiffness_ratio": 1.0,
                "base_compliance": 0.0}
@@ -347,5 +359,28 @@ def mechanics_of(
                         jax.tree_util.tree_map(harmless, (stage.contact, stage.psi, stage.turning)))
     far = jnp.full_like(stage.frame.origin, 2.0 * MAX_COORDINATE_MM)
     frame = eqx.tree_at(lambda f: f.origin, stage.frame, jnp.where(bad, far, stage.frame.origin))
+    return finger, eqx.tree_at(lambda st: st.frame, stage, frame)
+
+
+def start_mechanics(finger: FingerModel, sdf: AbstractSDF, stage: Stage, mechanics: MechanicsConfig,
+                    config: ContactConfig, steps: int | None = None) -> Progress:
+    """The closing path of :func:`mechanics_of` and at most ``steps`` iterations of its solve at
+    Theta (None: all of them, ``mechanics.max_steps``). No derivatives."""
+    finger, stage = _stand_in(finger, stage)
     s, psi, turning = closing_start(finger, stage.contact, config)
-    return solve_equilibrium(finger, sdf, frame, psi, turning, mechanics, config, start_actuation=s)
+    return start_equilibrium(finger, sdf, stage.frame, psi, turning, mechanics, config, start_actuation=s,
+                             steps=steps)
+
+
+def continue_mechanics(finger: FingerModel, sdf: AbstractSDF, stage: Stage, progress: Progress,
+                       mechanics: MechanicsConfig) -> Progress:
+    """The solve of :func:`start_mechanics` continued to its whole budget. No derivatives."""
+    finger, stage = _stand_in(finger, stage)
+    return continue_equilibrium(finger, sdf, stage.frame, progress, mechanics)
+
+
+def finish_mechanics(finger: FingerModel, sdf: AbstractSDF, stage: Stage, progress: Progress,
+                     mechanics: MechanicsConfig, config: ContactConfig) -> Equilibrium:
+    """The :class:`Equilibrium` of a finished solve, with its derivatives (implicit differentiation)."""
+    finger, stage = _stand_in(finger, stage)
+    return finish_equilibrium(finger, sdf, stage.frame, progress, mechanics, config)

@@ -238,6 +238,36 @@ def test_a_solve_that_runs_out_of_steps_is_reported():
     assert int(mech.status) == Status.OK
 
 
+def test_a_solve_split_in_phases_is_the_uninterrupted_solve():
+    """A batch solves in phases (two iterations in groups, the rest for the fingers that need more):
+    start + continue give the uninterrupted solve's point, iteration count and convergence (the
+    batch against single estimates: tests/core/test_closing_path.py)."""
+    from softgrip_jax._batch import geometric_stages
+    from softgrip_jax._stage import continue_mechanics, start_mechanics
+
+    f = FingerModel(LENGTH, 0.7, HALF_THICKNESS, N, stiffness_ratio=2.0)
+    disc = SDFGrid.sample(PolygonSDF.regular((25.0, 45.0), 10.0, 64), (-40.0, -40.0), (0.25, 0.25), (480, 480))
+    bases = jnp.asarray(np.random.default_rng(5).uniform(-12.0, 12.0, (256, 2)), jnp.float32)
+    frames = jax.vmap(FingerFrame.hanging_from)(bases)
+    mech, config = MechanicsConfig(), ContactConfig()
+
+    @jax.jit
+    def phases(frames):
+        stages = geometric_stages(f, disc, frames, config, Mechanics())
+        whole = jax.vmap(lambda st: start_mechanics(f, disc, st, mech, config))(stages)
+        first = jax.vmap(lambda st: start_mechanics(f, disc, st, mech, config, steps=2))(stages)
+        rest = jax.vmap(lambda st, p: continue_mechanics(f, disc, st, p, mech))(stages, first)
+        return whole, first, rest
+
+    whole, first, rest = phases(frames)
+    longer = np.asarray(whole.state.steps) > 2
+    assert longer.sum() >= 3 and not np.asarray(first.done)[longer].any()  # the continuation is exercised
+    assert np.asarray(first.done)[np.asarray(whole.state.steps) <= 2].all()
+    np.testing.assert_array_equal(rest.state.steps, whole.state.steps)
+    np.testing.assert_array_equal(rest.converged, whole.converged)
+    np.testing.assert_allclose(rest.y, whole.y, atol=1e-6)
+
+
 # ---------------------------------------------------------------------------------------------
 # (2) Against the observed-closure rod, and (3) non-penetration
 
