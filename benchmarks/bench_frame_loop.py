@@ -35,7 +35,8 @@ os.environ.setdefault("SOFTGRIP_JAX_CACHE", "0")
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout (and its synthetic renderer)
+sys.path.insert(1, str(Path(__file__).resolve().parent))
 from _machine import CompileCounter, describe  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
