@@ -590,8 +590,8 @@ def _iterate(problem: _Problem, y, state: _SolverState, steps: int, mechanics: M
     """At most ``steps`` more iterations of :class:`ChainGaussNewton` from ``y`` and its ``state``:
     ``(y, state, done, converged)``."""
     solver = ChainGaussNewton(rtol=mechanics.contact_tol, atol=mechanics.step_tol, max_steps=mechanics.max_steps)
-    solution = optx.least_squares(_residual_fn, solver, y, args=problem, options={"state": state},
-                                  max_steps=steps, throw=False)
+    solution: optx.Solution = optx.least_squares(_residual_fn, solver, y, args=problem, options={"state": state},
+                                                 max_steps=steps, throw=False)
     converged = solution.result == optx.RESULTS.successful
     # Stopped: converged, failed (a non-finite value), or the whole budget spent.
     done = (solution.result != optx.RESULTS.nonlinear_max_steps_reached) | (solution.state.steps >= mechanics.max_steps)
