@@ -57,8 +57,9 @@ the energy this is the Gauss-Newton step. The fixed point and the equilibrium ar
 convergence test reads the corrected step, the distance to the equilibrium with the curvature
 included. The closing path's increments (below) take the plain Gauss-Newton step: they only carry
 the shape along its branch to the next increment, and the correction costs about as much as the
-rest of a step; the solve at Theta, which decides convergence, takes the corrected one. From the converged point one full Newton step, with the energy's whole Hessian, finishes
-the solve where it is small and lowers the energy (:func:`_polish`): what the few conjugate
+rest of a step; the solve at Theta, which decides convergence, takes the corrected one. From the
+converged point one full Newton step, with the energy's whole Hessian, finishes the solve where it
+is small and lowers the energy (:func:`_polish`): what the few conjugate
 directions leave out would otherwise stop the solve short by a pose-dependent amount.
 
 The closing path. A contact problem of this kind has several equilibria (a tip held on the object,
