@@ -1,8 +1,9 @@
-"""One line describing the machine and software a benchmark ran on."""
+"""One line describing the machine and software a benchmark ran on, and the benchmarks' shared timer."""
 
 import logging
 import os
 import platform
+import time
 
 
 def describe() -> str:
@@ -19,6 +20,21 @@ def describe() -> str:
         pass
     return (f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.machine()}, "
             f"Python {platform.python_version()}, jax {jax.__version__} on {jax.default_backend()}")
+
+
+def best_of(fn, k=3, warm=False):
+    """The shortest of ``k`` timed calls of ``fn`` (s), each waited for (``jax.block_until_ready``);
+    ``warm``: one untimed call first (its compilation)."""
+    import jax
+
+    if warm:
+        jax.block_until_ready(fn())
+    times = []
+    for _ in range(k):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t)
+    return min(times)
 
 
 class CompileCounter(logging.Handler):

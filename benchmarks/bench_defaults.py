@@ -42,21 +42,12 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _machine import describe  # noqa: E402
+from _machine import best_of, describe  # noqa: E402
 
 import softgrip_jax as sg  # noqa: E402
 from softgrip_jax._concurrent import bucket_piece, worker_count  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def best_of(fn, k=3):
-    times = []
-    for _ in range(k):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t)
-    return min(times)
 
 
 def first_and_best(fn, k=3):

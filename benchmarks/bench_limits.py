@@ -22,7 +22,6 @@ planner scene (a 128-vertex PolygonSDF disc, the README's gripper, 4,096 poses i
 from __future__ import annotations
 
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -33,7 +32,7 @@ import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _machine import describe  # noqa: E402
+from _machine import best_of, describe  # noqa: E402
 
 import softgrip_jax as sg  # noqa: E402
 from softgrip_jax._compile import compiler_options  # noqa: E402
@@ -87,16 +86,6 @@ def _reported(tally, points):
     return _zero_of(points, report)
 
 
-def best(fn, k=5):
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(k):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t)
-    return min(times)
-
-
 def bulk_ns(sdf, low, high, rng, coarse=False):
     """One lookup's cost (ns) in bulk, at 2^20 random points in the box [low, high]: the fastest of
     a few layouts (4,096 or 65,536 points at a time, or all at once but on a polygon, whose
@@ -109,7 +98,7 @@ def bulk_ns(sdf, low, high, rng, coarse=False):
             lookup = (lambda s, p: s.coarse_distance(p)) if coarse else (lambda s, p: s.distance(p))
             run = jax.jit(lambda s, p, lookup=lookup: jax.lax.map(lambda q: lookup(s, q), p),
                           compiler_options=compiler_options(est) or None)
-            times.append(best(lambda run=run, points=points: run(sdf, points)) / (1 << 20) * 1e9)
+            times.append(best_of(lambda run=run, points=points: run(sdf, points), 5, warm=True) / (1 << 20) * 1e9)
     return min(times)
 
 
@@ -144,7 +133,7 @@ def main():
     for est in (sg.Geometric(), sg.Mechanics()):
         call = lambda sdf, est=est: sg.estimate_batch(finger, sdf, bases, estimator=est).joints  # noqa: E731
         rows.append((f"estimate_batch, speedcheck grid, {type(est).__name__}()", lookups(call, grid, n), grid_ns,
-                     best(lambda: call(grid), 3) / n))
+                     best_of(lambda: call(grid), 3, warm=True) / n))
 
     readme = sg.FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=20)
     gripper = sg.Gripper(left=readme, right=readme, base_separation=56.0)
@@ -160,7 +149,7 @@ def main():
             m = n if isinstance(est, sg.Geometric) else n // 4
             call = lambda s, est=est, m=m: sg.score(gripper, s, poses[:m], estimator=est).score  # noqa: E731
             rows.append((f"score, README scene, {name}, {type(est).__name__}()", lookups(call, sdf, m), ns,
-                         best(lambda: call(sdf), 3) / m))
+                         best_of(lambda: call(sdf), 3, warm=True) / m))
 
     print("| call (defaults) | lookups per candidate (+ coarse) | floor: lookups x bulk cost | measured | "
           "floor / measured |")

@@ -33,11 +33,10 @@ from softgrip_jax._contact import ContactConfig
 from softgrip_jax._errors import SoftgripError
 from softgrip_jax._gather import where_needed
 from softgrip_jax._mechanics import (DEFAULT_METHOD, METHODS, MechanicsConfig, check_method, closing_start,
-                                     path_increments)
+                                     continue_equilibrium, finish_equilibrium, path_increments)
 from softgrip_jax._model import FingerModel
 from softgrip_jax._sdf import AbstractSDF
-from softgrip_jax._stage import (Estimate, Stage, continue_mechanics, finish, finish_mechanics, mechanics_of,
-                                needs_mechanics, start_mechanics)
+from softgrip_jax._stage import Estimate, Stage, finish, mechanics_of, needs_mechanics, stand_in, start_mechanics
 
 #: A chunk's touching candidates are solved for their equilibrium in groups of this many: under
 #: vmap a group iterates until its slowest element is done (the longest closing path, the most
@@ -179,15 +178,16 @@ class Mechanics(AbstractEstimator):
         # goes on past them continue in small groups of their own (under vmap a group iterates until
         # its slowest element is done); then every solved finger's equilibrium and derivatives.
         mech = self.config
-        progress = where_needed(lambda st: start_mechanics(finger, sdf, st, mech, config, _FIRST_STEPS), need,
-                                stages, kinds=increments, n_kinds=mech.path_steps + 1, group_size=_MECHANICS_GROUP)
+        solved = jax.vmap(lambda st: stand_in(finger, st))(stages)  # (fingers, stages), once
+        progress = where_needed(lambda fs: start_mechanics(fs[0], sdf, fs[1], mech, config, _FIRST_STEPS), need,
+                                solved, kinds=increments, n_kinds=mech.path_steps + 1, group_size=_MECHANICS_GROUP)
         late = need & ~progress.done
-        later = where_needed(lambda sp: continue_mechanics(finger, sdf, sp[0], sp[1], mech), late, (stages, progress),
-                             group_size=_LATE_GROUP)
+        later = where_needed(lambda fsp: continue_equilibrium(fsp[0], sdf, fsp[1].frame, fsp[2], mech), late,
+                             (*solved, progress), group_size=_LATE_GROUP)
         progress = jax.tree_util.tree_map(lambda a, b: jnp.where(late.reshape(late.shape + (1,) * (a.ndim - 1)), a, b),
                                           later, progress)
-        eq = where_needed(lambda sp: finish_mechanics(finger, sdf, sp[0], sp[1], mech, config), need,
-                          (stages, progress), group_size=_MECHANICS_GROUP)
+        eq = where_needed(lambda fsp: finish_equilibrium(fsp[0], sdf, fsp[1].frame, fsp[2], mech, config), need,
+                          (*solved, progress), group_size=_MECHANICS_GROUP)
         return jax.vmap(lambda st, e: finish(finger, st, e))(stages, eq)
 
 

@@ -538,7 +538,7 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
     atol: float
     norm: Callable = optx.max_norm
     #: Iterations in all, counted in the state across calls that resume it (``options["state"]``).
-    max_steps: int | None = eqx.field(static=True, default=None)
+    max_steps: int = eqx.field(static=True, default=MechanicsConfig().max_steps)
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         if options and "state" in options:  # resuming a solve under way (see Progress)
@@ -560,8 +560,6 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
         # next step sees; near a fold, such a point lay a few tenths of a millimetre from any
         # equilibrium.
         done = (state.moved <= self.atol) & (state.moved_before <= self.atol) & (state.penetration <= self.rtol)
-        if self.max_steps is None:
-            return done, optx.RESULTS.successful
         spent = state.steps >= self.max_steps
         # (The result must read successful while the solve goes on: optimistix stops on any other.)
         return done | spent, optx.RESULTS.where(spent & ~done, optx.RESULTS.nonlinear_max_steps_reached,

@@ -23,8 +23,8 @@ from softgrip_jax._contact import (Bracket, Contact, ContactCase, ContactConfig,
 from softgrip_jax._deformation import case_shape
 from softgrip_jax._frames import FingerFrame
 from softgrip_jax._kinematics import forward_kinematics
-from softgrip_jax._mechanics import (Equilibrium, MechanicsConfig, Progress, closing_start, continue_equilibrium,
-                                     finish_equilibrium, start_equilibrium)
+from softgrip_jax._mechanics import (Equilibrium, MechanicsConfig, Progress, closing_start, finish_equilibrium,
+                                     start_equilibrium)
 from softgrip_jax._model import FingerModel
 from softgrip_jax._names import code_names
 from softgrip_jax._sdf import AbstractSDF
@@ -326,21 +326,23 @@ def mechanics_of(
     """The spring chain's equilibrium reached by closing from a stage's first touch (the closing path).
 
     A stage whose input is unusable (a NaN Theta, a base outside the SDF or too far, NaN SDF
-    data) is solved on a harmless stand-in instead: the nominal finger, its shape and contact
-    zeroed, placed far outside the object. Its equilibrium is discarded by :func:`finish` anyway,
-    but solving (and differentiating) the real one would feed NaN to the implicit adjoint's linear
-    solve, which then fails the whole batch's gradient. So one bad row never costs the others
-    theirs; its own gradient is zero or NaN.
+    data) is solved on a harmless stand-in instead (:func:`stand_in`): the nominal finger, its
+    shape and contact zeroed, placed far outside the object. Its equilibrium is discarded by
+    :func:`finish` anyway, but solving (and differentiating) the real one would feed NaN to the
+    implicit adjoint's linear solve, which then fails the whole batch's gradient. So one bad row
+    never costs the others theirs; its own gradient is zero or NaN.
 
-    It is :func:`start_mechanics` with the whole iteration budget, then :func:`finish_mechanics`. A
-    batch splits the same iterations between :func:`start_mechanics` and :func:`continue_mechanics`
+    It is :func:`start_mechanics` with the whole iteration budget, then
+    :func:`~softgrip_jax._mechanics.finish_equilibrium`. A batch splits the same iterations
+    between :func:`start_mechanics` and :func:`~softgrip_jax._mechanics.continue_equilibrium`
     (``Mechanics.deform_batch``), to the same result.
     """
+    finger, stage = stand_in(finger, stage)
     progress = start_mechanics(finger, sdf, stage, mechanics, config)
-    return finish_mechanics(finger, sdf, stage, progress, mechanics, config)
+    return finish_equilibrium(finger, sdf, stage.frame, progress, mechanics, config)
 
 
-def _stand_in(finger: FingerModel, stage: Stage) -> tuple[FingerModel, Stage]:
+def stand_in(finger: FingerModel, stage: Stage) -> tuple[FingerModel, Stage]:
     """The finger and stage that :func:`mechanics_of` solves: the stage's own, or the harmless
     stand-in of an unusable one (see there)."""
     bad = ~(stage.finite & stage.inside & (stage.problem == Status.OK))
@@ -365,22 +367,8 @@ def _stand_in(finger: FingerModel, stage: Stage) -> tuple[FingerModel, Stage]:
 def start_mechanics(finger: FingerModel, sdf: AbstractSDF, stage: Stage, mechanics: MechanicsConfig,
                     config: ContactConfig, steps: int | None = None) -> Progress:
     """The closing path of :func:`mechanics_of` and at most ``steps`` iterations of its solve at
-    Theta (None: all of them, ``mechanics.max_steps``). No derivatives."""
-    finger, stage = _stand_in(finger, stage)
+    Theta (None: all of them, ``mechanics.max_steps``), for a finger and stage of :func:`stand_in`.
+    No derivatives."""
     s, psi, turning = closing_start(finger, stage.contact, config)
     return start_equilibrium(finger, sdf, stage.frame, psi, turning, mechanics, config, start_actuation=s,
                              steps=steps)
-
-
-def continue_mechanics(finger: FingerModel, sdf: AbstractSDF, stage: Stage, progress: Progress,
-                       mechanics: MechanicsConfig) -> Progress:
-    """The solve of :func:`start_mechanics` continued to its whole budget. No derivatives."""
-    finger, stage = _stand_in(finger, stage)
-    return continue_equilibrium(finger, sdf, stage.frame, progress, mechanics)
-
-
-def finish_mechanics(finger: FingerModel, sdf: AbstractSDF, stage: Stage, progress: Progress,
-                     mechanics: MechanicsConfig, config: ContactConfig) -> Equilibrium:
-    """The :class:`Equilibrium` of a finished solve, with its derivatives (implicit differentiation)."""
-    finger, stage = _stand_in(finger, stage)
-    return finish_equilibrium(finger, sdf, stage.frame, progress, mechanics, config)

@@ -243,7 +243,8 @@ def test_a_solve_split_in_phases_is_the_uninterrupted_solve():
     start + continue give the uninterrupted solve's point, iteration count and convergence (the
     batch against single estimates: tests/core/test_closing_path.py)."""
     from softgrip_jax._batch import geometric_stages
-    from softgrip_jax._stage import continue_mechanics, start_mechanics
+    from softgrip_jax._mechanics import continue_equilibrium
+    from softgrip_jax._stage import stand_in, start_mechanics
 
     f = FingerModel(LENGTH, 0.7, HALF_THICKNESS, N, stiffness_ratio=2.0)
     disc = SDFGrid.sample(PolygonSDF.regular((25.0, 45.0), 10.0, 64), (-40.0, -40.0), (0.25, 0.25), (480, 480))
@@ -253,10 +254,10 @@ def test_a_solve_split_in_phases_is_the_uninterrupted_solve():
 
     @jax.jit
     def phases(frames):
-        stages = geometric_stages(f, disc, frames, config, Mechanics())
-        whole = jax.vmap(lambda st: start_mechanics(f, disc, st, mech, config))(stages)
-        first = jax.vmap(lambda st: start_mechanics(f, disc, st, mech, config, steps=2))(stages)
-        rest = jax.vmap(lambda st, p: continue_mechanics(f, disc, st, p, mech))(stages, first)
+        fingers, stages = jax.vmap(lambda st: stand_in(f, st))(geometric_stages(f, disc, frames, config, Mechanics()))
+        whole = jax.vmap(lambda fi, st: start_mechanics(fi, disc, st, mech, config))(fingers, stages)
+        first = jax.vmap(lambda fi, st: start_mechanics(fi, disc, st, mech, config, steps=2))(fingers, stages)
+        rest = jax.vmap(lambda fi, st, p: continue_equilibrium(fi, disc, st.frame, p, mech))(fingers, stages, first)
         return whole, first, rest
 
     whole, first, rest = phases(frames)
