@@ -1,4 +1,4 @@
-"""Where a chunk of the geometric batch spends its time, stage by stage, against the cost of its lookups.
+"""Where a chunk of the geometric batch spends its time, stage by stage.
 
 Run from the repository root:
 
@@ -6,8 +6,8 @@ Run from the repository root:
 
 The scene of ``../shared/speedcheck.py``: a 20 mm disc on an SDFGrid of 0.25 mm cells, N = 20,
 L 52 mm, Theta 0.7, r 4 mm, one piece of 4,096 bases uniform in a 24 x 24 mm square, one thread of
-work per stage (each stage jitted alone, XLA's fusion emitters on, best of 5). Then the bulk cost of
-one lookup (1,000,000 random points): the floor a stage's lookups set. Prints microseconds per finger.
+work per stage (each stage jitted alone, XLA's fusion emitters on, best of 5). Prints microseconds
+per finger. (The lookups' own cost and how many each call makes: ``bench_limits.py``.)
 """
 
 from __future__ import annotations
@@ -87,13 +87,6 @@ def main():
     for name, fn, args in rows:
         print(f"  {name}: {best(fn, *args) / n * 1e6:.2f} us/finger")
 
-    # The grid's own lookups (their inside test included), at random points inside the grid.
-    low = np.asarray(sdf.origin)
-    high = low + (np.asarray(sdf.values.shape[::-1]) - 1) * np.asarray(sdf.spacing)
-    points = jnp.asarray(rng.uniform(low + 1.0, high - 1.0, (1_000_000, 2)).astype(np.float32))
-    for name, fn in (("bicubic", lambda s, p: s.distance(p)), ("bilinear", lambda s, p: s.coarse_distance(p))):
-        t = best(jit(fn), sdf, points)
-        print(f"  one {name} lookup in bulk (1,000,000 points): {t / 1e6 * 1e9:.1f} ns")
 
 if __name__ == "__main__":
     main()
