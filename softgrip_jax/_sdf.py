@@ -304,13 +304,15 @@ def catmull_rom_cells(values: Float[Array, "h w"]) -> Float[Array, "cells 16"]:
     stays C1 up to the edge. Linear in ``values`` (so derivatives with respect to the samples
     pass through it)."""
     h, w = values.shape
-    v = jnp.concatenate([2.0 * values[:1] - values[1:2], values, 2.0 * values[-1:] - values[-2:-1]], axis=0)
-    v = jnp.concatenate([2.0 * v[:, :1] - v[:, 1:2], v, 2.0 * v[:, -1:] - v[:, -2:-1]], axis=1)  # (h+2, w+2)
-    m = jnp.asarray(_CATMULL_ROM, values.dtype)
-    # C = M^T T M for each cell's taps T: along the columns first, then along the rows.
-    along_x = jnp.stack([v[:, b:b + w - 1] for b in range(4)], axis=-1) @ m  # (h+2, w-1, 4): by tx power
-    taps = jnp.stack([along_x[a:a + h - 1] for a in range(4)], axis=-2)  # (h-1, w-1, 4 rows, 4)
-    return jnp.einsum("ak,...al->...kl", m, taps).reshape((h - 1) * (w - 1), 16)
+    v = jnp.pad(values, 1, mode="reflect", reflect_type="odd")  # (h+2, w+2), ghosts 2 v0 - v1
+    taps = [[v[a:a + h - 1, b:b + w - 1] for b in range(4)] for a in range(4)]  # rows r-1+a, columns c-1+b
+    # C = M^T T M per cell, written out term by term with M's constants (its zeros dropped): one
+    # elementwise pass over the grid that XLA fuses, where a stack-and-einsum made several.
+    m = _CATMULL_ROM
+    along_x = [[sum(float(m[b, l]) * taps[a][b] for b in range(4) if m[b, l] != 0.0) for l in range(4)]
+               for a in range(4)]
+    c = [sum(float(m[a, k]) * along_x[a][l] for a in range(4) if m[a, k] != 0.0) for k in range(4) for l in range(4)]
+    return jnp.stack(c, axis=-1).reshape((h - 1) * (w - 1), 16)
 
 
 def _cell_of(row: Array, col: Array, h: int, w: int) -> tuple[Array, Array, Array]:

@@ -57,6 +57,7 @@ TILT_WARN_DEG = 15.0
 _EDGE_PX = 1.5  # readings nearer a mask's edge than this (px) mix two surfaces; left out of fits
 _MIN_READINGS = 30
 _AXIS_PASSES = 4  # at most this many fits with the fingers' axes placed on the plane of the previous one
+_COARSE_EVERY = 8  # the plane's first fit starts from one on every 8th reading (fewer passes over all of them)
 _RELIEF_REACH = 0.85  # readings this far across the finger (fraction of r) or nearer its centre are fitted
 
 
@@ -423,18 +424,35 @@ def fit_gripper_plane(frame: Frame, regions: Sequence[np.ndarray], half_thicknes
 
     active = np.ones(len(points), bool)
 
-    def residuals(p: np.ndarray) -> np.ndarray:
-        normal, c, fraction = unpack(p)
-        lift = fixed * bulge if fixed is not None else fraction * radius_mm * bulge
-        return np.where(active, points @ normal - c + lift, 0.0)
+    everything = slice(None)
 
-    def solve(start: np.ndarray, f_scale: float):
+    def residuals(p: np.ndarray, rows: slice = everything) -> np.ndarray:  # of the readings ``rows``
+        normal, c, fraction = unpack(p)
+        lift = fixed * bulge[rows] if fixed is not None else fraction * radius_mm[rows] * bulge[rows]
+        return np.where(active[rows], points[rows] @ normal - c + lift, 0.0)
+
+    def jacobian(p: np.ndarray, rows: slice = everything) -> np.ndarray:  # d residuals / d (a, b, c[, fraction])
+        part = points[rows]
+        out = np.zeros((len(part), len(p)))
+        if tilted:
+            a, b = p[0], p[1]
+            out[:, 0] = part @ np.array([-math.sin(a) * math.sin(b), -math.cos(a), -math.sin(a) * math.cos(b)])
+            out[:, 1] = part @ np.array([math.cos(a) * math.cos(b), 0.0, -math.cos(a) * math.sin(b)])
+        out[:, 2] = -1.0
+        if fixed is None:
+            out[:, 3] = radius_mm[rows] * bulge[rows]
+        out[~active[rows]] = 0.0
+        return out
+
+    def solve(start: np.ndarray, f_scale: float, rows: slice = everything):
         lower = [-np.inf, -np.inf, 0.0] + ([] if fixed is not None else [0.0])
         upper = [np.inf, np.inf, np.inf] + ([] if fixed is not None else [1.0])
-        return least_squares(residuals, start, bounds=(lower, upper), loss="soft_l1", f_scale=f_scale,
-                             x_scale="jac")
+        return least_squares(residuals, start, jac=jacobian, bounds=(lower, upper), loss="soft_l1",
+                             f_scale=f_scale, x_scale="jac", args=(rows,))
 
     start = np.concatenate([[0.0, 0.0, float(np.median(points[:, 2]))], [] if fixed is not None else [0.5]])
+    if len(points) >= _COARSE_EVERY * _MIN_READINGS:  # most of the way on a sample of the readings, then all
+        start = solve(start, 1.0, slice(None, None, _COARSE_EVERY)).x
     solution = solve(start, 1.0)
     spread_mm = 1.4826 * float(np.median(np.abs(residuals(solution.x))))
     f_scale = max(2.0 * spread_mm, 0.02)
