@@ -52,6 +52,7 @@ Example:
 from __future__ import annotations
 
 import cv2
+import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage
@@ -65,7 +66,6 @@ _SMOOTH_PX = 0.5  # Gaussian sigma (px) smoothing the mask's staircase before it
 _EXACT_BAND_PX = 8.0  # distances within this many pixels of the outline are exact
 _SAMPLES_PER_SEGMENT = 4  # points per outline segment (<= 1.5 px long) in the k-d tree
 _NEAREST_SAMPLES = 8  # the segments of this many nearest sample points are measured exactly
-_BLOCK_NODES = 16384  # grid points per block of rows in the far field's arithmetic
 
 
 class ObjectMaskError(SoftgripError):
@@ -154,26 +154,36 @@ def _level(inside: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
 
 
 def _signed_distance(level: np.ndarray, camera: PlaneCamera, origin: np.ndarray,
-                     spacing: np.ndarray) -> np.ndarray:
+                     spacing: np.ndarray) -> jax.Array:
     """(H, W) signed distance (mm) on the grid to the 0 level of ``level`` (H, W), > 0 inside."""
     h, w = level.shape
     # The grid is regular in mm: node (row, col) is (xs[col], ys[row]).
     xs = origin[0] + np.arange(w, dtype=np.float64) * spacing[0]
     ys = origin[1] + np.arange(h, dtype=np.float64) * spacing[1]
     if camera.faces_camera:  # grid points are the pixel centres
-        margin, inside = 0, level > 0
-    else:  # grid points anywhere on the image's footprint and a little beyond
-        nodes_px = camera.grid_mm_to_px(xs, ys)
-        reach = max(0.0, -nodes_px.min(), float((nodes_px - (w - 1.0, h - 1.0)).max()))
+        margin, outline = 0, level
+    else:  # grid points anywhere on the image's footprint and a little beyond (a homography maps the
+        # grid's rectangle to a quadrilateral: its corners reach farthest)
+        corners_px = camera.grid_mm_to_px(xs[[0, -1]], ys[[0, -1]])
+        reach = max(0.0, -corners_px.min(), float((corners_px - (w - 1.0, h - 1.0)).max()))
         margin = int(np.ceil(reach)) + 1
-        level = cv2.copyMakeBorder(level, margin, margin, margin, margin, cv2.BORDER_REPLICATE)
-        map_px = (nodes_px + margin).astype(np.float32)
-        inside = cv2.remap(level, map_px[..., 0], map_px[..., 1], cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_REPLICATE) > 0
-    segments_mm = camera.px_to_mm(_zero_crossings(level) - margin)
-    distance = _distance_to_segments(xs, ys, segments_mm, origin, spacing, _EXACT_BAND_PX * float(np.max(spacing)))
-    np.negative(distance, out=distance, where=inside)
-    return distance
+        outline = cv2.copyMakeBorder(level, margin, margin, margin, margin, cv2.BORDER_REPLICATE)
+    segments_mm = camera.px_to_mm(_zero_crossings(outline) - margin)
+    params = _nearest_segments(xs, ys, segments_mm, origin, spacing, _EXACT_BAND_PX * float(np.max(spacing)))
+    homography = None if camera.faces_camera else _plane_to_px(camera)
+    dtype = jnp.result_type(float)
+    return _grid_distance(jnp.asarray(level), *params, jnp.asarray(xs, dtype), jnp.asarray(ys, dtype),
+                          jnp.asarray(spacing, dtype), homography)
+
+
+def _plane_to_px(camera: PlaneCamera) -> jax.Array:
+    """(3, 3) the homography taking plane points (x, y, 1) in mm to homogeneous pixels (as
+    :meth:`PlaneCamera.grid_mm_to_px`), in the default float type."""
+    ex, ey, n = camera.axes
+    origin = np.array([0.0, 0.0, camera.depth_mm]) + camera.offset_mm * n
+    i = camera.intrinsics
+    k = np.array([[i.fx, 0.0, i.ppx], [0.0, i.fy, i.ppy], [0.0, 0.0, 1.0]])
+    return jnp.asarray(k @ np.column_stack([ex, ey, origin]), jnp.result_type(float))
 
 
 def _zero_crossings(level: np.ndarray) -> np.ndarray:
@@ -225,13 +235,14 @@ def _zero_crossings(level: np.ndarray) -> np.ndarray:
     return np.concatenate(pairs)
 
 
-def _distance_to_segments(xs: np.ndarray, ys: np.ndarray, segments: np.ndarray, origin: np.ndarray,
-                          spacing: np.ndarray, band_mm: float) -> np.ndarray:
-    """(H, W) distance (mm) from the grid points (xs[col], ys[row]) (W,), (H,) to the nearest of
-    segments (S, 2, 2), mm.
-
-    Exact within ``band_mm`` of the grid points next to the segments; beyond, the distance to the
-    segment holding the closest point of the nearest of those grid points.
+def _nearest_segments(xs: np.ndarray, ys: np.ndarray, segments: np.ndarray, origin: np.ndarray,
+                      spacing: np.ndarray, band_mm: float) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """What :func:`_grid_distance` needs of the segments (S, 2, 2) mm near the grid points
+    (xs[col], ys[row]) (W,), (H,): the flat index (H, W) int32 of each grid point's nearest seed (a
+    grid point at a corner of a cell the outline crosses; scipy's Euclidean feature transform), and
+    (4, H W), for the grid points within ``band_mm`` of the seeds, their nearest segment (a, b - a)
+    with a relative to the grid point (zero elsewhere), with (H W,) their exact distance to it
+    (infinite elsewhere); JAX arrays of the default float type.
     """
     h, w = len(ys), len(xs)
     t = np.linspace(0.0, 1.0, _SAMPLES_PER_SEGMENT + 1)
@@ -247,70 +258,79 @@ def _distance_to_segments(xs: np.ndarray, ys: np.ndarray, segments: np.ndarray, 
         seed[r[ok], c[ok]] = True
     to_seed, (seed_row, seed_col) = ndimage.distance_transform_edt(~seed, sampling=(spacing[1], spacing[0]),
                                                                      return_indices=True)
-    near = to_seed <= band_mm
-    near_row, near_col = np.nonzero(near)
+    near_row, near_col = np.nonzero(to_seed <= band_mm)
     near_nodes = np.stack([xs[near_col], ys[near_row]], axis=-1)
     k = min(_NEAREST_SAMPLES, len(samples))  # >= 2: every segment has several samples
     _, index = tree.query(near_nodes, k=k)
     candidates = owner[index]
-    near_distance, near_closest, best = _nearest_on(near_nodes, segments[candidates])
-    # Every grid point, beyond the band: the segment (and its closest point) of its nearest seed,
-    # itself in the band. Computed on the whole grid, component by component (the arithmetic of
-    # _nearest_on with K = 1), a block of rows at a time (arrays that stay in the cache), then the
-    # band's exact values put in.
-    near_flat = np.ravel_multi_index((near_row, near_col), (h, w))
-    nearest_segment = np.zeros(h * w, np.int64)
-    nearest_segment[near_flat] = candidates[np.arange(len(best)), best]
-    closest_x, closest_y = np.zeros(h * w), np.zeros(h * w)
-    closest_x[near_flat], closest_y[near_flat] = near_closest[:, 0], near_closest[:, 1]
-    ax, ay = segments[:, 0, 0], segments[:, 0, 1]
-    abx, aby = segments[:, 1, 0] - ax, segments[:, 1, 1] - ay
+    near_distance, best = _nearest_on(near_nodes, segments, candidates)
+    nearest = segments[candidates[np.arange(len(best)), best]]
+    near_flat = near_row * w + near_col
+    dtype = jnp.result_type(float)
+    band = np.zeros((4, h * w), dtype)
+    band[:, near_flat] = np.concatenate([nearest[:, 0] - near_nodes, nearest[:, 1] - nearest[:, 0]], axis=1).T
+    exact = np.full(h * w, np.inf, dtype)
+    exact[near_flat] = near_distance
+    seed_flat = (seed_row * w + seed_col).astype(np.int32)
+    return jax.device_put(seed_flat), jax.device_put(band), jax.device_put(exact)  # (faster than jnp.asarray)
+
+
+@jax.jit
+def _grid_distance(level: jax.Array, seed_flat: jax.Array, band: jax.Array, exact: jax.Array, xs: jax.Array,
+                   ys: jax.Array, spacing: jax.Array, homography: jax.Array | None) -> jax.Array:
+    """(H, W) signed distance (mm, > 0 inside) on the grid (xs[col], ys[row]) (W,), (H,) mm: within
+    the band, the exact distance (``exact``); beyond it, the distance to the segment of the grid
+    point's nearest seed (its ``band`` column): a distance to a point of the outline, so never
+    below the true one. Its arithmetic is relative to the seed (whole grid steps from it, then the
+    segment's offset from it), so that float32 keeps its precision near the outline and a grid
+    shifted by whole steps holds the same values. The sign is that of ``level``
+    (H, W) at the grid point: the pixel itself when ``homography`` is None (a plane facing the camera,
+    whose grid points are the pixel centres), otherwise bilinear at the pixel it maps the grid point to
+    (the image's edge values continued beyond it).
+    """
+    h, w = level.shape
+    px, py = xs[None, :], ys[:, None]
+    ox, oy, abx, aby = (band[k][seed_flat] for k in range(4))
+    steps_x = jnp.arange(w, dtype=jnp.int32)[None, :] - seed_flat % w
+    steps_y = jnp.arange(h, dtype=jnp.int32)[:, None] - seed_flat // w
+    apx = steps_x.astype(ox.dtype) * spacing[0] - ox  # from the segment's start a to the grid point
+    apy = steps_y.astype(oy.dtype) * spacing[1] - oy
     abab = abx * abx + aby * aby
-    abab[abab == 0.0] = 1.0  # a segment of no length: t = 0 / 1 = 0, as _nearest_on's nan_to_num(0 / 0) gives
-    distance = np.empty((h, w))
-    px = xs[None, :]
-    step = max(1, _BLOCK_NODES // w)
-    for r0 in range(0, h, step):
-        rows = slice(r0, min(h, r0 + step))
-        seed_flat = seed_row[rows] * w
-        seed_flat += seed_col[rows]
-        owner_of = nearest_segment[seed_flat]
-        py = ys[rows, None]
-        seg_ax, seg_ay, seg_abx, seg_aby = ax[owner_of], ay[owner_of], abx[owner_of], aby[owner_of]
-        t = px - seg_ax
-        t *= seg_abx
-        apy = py - seg_ay
-        apy *= seg_aby
-        t += apy
-        t /= abab[owner_of]
-        np.clip(t, 0.0, 1.0, out=t)  # the foot's position along its segment
-        seg_abx *= t
-        seg_abx += seg_ax  # the foot's x
-        seg_aby *= t
-        seg_aby += seg_ay  # the foot's y
-        dx, dy = px - seg_abx, py - seg_aby
-        dx *= dx
-        dy *= dy
-        dx += dy
-        out = distance[rows]
-        np.sqrt(dx, out=out)
-        np.minimum(out, np.hypot(px - closest_x[seed_flat], py - closest_y[seed_flat]), out=out)
-    distance[near] = near_distance
-    return distance
+    along = jnp.where(abab > 0.0, (apx * abx + apy * aby) / jnp.where(abab > 0.0, abab, 1.0), 0.0)
+    along = jnp.clip(along, 0.0, 1.0)  # the foot's position along its segment
+    to_segment = jnp.hypot(apx - along * abx, apy - along * aby)
+    exact = exact.reshape(h, w)
+    distance = jnp.where(jnp.isfinite(exact), exact, to_segment)  # (the band's from float64 arithmetic)
+    if homography is None:
+        inside = level > 0.0
+    else:
+        q = homography[:, 0, None, None] * px + homography[:, 1, None, None] * py + homography[:, 2, None, None]
+        u = jnp.clip(q[0] / q[2], 0.0, w - 1.0)
+        v = jnp.clip(q[1] / q[2], 0.0, h - 1.0)
+        u0 = jnp.minimum(jnp.floor(u), w - 2.0)
+        v0 = jnp.minimum(jnp.floor(v), h - 2.0)
+        fu, fv = u - u0, v - v0
+        i, j = v0.astype(jnp.int32), u0.astype(jnp.int32)
+        top = level[i, j] * (1.0 - fu) + level[i, j + 1] * fu
+        bottom = level[i + 1, j] * (1.0 - fu) + level[i + 1, j + 1] * fu
+        inside = top * (1.0 - fv) + bottom * fv > 0.0
+    return jnp.where(inside, -distance, distance)
 
 
-def _nearest_on(points: np.ndarray, segments: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Distance (P,), closest point (P, 2) and which of K segments (P,) from points (P, 2) to
-    segments (P, K, 2, 2)."""
-    a, ab = segments[..., 0, :], segments[..., 1, :] - segments[..., 0, :]
-    ap = points[:, None, :] - a
+def _nearest_on(points: np.ndarray, segments: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (P,) from points (P, 2) to the nearest of their K candidate segments (P, K) (indices
+    into segments (S, 2, 2)), and which of the K it is (P,)."""
+    ax, ay = segments[:, 0, 0][candidates], segments[:, 0, 1][candidates]
+    abx, aby = segments[:, 1, 0][candidates] - ax, segments[:, 1, 1][candidates] - ay
+    apx, apy = points[:, :1] - ax, points[:, 1:] - ay
+    abab = abx * abx + aby * aby
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.clip(np.nan_to_num(np.sum(ap * ab, -1) / np.sum(ab * ab, -1)), 0.0, 1.0)
-    foot = a + t[..., None] * ab
-    squared = np.sum((points[:, None, :] - foot) ** 2, -1)
+        t = np.clip(np.nan_to_num((apx * abx + apy * aby) / abab), 0.0, 1.0)  # the foot along the segment
+    apx -= t * abx
+    apy -= t * aby
+    squared = apx * apx + apy * apy
     best = np.argmin(squared, axis=1)
-    pick = np.arange(len(points))
-    return np.sqrt(squared[pick, best]), foot[pick, best], best
+    return np.sqrt(squared[np.arange(len(points)), best]), best
 
 
 def object_polygon(mask: np.ndarray, camera: PlaneCamera, tolerance_px: float = 0.5) -> PolygonSDF:
