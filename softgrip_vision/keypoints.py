@@ -441,6 +441,10 @@ def _finger_region(mask: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray]
 def _ridge(finger: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """The finger's medial path: (K, 2) pixel centres (u, v) from the middle of the top row to the
     pixel geodesically farthest from it; ``depth`` (H, W) is the mask's distance transform."""
+    where = box(finger, 0)  # the graph needs only the finger's box (the same nodes, in the same order)
+    if where is None:
+        raise KeypointError("the finger's mask is empty: no medial path")
+    finger, depth = finger[where], depth[where]
     r, c = np.nonzero(finger)
     index = np.full(finger.shape, -1, np.int64)
     index[r, c] = np.arange(r.size)
@@ -470,7 +474,7 @@ def _ridge(finger: np.ndarray, depth: np.ndarray) -> np.ndarray:
     path = [start]
     while path[-1] != end:
         path.append(int(predecessor[path[-1]]))
-    return np.column_stack([c[path], r[path]]).astype(np.float64)
+    return np.column_stack([c[path] + where[1].start, r[path] + where[0].start]).astype(np.float64)
 
 
 def _arc(points: np.ndarray) -> np.ndarray:
@@ -502,7 +506,7 @@ _REMAP_ROWS = 32_000  # below OpenCV remap's SHRT_MAX limit on a map's rows
 def _bilinear(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(...,) bilinear samples of a float image at points (..., 2) (u, v); 0 outside."""
     p = np.asarray(points, np.float32).reshape(-1, 1, 2)
-    image = image.astype(np.float32)
+    image = np.asarray(image, np.float32)
     # OpenCV's remap takes maps of fewer than 2**15 rows: sample in blocks of that many points.
     out = [cv2.remap(image, block[..., 0], block[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                      borderValue=0.0).reshape(-1)
@@ -515,7 +519,7 @@ class _Sampler:
     1 inside, 0 outside, the fraction covered on the edge pixels; or a 0/1 mask)."""
 
     def __init__(self, coverage: np.ndarray) -> None:
-        self.coverage = coverage.astype(np.float32)
+        self.coverage = np.asarray(coverage, np.float32)  # (read only: no copy when already float32)
         self.shape = coverage.shape
 
     def exits(self, starts: np.ndarray, direction: np.ndarray, reach: float, entering: bool = False) -> np.ndarray:
