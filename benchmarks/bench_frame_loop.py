@@ -11,6 +11,9 @@ Rows:
 * ``loop``: ``load_frame`` of ``data/circle_open``, ``frame_scene`` on it, ``Scene.score`` of 500
   poses near the scene's pose (uniform +-5 mm, +-0.1 rad; the default estimator): the median of each
   step over ``--repeats`` warm iterations (after one that compiles), and the loop's rate.
+* ``score_frames``: the same loop through :func:`softgrip_vision.stream.score_frames`, which scores a
+  frame on a worker thread while the next is loaded and measured: its rate (median of 3 runs of
+  ``--repeats`` frames) and a frame's latency (from its load to its result).
 * ``object_scene``: 10 arm poses of ``object_scene`` on a rendered 30 mm disc without the gripper in
   view (x and y tens of mm apart, the depth 116-124 mm), each followed by ``Scene.score`` of the same
   500 poses around its pose: the object grid's shapes, the programs the scoring entry point compiled
@@ -76,6 +79,34 @@ def loop_rows(repeats: int, count: int) -> None:
           f"score is {ms['score'] / ms['loop']:.0%} of it |")
 
 
+def stream_rows(repeats: int, count: int) -> None:
+    """The same loop through ``score_frames``: the next frame's load and ``frame_scene`` overlap the
+    previous frame's score (a worker thread)."""
+    from softgrip_calib.profile import load_profile
+    from softgrip_vision.frames import load_frame
+    from softgrip_vision.scene import frame_scene
+    from softgrip_vision.stream import score_frames
+
+    folder, profile = ROOT / "data" / "circle_open", load_profile(ROOT / "data" / "sample_profile.json")
+    poses = near(frame_scene(folder, profile).pose, count)
+    rates, latencies = [], []
+    for _ in range(3):
+        started: list[float] = []
+
+        def frames():
+            for _ in range(repeats):
+                started.append(time.perf_counter())
+                yield load_frame(folder)
+
+        t0 = time.perf_counter()
+        for k, _ in enumerate(score_frames(frames(), profile, poses)):
+            latencies.append(time.perf_counter() - started[k])
+        rates.append(repeats / (time.perf_counter() - t0))
+    print(f"| score_frames: the same loop, the next frame measured while the last is scored | "
+          f"{float(np.median(rates)):.2f} Hz | median of 3 runs of {repeats} frames; a frame's result "
+          f"{1e3 * float(np.median(latencies)):.0f} ms after its load began (median) |")
+
+
 def object_scene_rows(count: int) -> None:
     from softgrip_calib.profile import load_profile
     from softgrip_jax._score import _score_one_device
@@ -124,6 +155,7 @@ def main() -> None:
     print("| what | figure | note |")
     print("|---|---|---|")
     loop_rows(args.repeats, args.poses)
+    stream_rows(args.repeats, args.poses)
     object_scene_rows(args.poses)
 
 

@@ -111,6 +111,7 @@ def object_sdf(mask: np.ndarray, camera: PlaneCamera, coverage: np.ndarray | Non
     """
     inside = _as_mask(mask)
     origin, spacing = _grid_geometry(camera, inside.shape)
+    values: np.ndarray | jax.Array
     if not inside.any():
         values = np.full(inside.shape, FAR_MM, dtype=np.float64)
     elif inside.all():
