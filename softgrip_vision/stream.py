@@ -68,8 +68,11 @@ def score_frames(frames: Iterable[str | os.PathLike[str] | Frame], profile: Prof
         poses: (3,) or (B, 3) poses (x mm, y mm, angle rad) scored for every frame, or a function
             of the frame's :class:`~softgrip_vision.scene.Scene` returning them (e.g. poses around
             ``scene.pose``); called on the calling thread.
-        estimator, weights, uncertainty: as for :meth:`Scene.score <softgrip_vision.scene.Scene.score>`.
-        settings, warn: as for :func:`~softgrip_vision.scene.frame_scene`.
+        estimator: as for :meth:`Scene.score <softgrip_vision.scene.Scene.score>`.
+        weights: as for :meth:`Scene.score <softgrip_vision.scene.Scene.score>`.
+        uncertainty: as for :meth:`Scene.score <softgrip_vision.scene.Scene.score>`.
+        settings: as for :func:`~softgrip_vision.scene.frame_scene`.
+        warn: as for :func:`~softgrip_vision.scene.frame_scene`.
 
     Yields:
         A :class:`ScoredFrame` ``(scene, score)`` per frame, in the frames' order.
