@@ -62,6 +62,7 @@ TipEnd = Literal["rounded", "flat", "unknown"]
 
 _STEPS = ((0, 1), (1, 0), (1, 1), (1, -1))  # half of the 8 neighbours; the graph is undirected
 _RIDGE_POWER = 4.0
+_NEAR_CUT = 0.6  # a flat base end's centre curve is fitted from this many r from the cut
 _SMOOTH_SIGMA_PX = 2.0
 _SAMPLE_STEP_PX = 0.25  # step of the line sampling
 _TIP_STRETCH = (4.0, 2.0)  # where the tip end's direction is read (arc lengths over r from the end)
@@ -698,6 +699,10 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
     hits = sampler.exits(_lines_across(centre(s_in), up, radius), up, 3.0 * radius)
     if (hits[:, 1] < 1.0).any() or np.isnan(hits).sum() > 2 * (_LINES // 2):
         raise KeypointError(f"the {what} is cut off by the image border: keep the whole finger in view")
+    # Fitted again nearer the cut, across that curve rather than the ridge: a quadratic followed
+    # 2.5 r past its stretch misses the centre of a bent finger (a circle's next term) by a pixel
+    # at Theta 0.8, which tilts Theta (eq. 4) by 0.01 rad; followed 0.6 r, by a few hundredths.
+    centre = centre.refitted(sampler, _NEAR_CUT * radius, 4.0 * radius, radius, what)
     # The cut is square to the finger where it ends, through the mean of its edge points (where a
     # round finger's cut bulges, lopsided, in perspective): the base is where the centre curve
     # crosses it, with the curve's own direction there (the finger may bend right below its base,
@@ -706,6 +711,17 @@ def _base(sampler: _Sampler, line: np.ndarray, arc: np.ndarray, clearance: np.nd
     into = -up
     for _ in range(2):
         into = -centre.frame(centre.crossing(s_in, middle, into, 3.0 * radius))[0]
+    # Again with the lines along the finger's direction at the cut, from just inside it: on a bent
+    # finger the first lines (along its direction 2.5 r in) drift toward one side, and those near it
+    # leave through the side before they reach the cut (pulling the base toward the tip).
+    s_cut = centre.crossing(s_in, middle, into, 3.0 * radius)
+    toward, _ = centre.frame(s_cut)
+    hits = sampler.exits(_lines_across(centre(s_cut + _NEAR_CUT * radius), toward, radius), toward,
+                         (_NEAR_CUT + 3.0) * radius)
+    if np.isfinite(hits).all(axis=1).sum() >= _LINES // 2:
+        middle = np.nanmean(hits, axis=0)
+        for _ in range(2):
+            into = -centre.frame(centre.crossing(s_in, middle, into, 3.0 * radius))[0]
     s_base = centre.crossing(s_in, middle, into, 3.0 * radius)
     s_ridge = 6.0 * radius
     return _End(centre(s_base), "flat", False, direction=into, lead_in=centre.stretch(s_base, s_ridge),
@@ -759,6 +775,13 @@ class _CentreCurve:
         stations = np.arange(s_lo, s_hi, 1.0)
         centres = np.stack([_at(line, arc, s) for s in stations])
         tangents = np.stack([_direction(line, arc, s - radius, s + radius) for s in stations])
+        self.coefficients = self._fit(sampler, stations, centres, tangents, radius, what, 2)
+
+    @staticmethod
+    def _fit(sampler: _Sampler, stations: np.ndarray, centres: np.ndarray, tangents: np.ndarray, radius: float,
+             what: str, degree: int) -> list[np.ndarray]:
+        """Polynomials x(s), y(s) of ``degree`` through the midpoints of the sides found across
+        ``centres`` (K, 2), square to ``tangents`` (K, 2), at arc lengths ``stations`` (K,)."""
         normals = np.column_stack([-tangents[:, 1], tangents[:, 0]])
         sides = [sampler.exits(centres, sign * normals, 3.0 * radius) for sign in (1.0, -1.0)]
         middle = 0.5 * (sides[0] + sides[1])
@@ -766,7 +789,17 @@ class _CentreCurve:
         if ok.sum() < 5:
             raise KeypointError(f"the sides of the finger near its {what.split()[-1]} cannot be found: keep "
                                 f"the whole finger in view")
-        self.coefficients = [np.polyfit(stations[ok], middle[ok, k], 2) for k in (0, 1)]
+        return [np.polyfit(stations[ok], middle[ok, k], degree) for k in (0, 1)]
+
+    def refitted(self, sampler: _Sampler, s_lo: float, s_hi: float, radius: float, what: str) -> _CentreCurve:
+        """The curve fitted again over [s_lo, s_hi], with the stations and the lines across the
+        finger taken on this curve (not on the ridge, which forks near a cut end)."""
+        stations = np.arange(s_lo, s_hi, 1.0)
+        centres = np.stack([self(s) for s in stations])
+        tangents = -np.stack([self.frame(s)[0] for s in stations])
+        curve = object.__new__(_CentreCurve)
+        curve.coefficients = self._fit(sampler, stations, centres, tangents, radius, what, 2)
+        return curve
 
     def __call__(self, s: float) -> np.ndarray:
         """(2,) the centre at arc length ``s`` (px)."""

@@ -292,3 +292,50 @@ def test_bilinear_sampling_of_more_points_than_opencv_remap_takes_at_once() -> N
     assert values.shape == (100_000,)
     np.testing.assert_allclose(values[inside], reference[inside], atol=1e-4)
     assert _bilinear(image, points.reshape(1000, 100, 2)).shape == (1000, 100)
+
+
+# A bent finger cut flat at its base (where it leaves the gripper's body): the base keypoint and
+# Theta (eq. 4) read back from closed frames whose truth is known, across Theta. The cut's centre
+# was once found from a quadratic centre curve followed 2.5 r past its stretch and from lines along
+# the finger's direction 2.5 r in, which on a bent finger miss the centre (a circle's next term) and
+# leave through a side: the base came out up to 1.5 px toward the tip and Theta too large by 2-12
+# mrad, growing with Theta.
+
+
+def _closed_flat_base(theta: float, centre_x: float, section: str) -> Scene:
+    arc = np.asarray(free_arc_points((0.0, 0.0), theta, LENGTH, np.linspace(0.0, LENGTH, 257)))
+    return Scene(gripper_centrelines(np.array([centre_x, -40.0]), 76.0, LENGTH, 64, left_shape=arc,
+                                     right_shape=arc),
+                 half_thickness=HALF_THICKNESS, plane_depth_mm=PLANE_MM, base_end="flat", finger_section=section,
+                 supersample=3, seed=3)
+
+
+@pytest.mark.parametrize("theta", [0.4, 0.8])
+def test_a_bent_fingers_flat_base_is_found_at_the_cuts_centre(theta):
+    scene = _closed_flat_base(theta, 0.0, "flat")
+    frame = render(scene, INTR)
+    seg = segment(frame)
+    keypoints = gripper_keypoints(seg, PlaneCamera.from_frame(frame, seg.fingers), color=frame.color)
+    for k, finger in zip(keypoints, scene.fingers):
+        assert k.base_end == "flat"
+        truth = mm_to_px(finger[:1], INTR, PLANE_MM)[0]
+        assert np.hypot(*(k.base_px - truth)) < 0.3  # px (was 0.8 at Theta 0.4, 1.7 at 0.8)
+
+
+def test_theta_from_flat_based_fingers_has_no_bias_growing_with_theta():
+    from softgrip_calib.one_frame import one_frame_from_frames
+
+    errors = {}
+    for theta in (0.4, 0.65, 0.8):
+        for centre_x, section in ((-25.0, "round"), (25.0, "flat")):  # the gripper about 80 px off centre
+            closed = _closed_flat_base(theta, centre_x, section)
+            opened = Scene(gripper_centrelines(np.array([centre_x, -40.0]), 76.0, LENGTH, 64),
+                           half_thickness=HALF_THICKNESS, plane_depth_mm=PLANE_MM, base_end="flat",
+                           finger_section=section, supersample=3, seed=4)
+            profile = one_frame_from_frames(render(closed, INTR), render(opened, INTR), 20)
+            errors.setdefault(theta, []).extend(profile.fingers[s].theta_entire - theta for s in ("left", "right"))
+    worst = max(abs(e) for v in errors.values() for e in v)
+    mean = {theta: float(np.mean(v)) for theta, v in errors.items()}
+    assert worst < 0.003, errors  # rad, the goal for one frame pair (was up to 0.012)
+    assert abs(mean[0.8] - mean[0.4]) < 0.0015, mean  # no trend with Theta (was +0.007)
+    assert max(abs(m) for m in mean.values()) < 0.0015, mean
