@@ -7,6 +7,7 @@ Run from the repository root:
     .venv/bin/python benchmarks/vision_accuracy.py --variants 6  # the renderer variants' table
     .venv/bin/python benchmarks/vision_accuracy.py --plane 6     # plane depth on round fingers (issue 31)
     .venv/bin/python benchmarks/vision_accuracy.py --distortion 4  # lenses undone and ignored (issue 32)
+    .venv/bin/python benchmarks/vision_accuracy.py --theta         # Theta read back across Theta (issue 43)
 
 and paste the printed markdown into benchmarks/RESULTS.md. Each scene is a gripper (L = 52 mm,
 r = 4 mm) rendered twice with colour and depth noise and depth holes, with ground truth from the
@@ -687,6 +688,38 @@ def backend_disagreement(frames: list[Frame]) -> float:
     return worst
 
 
+#: The Theta sweep (issue 43): closed frames of fingers cut flat at the base, read back by eq. 4.
+THETA_SWEEP = (0.4, 0.55, 0.65, 0.8)
+
+
+def theta_table() -> list[str]:
+    """Markdown rows: the signed error of Theta (one-frame calibration, mrad) per true Theta, over both
+    fingers of six scenes each: flat base ends, round and flat sections, the gripper 25 mm left,
+    centred and 25 mm right (about 80 px), anti-aliased edges (supersample 3)."""
+    import itertools
+    import warnings
+
+    from softgrip_calib.one_frame import one_frame_from_frames
+
+    lines = ["| Theta (rad) | mean error (mrad) | smallest | largest | fingers |", "|---|---|---|---|---|"]
+    for theta in THETA_SWEEP:
+        arc = np.asarray(free_arc_points((0.0, 0.0), theta, LENGTH_MM, np.linspace(0.0, LENGTH_MM, 257)))
+        errors = []
+        for centre_x, section in itertools.product((-25.0, 0.0, 25.0), ("round", "flat")):
+            centre = np.array([centre_x, -40.0])
+            common = dict(half_thickness=HALF_THICKNESS_MM, plane_depth_mm=120.0, base_end="flat",
+                          finger_section=section, supersample=3)
+            opened = Scene(gripper_centrelines(centre, 76.0, LENGTH_MM, 64), seed=1, **common)
+            closed = Scene(gripper_centrelines(centre, 76.0, LENGTH_MM, 64, left_shape=arc, right_shape=arc),
+                           seed=2, **common)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                profile = one_frame_from_frames(render(closed, INTRINSICS), render(opened, INTRINSICS), N_LINKS)
+            errors += [1e3 * (profile.fingers[side].theta_entire - theta) for side in ("left", "right")]
+        lines.append(f"| {theta:g} | {np.mean(errors):+.2f} | {min(errors):+.2f} | {max(errors):+.2f} | {len(errors)} |")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", type=int, default=20, help="number of scenes (default 20)")
@@ -698,9 +731,17 @@ def main() -> None:
     parser.add_argument("--distortion", type=int, metavar="SCENES",
                         help="instead, the lens sweep (issue 32): each of LENSES rendered, undone by the pipeline "
                              "and ignored, against the pinhole rendering, on SCENES scenes each")
+    parser.add_argument("--theta", action="store_true",
+                        help="instead, the Theta sweep (issue 43): Theta read back from flat-based closed frames")
     args = parser.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from _machine import describe
+
+    if args.theta:
+        print("Command: `.venv/bin/python benchmarks/vision_accuracy.py --theta`\n")
+        print(f"Machine: {describe()}\n")
+        print("\n".join(theta_table()))
+        return
 
     if args.distortion:
         print(f"Command: `.venv/bin/python benchmarks/vision_accuracy.py --distortion {args.distortion}`\n")
