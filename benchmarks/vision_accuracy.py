@@ -716,7 +716,8 @@ def theta_table() -> list[str]:
                 warnings.simplefilter("ignore")
                 profile = one_frame_from_frames(render(closed, INTRINSICS), render(opened, INTRINSICS), N_LINKS)
             errors += [1e3 * (profile.fingers[side].theta_entire - theta) for side in ("left", "right")]
-        lines.append(f"| {theta:g} | {np.mean(errors):+.2f} | {min(errors):+.2f} | {max(errors):+.2f} | {len(errors)} |")
+        lines.append(f"| {theta:g} | {np.mean(errors):+.2f} | {min(errors):+.2f} | {max(errors):+.2f} "
+                     f"| {len(errors)} |")
     return lines
 
 

@@ -40,6 +40,7 @@ line sampling.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Any, Literal, NamedTuple, cast
 
@@ -775,13 +776,13 @@ class _CentreCurve:
         stations = np.arange(s_lo, s_hi, 1.0)
         centres = np.stack([_at(line, arc, s) for s in stations])
         tangents = np.stack([_direction(line, arc, s - radius, s + radius) for s in stations])
-        self.coefficients = self._fit(sampler, stations, centres, tangents, radius, what, 2)
+        self.coefficients = self._fit(sampler, stations, centres, tangents, radius, what)
 
     @staticmethod
     def _fit(sampler: _Sampler, stations: np.ndarray, centres: np.ndarray, tangents: np.ndarray, radius: float,
-             what: str, degree: int) -> list[np.ndarray]:
-        """Polynomials x(s), y(s) of ``degree`` through the midpoints of the sides found across
-        ``centres`` (K, 2), square to ``tangents`` (K, 2), at arc lengths ``stations`` (K,)."""
+             what: str) -> list[np.ndarray]:
+        """Quadratics x(s), y(s) through the midpoints of the sides found across ``centres`` (K, 2),
+        square to ``tangents`` (K, 2), at arc lengths ``stations`` (K,)."""
         normals = np.column_stack([-tangents[:, 1], tangents[:, 0]])
         sides = [sampler.exits(centres, sign * normals, 3.0 * radius) for sign in (1.0, -1.0)]
         middle = 0.5 * (sides[0] + sides[1])
@@ -789,7 +790,7 @@ class _CentreCurve:
         if ok.sum() < 5:
             raise KeypointError(f"the sides of the finger near its {what.split()[-1]} cannot be found: keep "
                                 f"the whole finger in view")
-        return [np.polyfit(stations[ok], middle[ok, k], degree) for k in (0, 1)]
+        return [np.polyfit(stations[ok], middle[ok, k], 2) for k in (0, 1)]
 
     def refitted(self, sampler: _Sampler, s_lo: float, s_hi: float, radius: float, what: str) -> _CentreCurve:
         """The curve fitted again over [s_lo, s_hi], with the stations and the lines across the
@@ -797,8 +798,8 @@ class _CentreCurve:
         stations = np.arange(s_lo, s_hi, 1.0)
         centres = np.stack([self(s) for s in stations])
         tangents = -np.stack([self.frame(s)[0] for s in stations])
-        curve = object.__new__(_CentreCurve)
-        curve.coefficients = self._fit(sampler, stations, centres, tangents, radius, what, 2)
+        curve = copy.copy(self)
+        curve.coefficients = self._fit(sampler, stations, centres, tangents, radius, what)
         return curve
 
     def __call__(self, s: float) -> np.ndarray:

@@ -156,7 +156,8 @@ def _level(inside: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
 
 def _signed_distance(level: np.ndarray, camera: PlaneCamera, origin: np.ndarray,
                      spacing: np.ndarray) -> jax.Array:
-    """(H, W) signed distance (mm) on the grid to the 0 level of ``level`` (H, W), > 0 inside."""
+    """(H, W) signed distance (mm, negative inside) on the grid to the 0 level of ``level`` (H, W), which is
+    > 0 inside."""
     h, w = level.shape
     # The grid is regular in mm: node (row, col) is (xs[col], ys[row]).
     xs = origin[0] + np.arange(w, dtype=np.float64) * spacing[0]
@@ -279,7 +280,7 @@ def _nearest_segments(xs: np.ndarray, ys: np.ndarray, segments: np.ndarray, orig
 @jax.jit
 def _grid_distance(level: jax.Array, seed_flat: jax.Array, band: jax.Array, exact: jax.Array, xs: jax.Array,
                    ys: jax.Array, spacing: jax.Array, homography: jax.Array | None) -> jax.Array:
-    """(H, W) signed distance (mm, > 0 inside) on the grid (xs[col], ys[row]) (W,), (H,) mm: within
+    """(H, W) signed distance (mm, negative inside) on the grid (xs[col], ys[row]) (W,), (H,) mm: within
     the band, the exact distance (``exact``); beyond it, the distance to the segment of the grid
     point's nearest seed (its ``band`` column): a distance to a point of the outline, so never
     below the true one. Its arithmetic is relative to the seed (whole grid steps from it, then the
