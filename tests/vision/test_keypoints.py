@@ -322,6 +322,7 @@ def test_a_bent_fingers_flat_base_is_found_at_the_cuts_centre(theta):
         assert np.hypot(*(k.base_px - truth)) < 0.3  # px (was 0.8 at Theta 0.4, 1.7 at 0.8)
 
 
+@pytest.mark.slow  # six frame pairs through one-frame calibration: about 45 s (the base's own test above is fast)
 def test_theta_from_flat_based_fingers_has_no_bias_growing_with_theta():
     from softgrip_calib.one_frame import one_frame_from_frames
 
