@@ -62,6 +62,20 @@ converged point one full Newton step, with the energy's whole Hessian, finishes 
 is small and lowers the energy (:func:`_polish`): what the few conjugate
 directions leave out would otherwise stop the solve short by a pose-dependent amount.
 
+The trust region. Past a fold, and where a tip slides over a corner (a star's point, a polygon's
+corner), even the corrected model is poor a short way from where it was made: its steps raised
+the energy tenfold and more, and the solve wandered between far-apart shapes until its budget was
+spent (``mechanics_not_converged``). So the solve at Theta keeps the energy falling: each step's
+energy is compared with the reduction the model predicted for it (the penalty's hinge linearised
+over the step's K stations, plus the curvature term), one iteration late, when the energy at the
+step's end comes with the next step; a step that achieved less than _ACCEPT of its prediction is
+undone and the region (the curvature correction's stretch, in Gauss-Newton steps) shrinks to a
+quarter of that step, one that achieved more than three quarters lets it grow back, up to
+_STRETCH_MAX (Nocedal & Wright, *Numerical Optimization*, Algorithm 4.1, with Steihaug's
+conjugate gradients). Steps within ``step_tol`` are kept whatever their energy (float32 rounding
+of the stiff penalty). An undone step spends an iteration of the budget and never counts toward
+convergence. Where every step is accepted, as on an ordinary contact, the solve is the plain one.
+
 The closing path. A contact problem of this kind has several equilibria (a tip held on the object,
 or the finger pressed along its middle after the tip slid past); the estimate is the one the finger
 reaches by closing. Model and assumptions: the actuation is ramped quasi-statically from the open
@@ -130,6 +144,14 @@ _GLUE_MM = 0.05
 _STRETCH_MAX = 16.0
 _CG_ITERATIONS = 3
 
+#: The trust region (see ChainGaussNewton.step): a step is kept when the energy falls by at least
+#: _ACCEPT of the reduction the model predicted, or changes by no more than _ENERGY_NOISE of itself
+#: (float32 rounding near the equilibrium); the region shrinks to no less than _STRETCH_MIN
+#: Gauss-Newton steps.
+_ACCEPT = 0.1
+_ENERGY_NOISE = 1e-6
+_STRETCH_MIN = 1e-3
+
 
 def check_method(method: object, where: str = "method") -> None:
     """Raise a :class:`SoftgripError` unless ``method`` names an estimate."""
@@ -141,8 +163,9 @@ class MechanicsConfig(eqx.Module):
     """Settings of the mechanics estimate's solver (all static: changing one recompiles).
 
     Attributes:
-        max_steps: Gauss-Newton iterations at most. A candidate that has not met ``step_tol`` and
-            ``contact_tol`` by then gets ``Status.MECHANICS_NOT_CONVERGED``.
+        max_steps: Gauss-Newton iterations at most (a step the trust region undoes counts). A
+            candidate that has not met ``step_tol`` and ``contact_tol`` by then gets
+            ``Status.MECHANICS_NOT_CONVERGED``.
         stations_per_link: centreline stations per link that may not enter the object (plus the
             tip); the chain may cut a sharp corner between two stations by up to about
             (L / (N stations_per_link))^2 / (8 r).
@@ -364,7 +387,7 @@ def _curvature_operator(problem: _Problem, joints, index, p, g, force) -> Callab
     return apply
 
 
-def _with_curvature(problem: _Problem, joints, index, p, g, force, a, low, step) -> Float[Array, " n1"]:
+def _with_curvature(problem: _Problem, joints, index, p, g, force, a, low, step, stretch):
     """The Gauss-Newton ``step`` corrected for the contact terms' curvature (see _newton_step).
 
     The step s minimises the model G . x + x^T B x / 2 with B = I + A^T A (``a``: the step's rows),
@@ -374,9 +397,15 @@ def _with_curvature(problem: _Problem, joints, index, p, g, force, a, low, step)
     model's curvature along it, and each of the _CG_ITERATIONS adds one direction. B^-1 C is small
     but in the few directions where the contacts' curvature matters (a held tip's slide along the
     surface), so a few suffice. Where the model curves down along a direction (past a fold, where
-    the held equilibrium has ceased to exist) or its minimum lies beyond _STRETCH_MAX times s (in
-    the B-norm), the iterate goes that far along the direction and stops (Steihaug's truncated
-    conjugate gradients). ``low``: the Cholesky factor of I + A A^T (:func:`_cholesky`), the step's own.
+    the held equilibrium has ceased to exist) or its minimum lies beyond ``stretch`` times s (in
+    the B-norm: the trust region, at most _STRETCH_MAX), the iterate goes that far along the
+    direction and stops (Steihaug's truncated conjugate gradients). ``low``: the Cholesky factor of
+    I + A A^T (:func:`_cholesky`), the step's own.
+
+    Returns (x, x.Bx, x.(B + C)x, s.Bs): the step and its curvatures in the two models, and the
+    Gauss-Newton step's. Where the
+    contacts' curvature turns the step away from descent (G . x >= 0, possible past a fold), x is
+    s, shortened to the region.
     """
     curvature = _curvature_operator(problem, joints, index, p, g, force)
 
@@ -388,15 +417,19 @@ def _with_curvature(problem: _Problem, joints, index, p, g, force, a, low, step)
 
     bs = b_times(step)
     sbs = jnp.dot(step, bs)
-    radius2 = _STRETCH_MAX**2 * sbs
+    radius2 = stretch**2 * sbs
     tiny = jnp.asarray(1e-30, step.dtype)
     x, bx = jnp.zeros_like(step), jnp.zeros_like(step)
     r, d, rz = bs, step, sbs
     running = sbs > tiny
-    for _ in range(_CG_ITERATIONS):
+    # Along the iterates: b . x (b = Bs = -G), x.(B + C)x (H x = b - r), and s.(B + C)s.
+    descent, xhx, shs = jnp.zeros((), step.dtype), jnp.zeros((), step.dtype), jnp.zeros((), step.dtype)
+    for iteration in range(_CG_ITERATIONS):
         bd = b_times(d)
         hd = bd + curvature(d)
         dhd, dbd, xbd, xbx = jnp.dot(d, hd), jnp.dot(d, bd), jnp.dot(x, bd), jnp.dot(x, bx)
+        if iteration == 0:
+            shs = dhd
         alpha = rz / jnp.where(dhd > 0, dhd, 1.0)
         # Where the model curves down along d, or its minimum along d lies beyond the radius: to
         # the radius along d (the root tau >= 0 of |x + tau d|_B^2 = radius^2), and stop.
@@ -404,6 +437,8 @@ def _with_curvature(problem: _Problem, joints, index, p, g, force, a, low, step)
         dbd_safe = jnp.maximum(dbd, tiny)
         tau = (-xbd + jnp.sqrt(jnp.maximum(xbd**2 + dbd_safe * (radius2 - xbx), 0.0))) / dbd_safe
         move = jnp.where(running, jnp.where(beyond, tau, alpha), 0.0)
+        xhx = xhx + 2.0 * move * (jnp.dot(d, bs) - jnp.dot(d, r)) + move**2 * dhd
+        descent = descent + move * jnp.dot(d, bs)
         x, bx = x + move * d, bx + move * bd
         r = r - move * hd
         z = b_solve(r)
@@ -411,18 +446,29 @@ def _with_curvature(problem: _Problem, joints, index, p, g, force, a, low, step)
         running = running & ~beyond & (rz_next > 1e-12 * sbs)
         d = z + (rz_next / jnp.maximum(rz, tiny)) * d
         rz = rz_next
-    return x
+    short = jnp.minimum(stretch, 1.0)
+    away = descent <= 0
+    return (jnp.where(away, short * step, x), jnp.where(away, short**2 * sbs, jnp.dot(x, bx)),
+            jnp.where(away, short**2 * shs, xhx), sbs)
 
 
-def _newton_step(problem: _Problem, y, previous, curvature: bool = True):
-    """The Gauss-Newton step at y, corrected for the contacts' curvature (unless ``curvature`` is
-    False, as on the closing path), and diagnostics (see the module docstring).
+class _Step(eqx.Module):
+    """One step of :func:`_newton_step` and what the solver reads of it."""
 
-    Returns (step, moved, penetration, pushed): the step in y, the largest joint displacement the
-    full (unshortened) step makes (mm, to first order), the deepest station inside r at y (mm, >= 0)
-    and which stations (M,) carry contact force in the model after the full step (a positive
-    multiplier: the chain pushes them into the object).
-    """
+    step: Float[Array, " n1"]  #: the step in y
+    moved: Float[Array, ""]  #: mm: largest joint displacement of the full (unshortened) step, to first order
+    penetration: Float[Array, ""]  #: mm: the deepest station inside r at y (>= 0)
+    pushed: Bool[Array, " m"]  #: stations carrying contact force in the model after the full step
+    energy: Float[Array, ""]  #: the energy at y
+    predicted: Float[Array, ""]  #: the energy's reduction the model predicts for the step
+    reach: Float[Array, ""]  #: the step's length in Gauss-Newton steps (in the model's norm)
+    shift: Float[Array, ""]  #: mm: largest joint displacement of the step taken, to first order
+
+
+def _newton_step(problem: _Problem, y, previous, curvature: bool = True, stretch=_STRETCH_MAX) -> _Step:
+    """The Gauss-Newton step at y, corrected for the contacts' curvature within ``stretch`` times
+    the Gauss-Newton step (unless ``curvature`` is False, as on the closing path), and diagnostics
+    (see the module docstring and :class:`_Step`)."""
     f, config = problem.finger, problem.config
     n, per_link = f.n_links, config.stations_per_link
     dtype = y.dtype
@@ -486,8 +532,8 @@ def _newton_step(problem: _Problem, y, previous, curvature: bool = True):
     pushed = jnp.any((index[:, None] == jnp.arange(m)[None, :]) & (modelled & (lam > 0))[:, None], axis=0)
     # The contacts' curvature, which the model leaves out, matters near a fold (module docstring).
     if curvature:
-        step = _with_curvature(problem, joints, index, p, g, weight * weight * jnp.maximum(depth, 0.0),
-                               jnp.where(modelled[:, None], a_k, 0.0), low, step)
+        step, xbx, xhx, sbs = _with_curvature(problem, joints, index, p, g, weight * weight * jnp.maximum(depth, 0.0),
+                                              jnp.where(modelled[:, None], a_k, 0.0), low, step, stretch)
 
     # Trust region on the angles.
     turns = jnp.concatenate([step[:-1] * per_link_scale, (step[-1] * base_scale)[None]])
@@ -514,16 +560,48 @@ def _newton_step(problem: _Problem, y, previous, curvature: bool = True):
     lever = joints * (before + dpsi)[:, None] - moment  # (N+1, 2), turned by 90 degrees below
     moved = jnp.sqrt(jnp.max(jnp.sum(lever**2, axis=-1)))
     penetration = jnp.maximum(jnp.max(violation), 0.0)
-    return alpha * step, moved, penetration, pushed
+    taken = alpha * step
+    if not curvature:  # the closing path reads only the step and the contacts
+        nothing = jnp.zeros((), dtype)
+        return _Step(step=taken, moved=moved, penetration=penetration, pushed=pushed, energy=nothing,
+                     predicted=nothing, reach=nothing, shift=nothing)
+    # The energy at y, and the model's value after the step taken (the hinge model of the K
+    # stations, plus the contacts' curvature term): what the trust region compares.
+    inside = jnp.maximum(violation, 0.0)
+    energy = 0.5 * (jnp.dot(y, y) + weight * weight * jnp.sum(inside * inside))
+    after = y + taken
+    hinge = jnp.maximum(signed + alpha * weight * approach, 0.0)
+    model = 0.5 * (jnp.dot(after, after) + jnp.sum(hinge * hinge) + alpha**2 * (xhx - xbx))
+    reach = alpha * jnp.sqrt(xbx / jnp.maximum(sbs, 1e-30))
+    return _Step(step=taken, moved=moved, penetration=penetration, pushed=pushed, energy=energy,
+                 predicted=energy - model, reach=reach, shift=alpha * moved)
 
 
 class _SolverState(eqx.Module):
+    """The solve's iterations (see :class:`ChainGaussNewton`): the last step's diagnostics and the
+    trust region's anchor (the last accepted point), its energy, the reduction the model predicted
+    for the step taken from it, and the region's size in Gauss-Newton steps."""
+
     previous: Float[Array, " n1"]
     moved: Float[Array, ""]
     moved_before: Float[Array, ""]
     penetration: Float[Array, ""]
     pushed: Bool[Array, " m"]
     steps: Int[Array, ""]
+    anchor: Float[Array, " n1"]
+    anchor_energy: Float[Array, ""]
+    predicted: Float[Array, ""]
+    reach: Float[Array, ""]
+    shift: Float[Array, ""]
+    stretch: Float[Array, ""]
+
+
+def _initial_state(y: Float[Array, " n1"], n_stations: int) -> _SolverState:
+    inf = jnp.asarray(jnp.inf, y.dtype)
+    return _SolverState(previous=jnp.zeros_like(y), moved=inf, moved_before=inf, penetration=inf,
+                        pushed=jnp.zeros(n_stations, bool), steps=jnp.array(0), anchor=y, anchor_energy=inf,
+                        predicted=inf, reach=jnp.asarray(_STRETCH_MAX, y.dtype), shift=inf,
+                        stretch=jnp.asarray(_STRETCH_MAX, y.dtype))
 
 
 class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
@@ -543,16 +621,36 @@ class ChainGaussNewton(optx.AbstractLeastSquaresSolver):
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         if options and "state" in options:  # resuming a solve under way (see Progress)
             return options["state"]
-        inf = jnp.asarray(jnp.inf, y.dtype)
-        pushed = jnp.zeros(args.n_stations, bool)
-        return _SolverState(previous=jnp.zeros_like(y), moved=inf, moved_before=inf, penetration=inf,
-                            pushed=pushed, steps=jnp.array(0))
+        return _initial_state(y, args.n_stations)
 
     def step(self, fn, y, args, options, state, tags):
-        step, moved, penetration, pushed = _newton_step(args, y, state.previous)
-        state = _SolverState(previous=step, moved=moved, moved_before=state.moved, penetration=penetration,
-                             pushed=pushed, steps=state.steps + 1)
-        return y + step, state, None
+        # The trust region, checked one iteration late (the energy at y comes with the step from
+        # y): a step whose energy fell by less than _ACCEPT of the model's prediction is undone and
+        # the region shrunk, so that the solve descends the energy (past a fold, where the
+        # contacts' curvature leaves the model poor, it would otherwise wander). Where the steps
+        # are accepted, as on an ordinary contact, the solve is the plain one.
+        here = _newton_step(args, y, state.previous, stretch=state.stretch)
+        fell = state.anchor_energy - here.energy
+        noise = _ENERGY_NOISE * jnp.abs(state.anchor_energy)
+        ratio = fell / jnp.maximum(state.predicted, 1e-30)
+        # (A step within the tolerance is kept whatever its energy: there the energy's changes are
+        # float32 rounding of the stiff penalty, and the region is for the steps that travel.)
+        small = (state.shift <= self.atol) | (jnp.abs(fell) <= noise)
+        accept = ~jnp.isfinite(state.anchor_energy) | (ratio >= _ACCEPT) | small
+        stretch = jnp.where(ratio < 0.25, 0.25 * state.reach,
+                            jnp.where(ratio > 0.75, jnp.maximum(state.stretch, 2.0 * state.reach), state.stretch))
+        stretch = jnp.where(small, state.stretch, stretch)
+        stretch = jnp.clip(stretch, _STRETCH_MIN, _STRETCH_MAX)
+        inf = jnp.asarray(jnp.inf, y.dtype)
+        zero = jnp.zeros_like(y)
+        state = _SolverState(
+            previous=jnp.where(accept, here.step, zero), moved=jnp.where(accept, here.moved, inf),
+            moved_before=jnp.where(accept, state.moved, inf), penetration=here.penetration,
+            pushed=here.pushed, steps=state.steps + 1, anchor=jnp.where(accept, y, state.anchor),
+            anchor_energy=jnp.where(accept, here.energy, state.anchor_energy),
+            predicted=jnp.where(accept, here.predicted, state.predicted), reach=jnp.where(accept, here.reach, state.reach),
+            shift=jnp.where(accept, here.shift, state.shift), stretch=stretch)
+        return jnp.where(accept, y + here.step, state.anchor), state, None
 
     def terminate(self, fn, y, args, options, state, tags):
         # Two steps in a row within tolerance: a single small step can be an accident of a kink in
@@ -620,9 +718,7 @@ def start_equilibrium(
         start_psi, start_turning, tip_pressed = follow_closing_path(problem, start_actuation, start_psi,
                                                                     start_turning, config)
     y0 = problem.variables(start_psi, start_turning)
-    inf = jnp.asarray(jnp.inf, y0.dtype)
-    state = _SolverState(previous=jnp.zeros_like(y0), moved=inf, moved_before=inf, penetration=inf,
-                         pushed=jnp.zeros(problem.n_stations, bool), steps=jnp.array(0))
+    state = _initial_state(y0, problem.n_stations)
     budget = mechanics.max_steps if steps is None else min(steps, mechanics.max_steps)
     y, state, done, converged = _iterate(problem, y0, state, budget, mechanics)
     return Progress(y=y, state=state, done=done, converged=converged, tip_pressed=tip_pressed)
@@ -710,8 +806,8 @@ def follow_closing_path(
 
         def iteration(_, carry):
             y, previous, pressed = carry
-            step, _moved, _penetration, pushed = _newton_step(here, y, previous, curvature=False)
-            return y + step, step, pressed | jnp.any(pushed & tip_zone)
+            taken = _newton_step(here, y, previous, curvature=False)
+            return y + taken.step, taken.step, pressed | jnp.any(taken.pushed & tip_zone)
 
         y, previous, pressed = jax.lax.fori_loop(0, mech.path_iterations, iteration,
                                                  (y, state.previous, state.tip_pressed))
