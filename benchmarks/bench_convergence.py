@@ -2,7 +2,7 @@
 and, against a baseline copy of the package, which of the two lands where the independent rod closes.
 
 Scenes: ten shapes of ``synthetic.shapes`` (30 mm across, turned 0.3 rad, centred at (25, 45) mm),
-each an SDFGrid of 0.4 mm cells sampled from its exact distance (the image's SDF stands in for it);
+each sampled on an SDFGrid of 0.4 mm cells by ``PolygonSDF.to_grid`` (the image's SDF stands in for it);
 one finger of N = 20 (L 52 mm, r 4 mm) as three mechanics (Theta 0.55 uniform, 0.80 uniform, 0.80
 with a base 2.5 times stiffer and base compliance 0.3); ``--bases`` bases uniform in x -14..14 mm,
 y -8..14 mm. ``estimate_batch`` at defaults. Prints per finger and shape the fingers with
@@ -20,7 +20,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -37,20 +36,14 @@ def outline(name):
     return shape(name, 30.0, 0.3) + np.array([25.0, 45.0])
 
 
-def sampled_values(polygon):
-    import softgrip_jax as sg
-
-    xs = -30.0 + 0.4 * np.arange(300)
-    x, y = np.meshgrid(xs, xs, indexing="xy")
-    exact = sg.PolygonSDF(vertices=jnp.asarray(polygon, jnp.float32))
-    points = jnp.asarray(np.stack([x.ravel(), y.ravel()], 1), jnp.float32)
-    return np.asarray(jax.jit(jax.vmap(exact.distance))(points)).reshape(x.shape)
+def sampled(pkg, polygon):
+    return pkg.PolygonSDF(vertices=jnp.asarray(polygon, jnp.float32)).to_grid(cell_mm=0.4)
 
 
-def run(pkg, values, finger, bases):
+def run(pkg, polygon, finger, bases):
     fm = pkg.FingerModel(length=52.0, theta_entire=finger[0], half_thickness=4.0, n_links=20,
                          stiffness_ratio=finger[1], base_compliance=finger[2])
-    sdf = pkg.SDFGrid(values=jnp.asarray(values), origin=jnp.full(2, -30.0), spacing=jnp.full(2, 0.4))
+    sdf = sampled(pkg, polygon)
     est = pkg.estimate_batch(fm, sdf, bases)
     return np.asarray(est.status), np.asarray(est.joints)
 
@@ -76,8 +69,8 @@ def main():
     differ = []
     for finger in FINGERS:
         for name in SHAPES:
-            values = sampled_values(outline(name))
-            out = {key: run(pkg, values, finger, bases) for key, pkg in versions.items()}
+            polygon = outline(name)
+            out = {key: run(pkg, polygon, finger, bases) for key, pkg in versions.items()}
             counts = {key: int(np.sum(status == lost)) for key, (status, _) in out.items()}
             for key in versions:
                 totals[key] += counts[key]

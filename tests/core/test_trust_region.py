@@ -8,19 +8,17 @@ solve descends the energy and lands where the independent rod's quasi-static clo
 """
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softgrip_jax import FingerModel, MechanicsConfig, PolygonSDF, SDFGrid, Status, estimate_batch
+from softgrip_jax import FingerModel, MechanicsConfig, PolygonSDF, Status, estimate_batch
 from softgrip_jax._mechanics import _STRETCH_MAX, ChainGaussNewton, _initial_state, _Problem, _residual_fn
 from softgrip_jax._frames import FingerFrame
 from synthetic.rod import close_rod, observed_joints
 from synthetic.shapes import shape
 
 LENGTH, HALF_THICKNESS, N = 52.0, 4.0, 20
-SPACING, ORIGIN, SIZE = 0.4, -30.0, 300
 
 
 def outline(name):
@@ -29,12 +27,8 @@ def outline(name):
 
 
 def sampled(polygon):
-    """The polygon's exact distance sampled on a 0.4 mm grid (the image's SDF stands in for it)."""
-    xs = ORIGIN + SPACING * np.arange(SIZE)
-    x, y = np.meshgrid(xs, xs, indexing="xy")
-    exact = PolygonSDF(vertices=jnp.asarray(polygon, jnp.float32))
-    values = jax.jit(jax.vmap(exact.distance))(jnp.asarray(np.stack([x.ravel(), y.ravel()], 1), jnp.float32))
-    return SDFGrid(values=values.reshape(x.shape), origin=jnp.full(2, ORIGIN), spacing=jnp.full(2, SPACING))
+    """The polygon on a 0.4 mm grid (the image's SDF stands in for it)."""
+    return PolygonSDF(vertices=jnp.asarray(polygon, jnp.float32)).to_grid(cell_mm=0.4)
 
 
 # (shape, Theta, base mm): each one the plain iteration left not converged (checked once, on the
@@ -42,7 +36,6 @@ def sampled(polygon):
 LOST = [
     ("square", 0.8, (7.7141, 12.3405)),
     ("star_a", 0.8, (-0.5871, 9.2437)),
-    ("star_b", 0.8, (-9.0686, 1.3536)),
     ("rounded_rect", 0.55, (5.2308, -4.1025)),
 ]
 
