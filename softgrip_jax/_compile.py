@@ -17,10 +17,12 @@ within float rounding:
   measures both).
 
 Options are chosen per program: an estimator may override them for the batch programs that run
-it (``AbstractEstimator.cpu_options``). ``Geometric()`` compiles with the fusion emitters: its
-batch programs run faster with them, for a longer first compile (both measured by
-``benchmarks/bench_emitters.py``); ``Mechanics()`` keeps the loop emitter, with which its batch
-programs both compile and run faster.
+it (``AbstractEstimator.cpu_options``). ``Geometric()`` and ``Mechanics()`` compile with the fusion
+emitters: their batch programs run faster with them, for a longer first compile (both measured by
+``benchmarks/bench_emitters.py``). ``Mechanics()`` also turns off XLA's intra-op threads
+(``xla_cpu_multi_thread_eigen=False``): a CPU batch already runs one piece per core
+(:mod:`softgrip_jax._concurrent`), and the solve's small kernels, split across the cores, waited on
+each other more than they gained.
 
 They are applied only on a CPU backend, and each only if this jaxlib accepts it (the second is
 experimental and may be renamed): the others still apply.

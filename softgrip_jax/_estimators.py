@@ -50,6 +50,10 @@ _MECHANICS_GROUP = 64
 _FIRST_STEPS = 2
 _LATE_GROUP = 16
 
+#: The equilibria's derivatives, case and sensitivity (a fixed amount of work per finger, no loop
+#: that waits on a slow lane) are computed in groups of this many: fewer, larger kernels.
+_FINISH_GROUP = 512
+
 
 class AbstractEstimator(eqx.Module):
     """How a finger deforms once its first contact is predicted: the interface of an estimator.
@@ -153,6 +157,9 @@ class Mechanics(AbstractEstimator):
     """
 
     name: ClassVar[str] = "mechanics"
+    #: XLA's fusion emitters and no intra-op threads: the batch programs run faster with both, for a
+    #: longer first compile (:mod:`softgrip_jax._compile`).
+    cpu_options: ClassVar[dict[str, object]] = {"xla_cpu_multi_thread_eigen": False, "xla_cpu_use_fusion_emitters": True}
     config: MechanicsConfig = eqx.field(static=True, default=MechanicsConfig())
 
     def __check_init__(self):
@@ -187,7 +194,7 @@ class Mechanics(AbstractEstimator):
         progress = jax.tree_util.tree_map(lambda a, b: jnp.where(late.reshape(late.shape + (1,) * (a.ndim - 1)), a, b),
                                           later, progress)
         eq = where_needed(lambda fsp: finish_equilibrium(fsp[0], sdf, fsp[1].frame, fsp[2], mech, config), need,
-                          (*solved, progress), group_size=_MECHANICS_GROUP)
+                          (*solved, progress), group_size=_FINISH_GROUP)
         return jax.vmap(lambda st, e: finish(finger, st, e))(stages, eq)
 
 

@@ -297,6 +297,32 @@ class _Problem(eqx.Module):
         return jnp.concatenate([y, contact])
 
 
+# Small products written as broadcast, multiply and sum: under ``vmap`` XLA:CPU runs a batched
+# ``dot`` of tiny matrices (K x N+1 with K = 6) as one small matrix product per element, at about a
+# microsecond each, while the same product as elementwise arithmetic fuses with its neighbours and
+# vectorises across the batch (benchmarks/RESULTS.md, "The mechanics' small products").
+
+
+def _matvec(a: Float[Array, "k n"], x: Float[Array, " n"]) -> Float[Array, " k"]:
+    """a @ x."""
+    return jnp.sum(a * x[None, :], axis=-1)
+
+
+def _rmatvec(a: Float[Array, "k n"], v: Float[Array, " k"]) -> Float[Array, " n"]:
+    """a.T @ v."""
+    return jnp.sum(a * v[:, None], axis=0)
+
+
+def _inner(x: Float[Array, " n"], y: Float[Array, " n"]) -> Float[Array, ""]:
+    """x . y."""
+    return jnp.sum(x * y)
+
+
+def _gram(a: Float[Array, "k n"]) -> Float[Array, "k k"]:
+    """a @ a.T."""
+    return jnp.sum(a[:, None, :] * a[None, :, :], axis=-1)
+
+
 def _residual_fn(y, problem: _Problem):
     return problem.residuals(y)
 
@@ -410,13 +436,13 @@ def _with_curvature(problem: _Problem, joints, index, p, g, force, a, low, step,
     curvature = _curvature_operator(problem, joints, index, p, g, force)
 
     def b_times(x):
-        return x + a.T @ (a @ x)
+        return x + _rmatvec(a, _matvec(a, x))
 
     def b_solve(r):
-        return r - a.T @ _cholesky_solve(low, a @ r)
+        return r - _rmatvec(a, _cholesky_solve(low, _matvec(a, r)))
 
     bs = b_times(step)
-    sbs = jnp.dot(step, bs)
+    sbs = _inner(step, bs)
     radius2 = stretch**2 * sbs
     tiny = jnp.asarray(1e-30, step.dtype)
     x, bx = jnp.zeros_like(step), jnp.zeros_like(step)
@@ -427,7 +453,7 @@ def _with_curvature(problem: _Problem, joints, index, p, g, force, a, low, step,
     for iteration in range(_CG_ITERATIONS):
         bd = b_times(d)
         hd = bd + curvature(d)
-        dhd, dbd, xbd, xbx = jnp.dot(d, hd), jnp.dot(d, bd), jnp.dot(x, bd), jnp.dot(x, bx)
+        dhd, dbd, xbd, xbx = _inner(d, hd), _inner(d, bd), _inner(x, bd), _inner(x, bx)
         if iteration == 0:
             shs = dhd
         alpha = rz / jnp.where(dhd > 0, dhd, 1.0)
@@ -437,18 +463,18 @@ def _with_curvature(problem: _Problem, joints, index, p, g, force, a, low, step,
         dbd_safe = jnp.maximum(dbd, tiny)
         tau = (-xbd + jnp.sqrt(jnp.maximum(xbd**2 + dbd_safe * (radius2 - xbx), 0.0))) / dbd_safe
         move = jnp.where(running, jnp.where(beyond, tau, alpha), 0.0)
-        xhx = xhx + 2.0 * move * (jnp.dot(d, bs) - jnp.dot(d, r)) + move**2 * dhd
-        descent = descent + move * jnp.dot(d, bs)
+        xhx = xhx + 2.0 * move * (_inner(d, bs) - _inner(d, r)) + move**2 * dhd
+        descent = descent + move * _inner(d, bs)
         x, bx = x + move * d, bx + move * bd
         r = r - move * hd
         z = b_solve(r)
-        rz_next = jnp.dot(r, z)
+        rz_next = _inner(r, z)
         running = running & ~beyond & (rz_next > 1e-12 * sbs)
         d = z + (rz_next / jnp.maximum(rz, tiny)) * d
         rz = rz_next
     short = jnp.minimum(stretch, 1.0)
     away = descent <= 0
-    return (jnp.where(away, short * step, x), jnp.where(away, short**2 * sbs, jnp.dot(x, bx)),
+    return (jnp.where(away, short * step, x), jnp.where(away, short**2 * sbs, _inner(x, bx)),
             jnp.where(away, short**2 * shs, xhx), sbs)
 
 
@@ -502,14 +528,14 @@ def _newton_step(problem: _Problem, y, previous, curvature: bool = True, stretch
     signed = weight * depth
 
     # The products with A, once: a round's system is their rows and columns of the stations kept.
-    gram = a_k @ a_k.T
-    rhs = signed - a_k @ y
+    gram = _gram(a_k)
+    rhs = signed - _matvec(a_k, y)
 
     def solve(rows_on):
         both = rows_on[:, None] & rows_on[None, :]
         low = _cholesky(jnp.eye(k, dtype=dtype) + jnp.where(both, gram, 0.0))
         lam = jnp.where(rows_on, _cholesky_solve(low, jnp.where(rows_on, rhs, 0.0)), 0.0)
-        return -y - a_k.T @ lam, lam, low
+        return -y - _rmatvec(a_k, lam), lam, low
 
     # Dropping one station changes the others' multipliers, and a glued station outside the
     # object can turn negative only after another is dropped: were it kept, the step's fixed point
@@ -542,13 +568,13 @@ def _newton_step(problem: _Problem, y, previous, curvature: bool = True, stretch
     # The step does not see the other stations and would drive them through the object and back:
     # shorten it so that the first of them that it drives into the object stops on the surface
     # (to first order), where the next step sees it. The candidates are the K least clear stations.
-    approach = (a_k @ step) / weight  # mm of penetration per unit step
+    approach = _matvec(a_k, step) / weight  # mm of penetration per unit step
     free = ~modelled & (depth < 0) & (approach > 0)
     entry = jnp.where(free, -depth / jnp.where(free, approach, 1.0), 1.0)
     alpha = jnp.clip(jnp.min(entry), 0.0, 1.0)
     # A step that undoes most of the previous one is an active set flipping between two states
     # (a station glued, then dropped): halving it lets the pair settle between them.
-    reverses = jnp.dot(step, previous) < -0.5 * jnp.sqrt(jnp.dot(step, step) * jnp.dot(previous, previous))
+    reverses = _inner(step, previous) < -0.5 * jnp.sqrt(_inner(step, step) * _inner(previous, previous))
     alpha = jnp.where(reverses, 0.5, 1.0) * alpha
     # How far the full step would move the joints, to first order (a turn d_j at link j moves
     # joint i > j by d_j (P_i - M_j) turned by 90 degrees, d psi moves it by d psi P_i turned): the
@@ -568,10 +594,10 @@ def _newton_step(problem: _Problem, y, previous, curvature: bool = True, stretch
     # The energy at y, and the model's value after the step taken (the hinge model of the K
     # stations, plus the contacts' curvature term): what the trust region compares.
     inside = jnp.maximum(violation, 0.0)
-    energy = 0.5 * (jnp.dot(y, y) + weight * weight * jnp.sum(inside * inside))
+    energy = 0.5 * (_inner(y, y) + weight * weight * jnp.sum(inside * inside))
     after = y + taken
     hinge = jnp.maximum(signed + alpha * weight * approach, 0.0)
-    model = 0.5 * (jnp.dot(after, after) + jnp.sum(hinge * hinge) + alpha**2 * (xhx - xbx))
+    model = 0.5 * (_inner(after, after) + jnp.sum(hinge * hinge) + alpha**2 * (xhx - xbx))
     reach = alpha * jnp.sqrt(xbx / jnp.maximum(sbs, 1e-30))
     return _Step(step=taken, moved=moved, penetration=penetration, pushed=pushed, energy=energy,
                  predicted=energy - model, reach=reach, shift=alpha * moved)

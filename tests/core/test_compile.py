@@ -45,8 +45,9 @@ def test_an_estimator_overrides_the_options_of_its_programs_only(fresh_options, 
 
     # Without XLA's optimisations (fast compiles), no override that compiles slower to run faster.
     fusion = {} if optimisations_off else {"xla_cpu_use_fusion_emitters": True}
+    one_thread = {} if optimisations_off else {"xla_cpu_multi_thread_eigen": False}
     assert compiler_options(Geometric()) == {**CPU_OPTIONS, **fusion}
-    assert compiler_options(Mechanics()) == CPU_OPTIONS  # no overrides
+    assert compiler_options(Mechanics()) == {**CPU_OPTIONS, **fusion, **one_thread}
     assert compiler_options() == CPU_OPTIONS
 
 
