@@ -39,10 +39,10 @@ from softgrip_jax._sdf import AbstractSDF
 from softgrip_jax._stage import Estimate, Stage, finish, mechanics_of, needs_mechanics, stand_in, start_mechanics
 
 #: A chunk's touching candidates are solved for their equilibrium in groups of this many: under
-#: vmap a group iterates until its slowest element is done (the longest closing path, the most
-#: Gauss-Newton steps), so small groups keep few lanes waiting (eight groups per chunk, as for the
-#: contact, are far slower: benchmarks/RESULTS.md, issue 20).
-_MECHANICS_GROUP = 64
+#: vmap a group iterates until its slowest element is done (the longest closing path: groups are
+#: ordered by it), so small groups keep few lanes waiting, and large ones launch fewer kernels per
+#: finger (measured by benchmarks/compare_mechanics.py).
+_MECHANICS_GROUP = 256
 
 #: The solve's iterations every touching finger takes in its group (most converge in two: the
 #: convergence test wants two small steps in a row), and the size of the groups in which the few
@@ -141,7 +141,7 @@ class Mechanics(AbstractEstimator):
     (:class:`~softgrip_jax.MechanicsConfig`). A finger that touches nothing keeps its PCC shape.
 
     It reads the finger's ``stiffness_ratio`` (> 0) and ``base_compliance`` (>= 0). Batched, it
-    solves only the fingers that touch, in groups of 64 ordered by their closing path's increments
+    solves only the fingers that touch, in groups of 256 ordered by their closing path's increments
     (the few whose solve needs more than two iterations continue in groups of 16).
 
     Example:
