@@ -34,8 +34,8 @@ def where_needed(fn, need: Bool[Array, " b"] | Bool[np.ndarray, " b"], inputs, g
     if group_size is None:
         groups = max(1, min(groups, b))  # a small batch (one candidate) is one group, not eight
         size = -(-b // groups)
-    else:
-        size = group_size
+    else:  # (a batch smaller than a group is one group of its own size: one pose computes one lane)
+        size = max(1, min(group_size, b))
         groups = -(-b // size)
     # Needed first, each part in its original order: every element's place from two running
     # counts (cheaper than an argsort on XLA:CPU).
