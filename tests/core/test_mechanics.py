@@ -196,6 +196,21 @@ def test_where_needed_never_maps_an_element_that_is_not_needed():
     assert seen and np.concatenate(seen).max() < 1000.0
 
 
+def test_where_needed_maps_a_batch_smaller_than_its_group_as_one_group_of_its_own_size():
+    # One pose (a planner's single call) must cost one lane, not a group of 256 copies of it.
+    need = jnp.array([True, False, True])
+    xs = jnp.arange(3.0)
+    seen = []
+
+    def fn(v):
+        jax.debug.callback(lambda a: seen.append(np.asarray(a).ravel()), v)
+        return v * 2.0
+
+    out = jax.jit(lambda n, x: where_needed(fn, n, x, group_size=256))(need, xs)
+    np.testing.assert_array_equal(jax.block_until_ready(out), [0.0, 0.0, 4.0])
+    assert sorted(np.concatenate(seen).tolist()) == [0.0, 0.0, 2.0]  # three lanes: two needed, a spare repeating the first
+
+
 # ---------------------------------------------------------------------------------------------
 # (1) Without an object the equilibrium is the PCC shape of eqs. 1-3
 
