@@ -139,7 +139,8 @@ def size_rows():
         call = lambda b=b: sg.score(gripper, obj, poses[:b], estimator=sg.Geometric()).score  # noqa: E731
         jax.block_until_ready(call())  # compiles the piece size the first time it is needed
         t = best_of(call, 3)
-        print(f"| {b:,} | {bucket_piece(b, workers, largest=obj.largest_piece)} | {t * 1e3:.1f} | {b / t:,.0f} |")
+        size = bucket_piece(b, workers, largest=obj.largest_piece, overhead=obj.piece_overhead)
+        print(f"| {b:,} | {size} | {t * 1e3:.1f} | {b / t:,.0f} |")
 
 
 def main() -> int:

@@ -143,7 +143,8 @@ def run_batch(one_device, sharded, before: tuple, xs: jax.Array | np.ndarray, af
     mesh = device_mesh()
     if chunk_size is None:  # the piece size for this batch, no larger than the object's lookups allow
         parallel = mesh.devices.size if mesh is not None else worker_count(workers)
-        chunk_size = bucket_piece(xs.shape[0], parallel, largest=before[1].largest_piece)
+        chunk_size = bucket_piece(xs.shape[0], parallel, largest=before[1].largest_piece,
+                                  overhead=before[1].piece_overhead)
     if mesh is not None:
         return run_sharded(sharded, mesh, before, xs, after, chunk_size, progress, estimator=estimator)
     return run_in_pieces(one_device, before, xs, after, workers, chunk_size, progress, estimator=estimator)

@@ -125,24 +125,27 @@ def balanced_chunk(rows: int, chunk_size: int) -> int:
 #: candidate cost one. Few sizes, since each is a compilation of seconds to tens of seconds.
 PIECE_BUCKETS = (1, 256, 4096)
 
-#: A piece's fixed cost in candidates' worth of work, as :func:`bucket_piece` weighs it: a piece of
-#: one candidate takes about as long as this many candidates inside a large piece.
+#: A piece's fixed cost in candidates' worth of work, as :func:`bucket_piece` weighs it by default:
+#: a piece of one candidate takes about as long as this many candidates inside a large piece (an
+#: SDF whose lookups cost more per candidate sets its own, ``AbstractSDF.piece_overhead``).
 PIECE_OVERHEAD = 256
 
 
-def bucket_piece(batch: int, workers: int, largest: int | None = None) -> int:
+def bucket_piece(batch: int, workers: int, largest: int | None = None, overhead: int = PIECE_OVERHEAD) -> int:
     """The piece size of :data:`PIECE_BUCKETS` that runs ``batch`` candidates soonest on ``workers``
-    concurrent workers, by the cost model ``rounds * (PIECE_OVERHEAD + size)`` (``rounds``: pieces
-    per worker, rounded up); of equal costs the larger piece. ``largest``: no bucket above it
-    (the smallest bucket if all are).
+    concurrent workers, by the cost model ``rounds * (overhead + size)`` (``rounds``: pieces
+    per worker, rounded up; ``overhead``: a piece's fixed cost in candidates); of equal costs the
+    larger piece. ``largest``: no bucket above it (the smallest bucket if all are).
 
     Example:
         >>> [bucket_piece(b, 2) for b in (1, 2, 5, 605, 2_000, 10_000, 100_000)]
         [1, 1, 256, 256, 256, 4096, 4096]
+        >>> [bucket_piece(b, 2, largest=256, overhead=16) for b in (5, 20, 40, 605)]  # PolygonSDF's settings
+        [1, 1, 256, 256]
     """
     def cost(size: int) -> int:
         rounds = -(-max(1, -(-batch // size)) // max(1, workers))
-        return rounds * (PIECE_OVERHEAD + size)
+        return rounds * (overhead + size)
 
     allowed = [size for size in PIECE_BUCKETS if largest is None or size <= largest] or [PIECE_BUCKETS[0]]
     return min(reversed(allowed), key=cost)

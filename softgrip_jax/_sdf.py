@@ -52,6 +52,11 @@ class AbstractSDF(eqx.Module):
     #: batch runs in against this SDF: a lookup whose intermediate arrays grow with the object
     #: (a polygon's points x edges) keeps its pieces smaller.
     largest_piece: ClassVar[int] = 4096
+    #: A piece's fixed cost in candidates' worth of work against this SDF, as
+    #: :func:`softgrip_jax._concurrent.bucket_piece` weighs it: a piece of one candidate takes about
+    #: as long as this many candidates inside a large piece (measured by ``benchmarks/bench_defaults.py
+    #: --only pieces --only sizes``).
+    piece_overhead: ClassVar[int] = 256
 
     @abc.abstractmethod
     def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
@@ -396,6 +401,9 @@ class PolygonSDF(AbstractSDF):
     #: A lookup materialises (points, edges) arrays: in pieces of 4096 candidates they outgrow the
     #: CPU's caches and the batch runs slower than in pieces of 256 (benchmarks/RESULTS.md).
     largest_piece: ClassVar[int] = 256
+    #: Each candidate reads every edge, so a candidate costs as much as a piece's fixed cost does
+    #: against a grid: a piece of one is worth about 16 candidates of a piece of 256.
+    piece_overhead: ClassVar[int] = 16
 
     if TYPE_CHECKING:  # the signature the converter accepts (type checkers do not apply it)
         def __init__(self, vertices: Float[ArrayLike, "v 2"]) -> None: ...
