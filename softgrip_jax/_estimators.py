@@ -159,7 +159,8 @@ class Mechanics(AbstractEstimator):
     name: ClassVar[str] = "mechanics"
     #: XLA's fusion emitters and no intra-op threads: the batch programs run faster with both, for a
     #: longer first compile (:mod:`softgrip_jax._compile`).
-    cpu_options: ClassVar[dict[str, object]] = {"xla_cpu_multi_thread_eigen": False, "xla_cpu_use_fusion_emitters": True}
+    cpu_options: ClassVar[dict[str, object]] = {"xla_cpu_multi_thread_eigen": False,
+                                                "xla_cpu_use_fusion_emitters": True}
     config: MechanicsConfig = eqx.field(static=True, default=MechanicsConfig())
 
     def __check_init__(self):

@@ -298,9 +298,9 @@ class _Problem(eqx.Module):
 
 
 # Small products written as broadcast, multiply and sum: under ``vmap`` XLA:CPU runs a batched
-# ``dot`` of tiny matrices (K x N+1 with K = 6) as one small matrix product per element, at about a
-# microsecond each, while the same product as elementwise arithmetic fuses with its neighbours and
-# vectorises across the batch (benchmarks/RESULTS.md, "The mechanics' small products").
+# ``dot`` of tiny matrices (K x N+1 with K = 6) as one small matrix product per element, while the
+# same product as elementwise arithmetic fuses with its neighbours and vectorises across the batch
+# (benchmarks/RESULTS.md, "The mechanics' batch programs").
 
 
 def _matvec(a: Float[Array, "k n"], x: Float[Array, " n"]) -> Float[Array, " k"]:
