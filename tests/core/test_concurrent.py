@@ -241,13 +241,17 @@ def test_a_default_batch_runs_in_the_piece_size_its_size_needs():
         assert sizes == sorted(sizes)  # a larger batch never gets a smaller piece
     assert bucket_piece(1, 2) == 1  # one pose costs a piece of one, not of hundreds
     assert bucket_piece(100_000, 2) == max(PIECE_BUCKETS)
-    # Against a polygon, whose every lookup reads every edge, a few poses run as pieces of one: a
-    # piece of 256 would cost about 256 poses' lookups.
+    # Against a polygon whose every lookup reads every edge, a few poses run as pieces of one: a
+    # piece of 256 would cost about 256 poses' lookups. With its edges indexed by cells it runs as
+    # a grid does.
     from softgrip_jax import PolygonSDF
 
-    polygon = dict(largest=PolygonSDF.largest_piece, overhead=PolygonSDF.piece_overhead)
+    disc = PolygonSDF.regular((0.0, 38.0), 15.0, 128)
+    every_edge = PolygonSDF(disc.vertices, edge_cells=False)
+    polygon = dict(largest=every_edge.largest_piece, overhead=every_edge.piece_overhead)
     assert [bucket_piece(b, 2, **polygon) for b in (5, 20)] == [1, 1]
     assert bucket_piece(605, 2, **polygon) == 256
+    assert (disc.largest_piece, disc.piece_overhead) == (4096, 256)
     # Padding stays bounded: a batch computes at most twice its rows, or a piece per worker.
     for b in range(1, 20_000, 13):
         size = bucket_piece(b, 2)
