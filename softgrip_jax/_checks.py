@@ -3,7 +3,9 @@
 A wrong type (``None`` or a numpy array where an SDF goes, a profile's plain dict where a gripper
 goes) would otherwise fail deep inside as an ``AttributeError`` or ``TypeError``. Each check is an
 ``isinstance`` test on the Python object: under ``jax.jit`` an equinox module keeps its class (its
-array leaves become tracers), so the checks cost nothing at run time and never touch the device.
+array leaves become tracers), so the checks cost nothing at run time and never touch the device
+(but for a polygon whose vertices are no longer the array its edge index was made with: those are
+compared by value once).
 """
 
 from __future__ import annotations
@@ -39,10 +41,12 @@ def describe(value: Any) -> str:
 
 def check_sdf(sdf: Any, name: str = "sdf") -> None:
     """Raise :class:`SoftgripError` unless ``sdf`` is a :class:`~softgrip_jax.AbstractSDF`."""
-    from softgrip_jax._sdf import AbstractSDF
+    from softgrip_jax._sdf import AbstractSDF, PolygonSDF
 
     if not isinstance(sdf, AbstractSDF):
         raise SoftgripError(f"{name}: got {describe(sdf)}; {_SDF_HINT}")
+    if isinstance(sdf, PolygonSDF):
+        sdf.check_cells()
 
 
 def check_finger(finger: Any, name: str = "finger") -> None:

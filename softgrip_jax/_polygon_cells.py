@@ -43,6 +43,8 @@ MIN_EDGES = 16
 MAX_FRACTION = 1 / 3
 #: The most cells a table has (memory: cells x K edge indices).
 MAX_CELLS = 1 << 17
+#: The most cell-edge distances made for a table (its construction time).
+MAX_WORK = 1 << 23
 #: Slack (mm) on which edges a cell keeps: a float32 point a rounding error outside its cell is
 #: still covered.
 _SLACK_MM = 1e-3
@@ -66,8 +68,7 @@ class EdgeCells(eqx.Module):
         cell_mm: the cells' side (mm).
         nodes: (H + 1, W + 1) the exact signed distance (mm) at the cells' corners, for a bilinear
             coarse lookup.
-        vertices: (V, 2) the vertices the table was made for (mm): a lookup with other vertices
-            reads every edge instead.
+        vertices: (V, 2) the vertices the table was made for (mm), the polygon's own array.
     """
 
     edges: Int[Array, "c k"]
@@ -79,10 +80,11 @@ class EdgeCells(eqx.Module):
     vertices: Float[Array, "v 2"]
 
 
-def edge_cells(vertices: np.ndarray) -> EdgeCells | None:
-    """The cell table of a polygon's (V, 2) vertices (mm), or None when reading every edge is as
-    cheap (few edges, or edges so dense that a cell keeps more than a third of them)."""
-    vertices = np.asarray(vertices, np.float64)
+def edge_cells(polygon: Float[Array, "v 2"]) -> EdgeCells | None:
+    """The cell table of a polygon's (V, 2) concrete vertices (mm), or None when reading every edge
+    is as cheap (few edges, or edges so dense that a cell keeps more than a third of them). The
+    table keeps ``polygon`` itself (the same array) as the vertices it belongs to."""
+    vertices = np.asarray(polygon, np.float64)
     n = len(vertices)
     if n < MIN_EDGES:
         return None
@@ -90,10 +92,11 @@ def edge_cells(vertices: np.ndarray) -> EdgeCells | None:
     lengths = np.hypot(*(b - a).T)
     low = vertices.min(axis=0) - MARGIN_MM
     span = vertices.max(axis=0) + MARGIN_MM - low
-    # Cells about the edges' length keep a handful of edges near the outline; fewer, larger cells
-    # when the grid would be too large.
-    cell = float(np.clip(0.7 * np.median(lengths), 0.25, 4.0))
-    cell = max(cell, math.sqrt(span[0] * span[1] / MAX_CELLS))
+    # Cells about the edges' length keep a handful of edges near the outline (larger ones keep more
+    # of the far field's); fewer, larger cells when the grid, or the work of making it, would be
+    # too large.
+    cell = float(np.clip(0.7 * np.median(lengths), 0.25, 1.0))
+    cell = max(cell, math.sqrt(span[0] * span[1] / MAX_CELLS), math.sqrt(span[0] * span[1] * n / MAX_WORK))
     width, height = (int(k) for k in np.ceil(span / cell))
     cols, rows = np.meshgrid(np.arange(width), np.arange(height))
     centres = low + (np.stack([cols, rows], axis=-1).reshape(-1, 2) + 0.5) * cell
@@ -127,7 +130,7 @@ def edge_cells(vertices: np.ndarray) -> EdgeCells | None:
     dtype = jnp.result_type(float)
     return EdgeCells(edges=jnp.asarray(table, jnp.int16 if n < 2 ** 15 else jnp.int32), ends=jnp.asarray(ends, dtype),
                      inside=jnp.asarray(inside.reshape(height, width)), origin=jnp.asarray(low, dtype), cell_mm=cell,
-                     nodes=jnp.asarray(nodes, dtype), vertices=jnp.asarray(vertices, dtype))
+                     nodes=jnp.asarray(nodes, dtype), vertices=polygon)
 
 
 def _segment_distances(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -418,7 +418,7 @@ class PolygonSDF(AbstractSDF):
         concrete = not isinstance(self.vertices, jax.core.Tracer)
         well_formed = jnp.ndim(self.vertices) == 2 and jnp.shape(self.vertices)[1] == 2  # else __check_init__ says
         usable = edge_cells and concrete and well_formed and bool(np.all(np.isfinite(np.asarray(self.vertices))))
-        self.cells = make_edge_cells(np.asarray(self.vertices)) if usable else None
+        self.cells = make_edge_cells(self.vertices) if usable else None
 
     @property
     def largest_piece(self) -> int:  # type: ignore[override]
@@ -433,6 +433,21 @@ class PolygonSDF(AbstractSDF):
         a piece's fixed cost does against a grid: a piece of one is worth about 16 candidates of a
         piece of 256; with it, as a grid's."""
         return AbstractSDF.piece_overhead if self.cells is not None else 16
+
+    def check_cells(self) -> None:
+        """Raise :class:`SoftgripError` when the cell index belongs to other vertices than the
+        polygon's (vertices replaced after construction, by ``eqx.tree_at`` or an optimiser's
+        update): its lookup would read the old polygon's candidate edges. Called by every entry
+        point before tracing; free when the polygon is as constructed (the same array)."""
+        cells = self.cells
+        if cells is None or cells.vertices is self.vertices or isinstance(self.vertices, jax.core.Tracer):
+            return
+        if jnp.shape(cells.vertices) == jnp.shape(self.vertices) and np.array_equal(
+                np.asarray(cells.vertices), np.asarray(self.vertices)):
+            return
+        raise SoftgripError("PolygonSDF: its vertices were replaced after construction (eqx.tree_at or an optimiser's "
+                            "update?) and its edges' cell index belongs to the old ones: make a new "
+                            "PolygonSDF(new_vertices) (or pass edge_cells=False to read every edge)")
 
     def __check_init__(self):
         shape = jnp.shape(self.vertices)
