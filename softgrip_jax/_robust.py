@@ -136,6 +136,21 @@ class OffsetSDF(AbstractSDF):
     def distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
         return self.base.distance(points) - self.offset
 
+    def coarse_distance(self, points: Float[Array, "*batch 2"]) -> Float[Array, "*batch"]:
+        return self.base.coarse_distance(points) - self.offset
+
+    @property
+    def has_coarse_lookup(self) -> bool:
+        return self.base.has_coarse_lookup
+
+    @property
+    def largest_piece(self) -> int:  # type: ignore[override]
+        return self.base.largest_piece
+
+    @property
+    def piece_overhead(self) -> int:  # type: ignore[override]
+        return self.base.piece_overhead
+
     def contains(self, points: Float[Array, "*batch 2"]) -> Bool[Array, "*batch"]:
         return self.base.contains(points)
 
