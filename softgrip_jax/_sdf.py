@@ -5,7 +5,8 @@ Two implementations behind one interface, :class:`AbstractSDF`:
 * :class:`SDFGrid` samples a distance grid (made from a mask by a distance transform in ``softgrip_vision``)
   with a C1 bicubic (Catmull-Rom) lookup by default, bilinearly on request; outside the grid it reads
   as ``far``, never as contact.
-* :class:`PolygonSDF` is the exact distance to a closed polygon, differentiable in its vertices.
+* :class:`PolygonSDF` is the exact distance to a closed polygon, differentiable in its vertices; a
+  polygon of many edges reads only the few its point can be nearest to (`_polygon_cells`).
 """
 
 from __future__ import annotations
