@@ -516,24 +516,26 @@ class Refined(eqx.Module):
 #: steps (the score jumps between tiers there: an optimum at the edge of force closure lies just
 #: past a plateau of the open tier, and the band of force closure along the approach axis can be
 #: thinner than a step, so whole steps alone jump over it); across the gripper and in angle one
-#: step; and the diagonals of across with approach and with angle (the edge of force closure moves
-#: with all three, so the way up along it is often diagonal).
+#: step; the diagonals of across with approach; and those of across with angle that turn the
+#: gripper about a point ``1 / angle_scale`` mm ahead of it, toward the object (the edge of force
+#: closure moves with all three, so the way up along it is often diagonal; the other diagonals of
+#: across with angle turn the gripper about a point behind it, away from the object).
 _COARSE = np.array([
     [0, 0, 0],
     [0, 1, 0], [0, -1, 0], [0, 2, 0], [0, -2, 0], [0, 0.5, 0], [0, -0.5, 0], [0, 1.5, 0], [0, -1.5, 0],
     [1, 0, 0], [-1, 0, 0],
     [0, 0, 1], [0, 0, -1],
-    [1, 0, -1], [-1, 0, 1], [1, 0, 1], [-1, 0, -1],
+    [1, 0, -1], [-1, 0, 1],
     [1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0],
 ], np.float32)
 #: ``_FINE``, at the last step (the one converging): the optimum lies on the curved edge of force
-#: closure, where the way up combines all three axes; besides the axes and the diagonals of across
-#: with angle and of across with the way back along the approach axis (toward the edge), the eight
-#: corners (every axis at once), which the coarse stencil lacks.
+#: closure, where the way up combines all three axes; besides the axes, the turns about a point ahead
+#: and the diagonals of across with the way back along the approach axis (toward the edge), the
+#: eight corners (every axis at once), which the coarse stencil lacks.
 _FINE = np.array([
     [0, 0, 0],
     [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
-    [1, 0, -1], [-1, 0, 1], [1, 0, 1], [-1, 0, -1],
+    [1, 0, -1], [-1, 0, 1],
     [1, -1, 0], [-1, -1, 0],
     [1, 1, 1], [1, 1, -1], [1, -1, 1], [1, -1, -1], [-1, 1, 1], [-1, 1, -1], [-1, -1, 1], [-1, -1, -1],
 ], np.float32)
@@ -651,14 +653,16 @@ def refine(
     (``step * angle_scale`` rad in angle). It moves to the stencil's best pose when that scores
     higher, else divides ``step`` by 4, from ``initial_step`` until it falls below ``final_step``
     (converged; by default polls at 2, 0.5 and 0.125 mm). The stencil reaches every half step up to
-    two steps along the approach axis, one step across it and in angle, and the diagonals of
-    across with approach and with angle; at the last step it takes the axes, those diagonals and
-    the eight corners (all three axes at once) instead; each poll also repeats the last successful
-    move. It needs no derivative and crosses the score's jumps between tiers (an optimum at the
-    edge of force closure lies just past the open tier's plateau, across a band of force closure
-    that can be thinner than a step), where a gradient method stalls. From starts within 3 mm and
-    0.05 rad of an optimum it reaches it, to 0.1 mm or 1 % of its score, but where another,
-    lower optimum is nearer (``benchmarks/bench_refine.py``: 59 of 60 starts on three objects).
+    two steps along the approach axis, one step across it and in angle, the diagonals of across
+    with approach, and turns about a point ``1 / angle_scale`` mm ahead of the gripper (a step
+    across with minus a step in angle); at the last step it takes the axes, those turns, the
+    diagonals of across with the way back along the approach axis and the eight corners (all
+    three axes at once) instead; each poll also repeats the last successful move. It needs no
+    derivative and crosses the score's jumps between tiers (an optimum at the edge of force
+    closure lies just past the open tier's plateau, across a band of force closure that can be
+    thinner than a step), where a gradient method stalls. From starts within 3 mm and 0.05 rad of
+    an optimum it reaches it, to 0.1 mm or 1 % of its score, unless the force closure nearest the
+    start is a lower optimum's (``benchmarks/bench_refine.py``: 59 of 60 starts on three objects).
 
     The result never gets worse than the start (a pose moves only to a strictly higher valid score).
     ``status`` says what happened: ``IMPROVED`` (converged at a better pose), ``NO_IMPROVEMENT``
@@ -676,7 +680,7 @@ def refine(
 
     Args:
         pose: (3,) or (B, 3) start poses: gripper centre x, y (mm) and angle (rad).
-        max_steps: polls at most (static); each scores the stencil (21 poses) once.
+        max_steps: polls at most (static); each scores the stencil (19 poses) once.
         angle_scale: rad of the angle stencil per mm of ``step``.
         chunk_size: poses of a batch refined together (static).
         initial_step: the stencil's first step (mm).
