@@ -506,20 +506,41 @@ class Refined(eqx.Module):
         return code_names(self.status, RefineStatus)
 
 
-#: The search's stencil: offsets (across mm, approach mm, angle in units of ``angle_scale``) per
-#: unit step, all evaluated in one batched call per poll. Along the approach axis it reaches two
+#: The search's stencils: offsets (across mm, approach mm, angle in units of ``angle_scale``) per
+#: unit step, all evaluated in one batched call per poll; both have the same number of rows (one
+#: compiled poll). Row 0 is the best pose itself at the first poll (the start), and afterwards the
+#: last successful move repeated from the new best pose (a pattern move; the best pose again after
+#: a failed poll).
+#:
+#: ``_COARSE``, at every step but the last: along the approach axis every half step up to two
 #: steps (the score jumps between tiers there: an optimum at the edge of force closure lies just
-#: past a plateau of the open tier); across the gripper and in angle one; and the diagonals of
-#: across with approach and with angle (the edge of force closure moves with all three, so the
-#: way up along it is often diagonal). Row 0 is the best pose itself (the start at the first poll).
-_STENCIL = np.array([
+#: past a plateau of the open tier, and the band of force closure along the approach axis can be
+#: thinner than a step, so whole steps alone jump over it); across the gripper and in angle one
+#: step; the diagonals of across with approach; and those of across with angle that turn the
+#: gripper about a point ``1 / angle_scale`` mm ahead of it, toward the object (the edge of force
+#: closure moves with all three, so the way up along it is often diagonal; the other diagonals of
+#: across with angle turn the gripper about a point behind it, away from the object).
+_COARSE = np.array([
     [0, 0, 0],
-    [0, 1, 0], [0, -1, 0], [0, 2, 0], [0, -2, 0],
+    [0, 1, 0], [0, -1, 0], [0, 2, 0], [0, -2, 0], [0, 0.5, 0], [0, -0.5, 0], [0, 1.5, 0], [0, -1.5, 0],
     [1, 0, 0], [-1, 0, 0],
     [0, 0, 1], [0, 0, -1],
-    [1, 0, -1], [-1, 0, 1], [1, 0, 1], [-1, 0, -1],
+    [1, 0, -1], [-1, 0, 1],
     [1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0],
 ], np.float32)
+#: ``_FINE``, at the last step (the one converging): the optimum lies on the curved edge of force
+#: closure, where the way up combines all three axes; besides the axes, the turns about a point ahead
+#: and the diagonals of across with the way back along the approach axis (toward the edge), the
+#: eight corners (every axis at once), which the coarse stencil lacks.
+_FINE = np.array([
+    [0, 0, 0],
+    [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1],
+    [1, 0, -1], [-1, 0, 1],
+    [1, -1, 0], [-1, -1, 0],
+    [1, 1, 1], [1, 1, -1], [1, -1, 1], [1, -1, -1], [-1, 1, 1], [-1, 1, -1], [-1, -1, 1], [-1, -1, -1],
+], np.float32)
+#: A failed poll multiplies the step by this: from the default 2 mm, polls at 2, 0.5 and 0.125 mm.
+_SHRINK = 0.25
 #: A poll improves on the best pose when it scores more than this above it (float32 rounding of
 #: the score is below 1e-6): equal scores (a plateau, or a pose scored twice) never move it.
 _GAIN = 1e-6
@@ -534,11 +555,12 @@ def _offsets(pose, step, angle_scale, stencil):
 
 def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, angle_scale, estimator, initial_step,
                 final_step):
-    """A compass search (pattern search) of the score from ``pose``: each poll scores the stencil
-    around the best pose at ``step`` in one batched call, moves to its best point when that is
-    higher, else halves ``step``; it converges when ``step`` falls below ``final_step``."""
+    """A compass search (pattern search) of the score from ``pose``: each poll scores a stencil
+    around the best pose at ``step`` in one batched call (:data:`_COARSE`, or :data:`_FINE` at the
+    last step), moves to its best point when that is higher, else multiplies ``step`` by
+    :data:`_SHRINK`; it converges when ``step`` falls below ``final_step``."""
     dtype = pose.dtype
-    stencil = jnp.asarray(_STENCIL, dtype)
+    coarse, fine = jnp.asarray(_COARSE, dtype), jnp.asarray(_FINE, dtype)
 
     def scored(poses):
         s = jax.vmap(lambda p: score_pose(gripper, sdf, p, weights, config, estimator=estimator,
@@ -547,15 +569,16 @@ def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, ang
         # its integers (case and status codes) and flags are exact in the vector's float dtype.
         return jnp.where(s.valid, s.score, -jnp.inf), jax.vmap(lambda one: ravel_pytree(one)[0])(s), s
 
-    shapes, scored = trace_once(scored, jnp.zeros((stencil.shape[0], 3), dtype))
+    shapes, scored = trace_once(scored, jnp.zeros((coarse.shape[0], 3), dtype))
     unflatten = ravel_pytree(jax.tree_util.tree_map(lambda leaf: jnp.zeros(leaf.shape[1:], leaf.dtype), shapes[2]))[1]
     step0 = jnp.asarray(initial_step, dtype)
     tol = jnp.asarray(final_step, dtype)
     flat_size = shapes[1].shape[1]
 
     def poll(carry):
-        best, value, flat, step, k, start_value, start_flat = carry
-        offsets = _offsets(best, step, angle_scale, stencil)
+        best, value, flat, step, last, k, start_value, start_flat = carry
+        stencil = jnp.where(step * _SHRINK < tol, fine, coarse)
+        offsets = _offsets(best, step, angle_scale, stencil).at[0].set(last)
         values, flats, _ = scored(best + offsets)
         first = k == 0
         start_value = jnp.where(first, values[0], start_value)
@@ -565,16 +588,17 @@ def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, ang
         i = jnp.argmax(values)
         better = (values[i] > value + _GAIN) & jnp.isfinite(start_value)
         return (jnp.where(better, best + offsets[i], best), jnp.where(better, values[i], value),
-                jnp.where(better, flats[i], flat), jnp.where(better, step, 0.5 * step), k + 1, start_value, start_flat)
+                jnp.where(better, flats[i], flat), jnp.where(better, step, _SHRINK * step),
+                jnp.where(better, offsets[i], 0.0), k + 1, start_value, start_flat)
 
     def going(carry):
-        _, _, _, step, k, start_value, _ = carry
+        _, _, _, step, _, k, start_value, _ = carry
         return (k == 0) | ((k < max_steps) & (step >= tol) & jnp.isfinite(start_value))
 
     zeros = jnp.zeros((flat_size,), shapes[1].dtype)
-    carry = (pose, jnp.asarray(-jnp.inf, dtype), zeros, step0, jnp.asarray(0, jnp.int32), jnp.asarray(-jnp.inf, dtype),
-             zeros)
-    best, value, flat, step, k, start_value, start_flat = jax.lax.while_loop(going, poll, carry)
+    carry = (pose, jnp.asarray(-jnp.inf, dtype), zeros, step0, jnp.zeros((3,), dtype), jnp.asarray(0, jnp.int32),
+             jnp.asarray(-jnp.inf, dtype), zeros)
+    best, value, flat, step, _, k, start_value, start_flat = jax.lax.while_loop(going, poll, carry)
     start, end = unflatten(start_flat), unflatten(flat)
     converged = step < tol
     moved = jnp.any(best != pose)
@@ -625,13 +649,20 @@ def refine(
     the score: the grasp quality in force closure, robust with ``uncertainty``, as for :func:`score`).
 
     A compass search (pattern search): each step (a *poll*) scores a small stencil of poses
-    around the best pose so far in one batched call, ``step`` mm apart in the gripper's frame (up
-    to two steps along the approach axis, one across it, ``step * angle_scale`` rad in angle, and
-    the diagonals of across with approach and with angle). It moves to the stencil's best pose
-    when that scores higher, else halves ``step``, from ``initial_step`` until it falls below
-    ``final_step`` (converged). It needs no derivative and crosses the score's jumps between tiers (an optimum at the edge of force
-    closure lies just past the open tier's plateau), where a gradient method stalls; from starts
-    within 3 mm and 0.05 rad of an optimum it reaches it (``benchmarks/bench_refine.py``).
+    around the best pose so far in one batched call, ``step`` mm apart in the gripper's frame
+    (``step * angle_scale`` rad in angle). It moves to the stencil's best pose when that scores
+    higher, else divides ``step`` by 4, from ``initial_step`` until it falls below ``final_step``
+    (converged; by default polls at 2, 0.5 and 0.125 mm). The stencil reaches every half step up to
+    two steps along the approach axis, one step across it and in angle, the diagonals of across
+    with approach, and turns about a point ``1 / angle_scale`` mm ahead of the gripper (a step
+    across with minus a step in angle); at the last step it takes the axes, those turns, the
+    diagonals of across with the way back along the approach axis and the eight corners (all
+    three axes at once) instead; each poll also repeats the last successful move. It needs no
+    derivative and crosses the score's jumps between tiers (an optimum at the edge of force
+    closure lies just past the open tier's plateau, across a band of force closure that can be
+    thinner than a step), where a gradient method stalls. From starts within 3 mm and 0.05 rad of
+    an optimum it reaches it, to 0.1 mm or 1 % of its score, unless the force closure nearest the
+    start is a lower optimum's (``benchmarks/bench_refine.py``: 59 of 60 starts on three objects).
 
     The result never gets worse than the start (a pose moves only to a strictly higher valid score).
     ``status`` says what happened: ``IMPROVED`` (converged at a better pose), ``NO_IMPROVEMENT``
@@ -649,7 +680,7 @@ def refine(
 
     Args:
         pose: (3,) or (B, 3) start poses: gripper centre x, y (mm) and angle (rad).
-        max_steps: polls at most (static); each scores the stencil (17 poses) once.
+        max_steps: polls at most (static); each scores the stencil (19 poses) once.
         angle_scale: rad of the angle stencil per mm of ``step``.
         chunk_size: poses of a batch refined together (static).
         initial_step: the stencil's first step (mm).

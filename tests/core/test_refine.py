@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from softgrip_jax import FingerModel, Geometric, Gripper, PolygonSDF, RefineStatus, refine, score, score_pose
+from softgrip_jax import FingerModel, Geometric, Gripper, PolygonSDF, RefineStatus, SDFGrid, refine, score, score_pose
 from softgrip_jax._safe import tied_max, tied_min
 
 FINGER = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=10)
@@ -100,3 +100,43 @@ def test_the_derivative_at_the_symmetric_pose_matches_central_differences(line, 
     assert abs(central[0]) < 1e-3 and abs(central[2]) < 5e-3
     assert abs(grad[0]) < 1e-3 and abs(grad[2]) < 1e-3, (grad, central)
     assert grad[1] == pytest.approx(central[1], rel=0.1, abs=2e-4)
+
+
+# The README's gripper (N = 20) before two objects of benchmarks/bench_refine.py, from starts of its
+# table that the search with whole approach steps and no corners in its stencil failed: it ended on
+# a lower closure optimum 5 mm further down (the rectangle, 96 % of the line's optimum) and short of
+# the optimum on the tier's curved edge (the sampled ellipse, 98.7 %).
+FINGER_20 = FingerModel(length=52.0, theta_entire=0.55, half_thickness=4.0, n_links=20)
+GRIPPER_20 = Gripper(left=FINGER_20, right=FINGER_20, base_separation=56.0)
+
+
+def _line_optimum(sdf, ys):
+    poses = np.c_[np.zeros_like(ys), ys, np.zeros_like(ys)].astype(np.float32)
+    s = np.asarray(score(GRIPPER_20, sdf, poses, estimator=Geometric()).score)
+    return float(ys[np.argmax(s)]), float(np.max(s))
+
+
+def test_refine_finds_a_band_of_force_closure_thinner_than_its_first_step():
+    # A 26 x 20 mm rectangle: along the approach axis its band of force closure at this start's
+    # offset and angle is about 1.75 mm thick, below a plateau of the open tier whose score falls
+    # toward it; polls 2 mm apart along that axis landed on either side of it.
+    rectangle = PolygonSDF(jnp.array([[-13.0, 28.0], [13.0, 28.0], [13.0, 48.0], [-13.0, 48.0]]))
+    y, best = _line_optimum(rectangle, np.arange(-6.0, 6.0, 0.05))
+    start = np.array([1.1741087, -3.213093, -0.01295403], np.float32)
+    assert abs(start[1] - y + 2.2) < 0.05  # 2.2 mm short of the line's optimum, 1.17 mm across
+    r = refine(GRIPPER_20, rectangle, start, estimator=Geometric())
+    assert r.status_name == "improved"
+    assert float(r.score.score) >= 0.99 * best, (np.asarray(r.pose), float(r.score.score), best)
+    assert abs(float(r.pose[1]) - y) < 1.0  # the band near the start, not one further down
+
+
+@pytest.mark.slow
+def test_refine_climbs_along_the_curved_edge_of_force_closure_to_the_optimum():
+    t = 2 * np.pi * np.arange(256) / 256
+    ellipse = PolygonSDF(jnp.asarray(np.c_[13.0 * np.cos(t), 38.0 + 10.0 * np.sin(t)], jnp.float32))
+    grid = SDFGrid.sample(ellipse, origin=(-40.0, -40.0), spacing=(0.25, 0.25), shape=(441, 321))
+    y, best = _line_optimum(grid, np.arange(-14.0, -6.0, 0.05))
+    start = np.array([0.37616163, -7.4377007, 0.02447622], np.float32)
+    r = refine(GRIPPER_20, grid, start, estimator=Geometric())
+    assert r.status_name == "improved" and int(r.solver_result) == 0
+    assert float(r.score.score) >= 0.99 * best, (np.asarray(r.pose), float(r.score.score), best)
