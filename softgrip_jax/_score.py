@@ -539,7 +539,8 @@ _FINE = np.array([
     [1, -1, 0], [-1, -1, 0],
     [1, 1, 1], [1, 1, -1], [1, -1, 1], [1, -1, -1], [-1, 1, 1], [-1, 1, -1], [-1, -1, 1], [-1, -1, -1],
 ], np.float32)
-#: A failed poll multiplies the step by this: from the default 2 mm, polls at 2, 0.5 and 0.125 mm.
+#: A failed poll multiplies the step by this (the last poll at ``final_step`` itself when a step
+#: would skip past it): from the default 2 mm, polls at 2, 0.5 and 0.125 mm.
 _SHRINK = 0.25
 #: A poll improves on the best pose when it scores more than this above it (float32 rounding of
 #: the score is below 1e-6): equal scores (a plateau, or a pose scored twice) never move it.
@@ -575,6 +576,9 @@ def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, ang
     tol = jnp.asarray(final_step, dtype)
     flat_size = shapes[1].shape[1]
 
+    def shrunk(step):  # divided by 4, but the last poll at final_step itself, not below it
+        return jnp.where((step > tol) & (_SHRINK * step < tol), tol, _SHRINK * step)
+
     def poll(carry):
         best, value, flat, step, last, k, start_value, start_flat = carry
         stencil = jnp.where(step * _SHRINK < tol, fine, coarse)
@@ -588,7 +592,7 @@ def _refine_one(gripper, sdf, pose, weights, config, uncertainty, max_steps, ang
         i = jnp.argmax(values)
         better = (values[i] > value + _GAIN) & jnp.isfinite(start_value)
         return (jnp.where(better, best + offsets[i], best), jnp.where(better, values[i], value),
-                jnp.where(better, flats[i], flat), jnp.where(better, step, _SHRINK * step),
+                jnp.where(better, flats[i], flat), jnp.where(better, step, shrunk(step)),
                 jnp.where(better, offsets[i], 0.0), k + 1, start_value, start_flat)
 
     def going(carry):
@@ -651,8 +655,9 @@ def refine(
     A compass search (pattern search): each step (a *poll*) scores a small stencil of poses
     around the best pose so far in one batched call, ``step`` mm apart in the gripper's frame
     (``step * angle_scale`` rad in angle). It moves to the stencil's best pose when that scores
-    higher, else divides ``step`` by 4, from ``initial_step`` until it falls below ``final_step``
-    (converged; by default polls at 2, 0.5 and 0.125 mm). The stencil reaches every half step up to
+    higher, else divides ``step`` by 4 (polling at ``final_step`` itself when a division would
+    skip past it), from ``initial_step`` until it falls below ``final_step`` (converged; by
+    default polls at 2, 0.5 and 0.125 mm). The stencil reaches every half step up to
     two steps along the approach axis, one step across it and in angle, the diagonals of across
     with approach, and turns about a point ``1 / angle_scale`` mm ahead of the gripper (a step
     across with minus a step in angle); at the last step it takes the axes, those turns, the

@@ -140,3 +140,14 @@ def test_refine_climbs_along_the_curved_edge_of_force_closure_to_the_optimum():
     r = refine(GRIPPER_20, grid, start, estimator=Geometric())
     assert r.status_name == "improved" and int(r.solver_result) == 0
     assert float(r.score.score) >= 0.99 * best, (np.asarray(r.pose), float(r.score.score), best)
+
+
+def test_a_final_step_below_the_last_division_is_polled_itself():
+    # From an optimum no poll moves: by default the polls run at 2, 0.5 and 0.125 mm (three); with
+    # final_step=0.05 a fourth polls at 0.05 mm itself (a division by 4 would skip from 0.125 to
+    # 0.03125, below what was asked, without polling there).
+    start = refine(GRIPPER, DISC, np.array([0.0, -8.0, 0.0], np.float32), estimator=Geometric()).pose
+    default = refine(GRIPPER, DISC, start, estimator=Geometric())
+    finer = refine(GRIPPER, DISC, start, estimator=Geometric(), final_step=0.05)
+    assert default.status_name == finer.status_name == "no_improvement"
+    assert (int(default.steps), int(finer.steps)) == (3, 4)
