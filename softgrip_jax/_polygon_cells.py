@@ -124,7 +124,9 @@ def edge_cells(polygon: Float[Array, "v 2"]) -> EdgeCells | None:
         return None
     table = np.where(np.arange(k) < np.minimum(counts, k)[:, None], order[:, :k], -1)
     ab = b - a
-    edge_rows = np.stack([a[:, 0], a[:, 1], ab[:, 0], ab[:, 1], 1.0 / np.maximum(np.sum(ab * ab, axis=1), 1e-300)])
+    squared = np.sum(ab * ab, axis=1)
+    inverse = np.divide(1.0, squared, out=np.zeros_like(squared), where=squared > 0)  # a repeated vertex: t = 0
+    edge_rows = np.stack([a[:, 0], a[:, 1], ab[:, 0], ab[:, 1], inverse])
     far = np.array([_FAR_MM, _FAR_MM, 0.0, 0.0, 0.0])[:, None]
     ends = np.where(table[:, None, :] >= 0, edge_rows[:, np.maximum(table, 0)].transpose(1, 0, 2), far)
     dtype = jnp.result_type(float)

@@ -129,3 +129,11 @@ def test_replaced_vertices_are_refused_by_the_entry_points():
     # The same values in a new array (a device transfer, a copy) are the polygon it was made for.
     copied = eqx.tree_at(lambda s: s.vertices, disc, jnp.array(np.asarray(disc.vertices)))
     assert np.isfinite(float(score(gripper, copied, jnp.zeros((1, 3)), estimator=Geometric()).score[0]))
+
+
+def test_a_repeated_vertex_changes_nothing():
+    rng = np.random.default_rng(6)
+    vertices = star(rng, 40)
+    repeated = np.insert(vertices, 7, vertices[7], axis=0)  # a zero-length edge
+    points = jnp.asarray(points_around(vertices, rng, 1000, 2.0))
+    np.testing.assert_allclose(PolygonSDF(repeated).distance(points), PolygonSDF(vertices).distance(points), atol=2e-5)
