@@ -15,7 +15,7 @@ import abc
 import math
 from collections.abc import Callable
 from functools import partial
-from typing import TYPE_CHECKING, ClassVar, Literal, cast
+from typing import ClassVar, Literal, cast
 
 import equinox as eqx
 import jax
