@@ -196,9 +196,12 @@ def join_pieces(outputs: list, b: int):
     leaves = [jax.tree_util.tree_flatten(out)[0] for out in outputs]
     treedef = jax.tree_util.tree_structure(outputs[0])
     outputs.clear()
+    if len(leaves) == 1 and all(leaf.shape[0] == b for leaf in leaves[0]):  # one piece, no padding: as it is
+        return jax.tree_util.tree_unflatten(treedef, leaves[0])
     on_cpu = all(d.platform == "cpu" for leaf in leaves[0] for d in leaf.devices())
     joined: list[Any] = [None] * len(leaves[0])
     group: list[int] = []
+    group_bytes = 0
 
     def put(group: list[int]) -> None:
         for k, array in zip(group, jax.device_put([joined[k] for k in group], may_alias=True)):
@@ -212,8 +215,10 @@ def join_pieces(outputs: list, b: int):
         if on_cpu:
             joined[k] = np.concatenate([np.asarray(x) for x in parts])[:b]
             group.append(k)
-            if sum(joined[i].nbytes for i in group) >= _PUT_BYTES:
+            group_bytes += joined[k].nbytes
+            if group_bytes >= _PUT_BYTES:
                 put(group)
+                group_bytes = 0
         else:
             joined[k] = jnp.concatenate(parts)[:b]
         del parts

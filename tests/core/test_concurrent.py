@@ -167,6 +167,17 @@ def test_join_pieces_joins_each_leaf_in_order_and_cuts_the_padding(monkeypatch, 
     assert joined["codes"].dtype == jnp.int32 and np.asarray(joined["codes"]).tolist() == [0, 1, 2, 3, 4, 5, 6]
 
 
+def test_one_unpadded_piece_is_returned_as_it_is_and_a_padded_one_is_cut():
+    import softgrip_jax._concurrent as concurrent
+
+    piece = {"rows": jnp.arange(6.0).reshape(3, 2), "codes": jnp.arange(3, dtype=jnp.int32)}
+    whole = concurrent.join_pieces([dict(piece)], 3)
+    assert whole["rows"] is piece["rows"] and whole["codes"] is piece["codes"]  # no copy, no device_put
+    cut = concurrent.join_pieces([dict(piece)], 2)
+    np.testing.assert_array_equal(np.asarray(cut["rows"]), [[0.0, 1.0], [2.0, 3.0]])
+    assert np.asarray(cut["codes"]).tolist() == [0, 1]
+
+
 def test_warm_threads_runs_the_task_once_on_each_thread_even_with_two_callers_at_once():
     import threading
     from concurrent.futures import ThreadPoolExecutor
