@@ -187,12 +187,16 @@ def cells_distance(table: EdgeCells, vertices: Float[Array, "v 2"], points: Floa
     crossings = jnp.sum((a_side != b_side) & (c_side != p_side), axis=-1)
     inside = on_table & (table.inside.reshape(-1).at[flat].get(mode="promise_in_bounds") != (crossings % 2 == 1))
     edge = jnp.take_along_axis(table.edges.at[flat].get(mode="promise_in_bounds"), nearest[..., None], axis=-1)[..., 0]
-    edge = edge.astype(jnp.int32)
-    a = vertices[edge]
-    b = vertices[(edge + 1) % vertices.shape[0]]
-    ab, ap = b - a, points - a
+    # The chosen edge and its two neighbours: where two edges tie at their shared vertex, the scan's
+    # rounding (which differs between a batch's lanes) may choose either; the least of the three
+    # reads the same whichever it chose, so an element's answer does not depend on its batch.
+    n = vertices.shape[0]
+    edges = (edge.astype(jnp.int32)[..., None] + jnp.arange(-1, 2, dtype=jnp.int32)) % n
+    a = vertices[edges]
+    b = vertices[(edges + 1) % n]
+    ab, ap = b - a, points[..., None, :] - a
     s = jnp.clip(safe_divide(jnp.sum(ap * ab, -1), jnp.sum(ab * ab, -1)), 0.0, 1.0)
-    d2 = jnp.sum((ap - s[..., None] * ab) ** 2, axis=-1)
+    d2 = jnp.min(jnp.sum((ap - s[..., None] * ab) ** 2, axis=-1), axis=-1)
     positive = d2 > 0
     dist = jnp.where(positive, jnp.sqrt(jnp.where(positive, d2, 1.0)), 0.0)
     return jnp.where(inside, -dist, dist)
